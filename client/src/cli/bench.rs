@@ -1,0 +1,141 @@
+//! `relfusion bench ...`: benchmarks that print JSON figures (GPU kernels vs their CPU twins).
+
+use std::time::{Duration, Instant};
+
+use relfusion_slam::gpu::{AdapterChoice, PyramidKernel};
+use relfusion_slam::image::ImageF32;
+use relfusion_slam::image::pyramid::Pyramid;
+use serde_json::json;
+
+use super::gpu_info::{adapter_json, open_context};
+
+#[derive(Debug, clap::Subcommand)]
+pub enum BenchCommand {
+    /// GPU pyramid/gradient kernel vs its CPU reference.
+    Pyramid(PyramidArgs),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct PyramidArgs {
+    /// Image width in pixels (TUM RGB-D: 640).
+    #[arg(long, default_value_t = 640)]
+    pub width: usize,
+    /// Image height in pixels (TUM RGB-D: 480).
+    #[arg(long, default_value_t = 480)]
+    pub height: usize,
+    /// Pyramid levels (LSD-SLAM tracks on 5).
+    #[arg(long, default_value_t = 5)]
+    pub levels: usize,
+    /// Timed iterations per variant (after 3 untimed warm-up runs).
+    #[arg(long, default_value_t = 50)]
+    pub iters: usize,
+    /// Adapter kind: auto, gpu or cpu (auto lets RELFUSION_GPU decide).
+    #[arg(long)]
+    pub adapter: Option<AdapterChoice>,
+}
+
+pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
+    match cmd {
+        BenchCommand::Pyramid(args) => pyramid(&args),
+    }
+}
+
+/// Untimed runs before measuring (pipeline compilation, first allocations, driver warm-up).
+const WARMUP: usize = 3;
+
+fn pyramid(args: &PyramidArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(args.iters > 0, "--iters must be positive");
+    let image = noise_image(args.width, args.height, 0x5eed);
+    let ctx = open_context(args.adapter)?;
+    let kernel = PyramidKernel::new(&ctx)?;
+
+    let cpu_ref = Pyramid::build_cpu(&image, args.levels)?;
+    let gpu_out = kernel.build(&ctx, &image, args.levels)?;
+    let max_abs_diff = cpu_ref.max_abs_diff(&gpu_out)?;
+
+    let cpu = time(args.iters, || {
+        Pyramid::build_cpu(&image, args.levels).map(drop)
+    })?;
+    // Upload + all kernels + readback of every level, one submission each.
+    let mut kernel_only = Vec::new();
+    let total = time(args.iters, || {
+        let (_, t) = kernel.build_timed(&ctx, &image, args.levels)?;
+        kernel_only.extend(t);
+        Ok(())
+    })?;
+    // Upload + kernels, waiting for completion but reading nothing back.
+    let resident = time(args.iters, || {
+        kernel.build_resident(&ctx, &image, args.levels)?;
+        ctx.wait()
+    })?;
+    // `total` ran WARMUP + iters times; keep the timed runs' kernel times only.
+    let kernel_ms =
+        (kernel_only.len() > WARMUP).then(|| median_ms(&mut kernel_only[WARMUP..].to_vec()));
+
+    let report = json!({
+        "bench": "pyramid",
+        "adapter": adapter_json(&ctx),
+        "width": args.width,
+        "height": args.height,
+        "levels": args.levels,
+        "iters": args.iters,
+        "gpu_total_ms_median": median_ms(&mut total.clone()),
+        "gpu_no_readback_ms_median": median_ms(&mut resident.clone()),
+        "gpu_kernel_ms_median": kernel_ms,
+        "cpu_ms_median": median_ms(&mut cpu.clone()),
+        "max_abs_diff": max_abs_diff,
+        "notes": "gpu_total: upload + kernels + readback; gpu_no_readback: upload + kernels; \
+                  gpu_kernel: timestamp queries around the compute pass (null without support)",
+    });
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
+
+/// Runs `f` WARMUP times untimed, then `iters` times timed.
+fn time(
+    iters: usize,
+    mut f: impl FnMut() -> relfusion_slam::Result<()>,
+) -> relfusion_slam::Result<Vec<Duration>> {
+    for _ in 0..WARMUP {
+        f()?;
+    }
+    (0..iters)
+        .map(|_| {
+            let start = Instant::now();
+            f()?;
+            Ok(start.elapsed())
+        })
+        .collect()
+}
+
+fn median_ms(samples: &mut [Duration]) -> f64 {
+    samples.sort_unstable();
+    let mid = samples.len() / 2;
+    let m = if samples.len() % 2 == 1 {
+        samples[mid]
+    } else {
+        (samples[mid - 1] + samples[mid]) / 2
+    };
+    m.as_secs_f64() * 1e3
+}
+
+/// Deterministic uniform noise in [0, 255) (SplitMix64), so runs are comparable without a
+/// dataset; the kernels' cost does not depend on content, so noise is as good as a real frame.
+fn noise_image(width: usize, height: usize, seed: u64) -> ImageF32 {
+    let mut state = seed;
+    let data = (0..width * height)
+        .map(|_| {
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^= z >> 31;
+            (z >> 40) as f32 / (1u64 << 24) as f32 * 255.0
+        })
+        .collect();
+    ImageF32 {
+        width,
+        height,
+        data,
+    }
+}

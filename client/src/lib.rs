@@ -1,0 +1,1 @@
+//! relfusion client library (being written).

@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Installs what relfusion needs on a fresh Debian 12 machine, idempotently:
+#  - Mesa's lavapipe Vulkan driver, so wgpu runs without a GPU (adapter "llvmpipe");
+#  - the ONNX Runtime shared library (1.31.1, matching ort's `api-31` feature), taken from the
+#    PyPI `onnxruntime` wheel because ort's own download feature cannot work offline.
+# Prints the `export` lines the Makefile evaluates. Needs root or sudo for the apt part only.
+set -euo pipefail
+
+ORT_VERSION=1.31.1
+RELFUSION_HOME="${RELFUSION_HOME:-${XDG_CACHE_HOME:-$HOME/.cache}/relfusion}"
+ORT_DIR="$RELFUSION_HOME/onnxruntime-$ORT_VERSION"
+ORT_LIB="$ORT_DIR/onnxruntime/capi/libonnxruntime.so.$ORT_VERSION"
+
+log() { echo "setup: $*" >&2; }
+
+as_root() {
+  if [ "$(id -u)" -eq 0 ]; then "$@"; elif command -v sudo >/dev/null; then sudo "$@"; else
+    log "need root (or sudo) to run: $*"; exit 1; fi
+}
+
+missing=()
+for pkg in mesa-vulkan-drivers libvulkan1 python3 python3-pip ca-certificates; do
+  case "$pkg" in
+    python3|python3-pip)
+      # Any working python3 with pip will do (a pyenv one counts): only fetch Debian's if none.
+      python3 -m pip --version >/dev/null 2>&1 || missing+=("$pkg") ;;
+    *) dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg") ;;
+  esac
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  log "installing Debian packages: ${missing[*]}"
+  as_root apt-get update -qq
+  as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}" >&2
+fi
+
+if ! command -v cargo >/dev/null; then
+  log "cargo not found: install the Rust toolchain (rustup) first"; exit 1
+fi
+
+if [ ! -f "$ORT_LIB" ]; then
+  log "installing ONNX Runtime $ORT_VERSION into $ORT_DIR"
+  tmp=$(mktemp -d)
+  trap 'rm -rf "$tmp"' EXIT
+  # `pip download` + unzip works under PEP 668 (no environment is modified).
+  python3 -m pip download -q --no-deps --only-binary=:all: -d "$tmp" "onnxruntime==$ORT_VERSION" >&2
+  mkdir -p "$ORT_DIR.partial"
+  python3 -m zipfile -e "$tmp"/onnxruntime-*.whl "$ORT_DIR.partial"
+  rm -rf "$ORT_DIR" && mv "$ORT_DIR.partial" "$ORT_DIR"
+fi
+[ -f "$ORT_LIB" ] || { log "ONNX Runtime library missing after install: $ORT_LIB"; exit 1; }
+
+echo "export ORT_DYLIB_PATH=$ORT_LIB"

@@ -1,0 +1,56 @@
+//! The one error type of `relfusion-slam`.
+
+use std::path::PathBuf;
+
+/// Every failure the pipeline library can report. Each variant says what the user can fix.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// An image file could not be decoded or encoded.
+    #[error("image {path}: {source}")]
+    Image {
+        path: PathBuf,
+        #[source]
+        source: ::image::ImageError,
+    },
+    /// A dataset folder or file is malformed (missing file, bad line, no associations, ...).
+    #[error("dataset: {0}")]
+    Dataset(String),
+    /// Camera intrinsics are invalid (non-positive focal length, NaN, zero size, ...).
+    #[error("invalid camera: {0}")]
+    InvalidCamera(String),
+    /// An input has the wrong size or shape for the operation.
+    #[error("shape mismatch: {0}")]
+    Shape(String),
+    /// An evaluation could not be computed (e.g. too few matched poses).
+    #[error("evaluation: {0}")]
+    Eval(String),
+    /// No usable GPU adapter, or a GPU operation failed.
+    #[error("gpu: {0}")]
+    Gpu(String),
+    /// The depth-prior runtime or model failed (missing runtime library, model file, shapes).
+    #[error("depth prior: {0}")]
+    Prior(String),
+    /// A configuration value is invalid.
+    #[error("config: {0}")]
+    Config(String),
+}
+
+/// Shorthand used throughout the crate.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl Error {
+    /// Wraps an I/O error with the path it concerns.
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Io {
+            path: path.into(),
+            source,
+        }
+    }
+}

@@ -1,0 +1,25 @@
+//! relfusion-slam: the DeepRelativeFusion pipeline as a library with no networking.
+//!
+//! Module map (see ARCHITECTURE.md):
+//! - [`geometry`]: Lie groups (`SO3`, `SE3`, `Sim3`) and the pinhole camera with distortion.
+//! - [`image`]: grayscale float images, pyramids and gradients (CPU references of the GPU kernels).
+//! - [`dataset`]: TUM RGB-D reader, trajectory files, the synthetic room renderer.
+//! - [`eval`]: ATE / RPE with Umeyama alignment, percentage of correct depth.
+//! - [`gpu`]: the wgpu context and one runner per WGSL kernel.
+//! - [`dense`]: the dense layer (depth prior runtime, scale/shift alignment, ...).
+//! - [`npy`]: minimal NumPy `.npy` float32 reader/writer for depth maps and benchmarks.
+//!
+//! Conventions used everywhere: poses are named by their frames (`world_from_camera`,
+//! `T_w_c`); Lie-group tangents are perturbed on the right (`T · exp(δ)`); SE(3) tangents are
+//! ordered (translation ρ, rotation φ), Sim(3) tangents (ρ, φ, σ) with scale `s = exp(σ)`.
+
+pub mod dataset;
+pub mod dense;
+pub mod error;
+pub mod eval;
+pub mod geometry;
+pub mod gpu;
+pub mod image;
+pub mod npy;
+
+pub use error::{Error, Result};
