@@ -40,6 +40,10 @@ pub enum Error {
     /// A configuration value is invalid.
     #[error("config: {0}")]
     Config(String),
+    /// The SLAM back end was misused (unknown keyframe id, duplicate keyframe) or its thread
+    /// has stopped.
+    #[error("back end: {0}")]
+    Backend(String),
 }
 
 /// Shorthand used throughout the crate.

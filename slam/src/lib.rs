@@ -7,6 +7,11 @@
 //! - [`eval`]: ATE / RPE with Umeyama alignment, percentage of correct depth.
 //! - [`gpu`]: the wgpu context and one runner per WGSL kernel.
 //! - [`dense`]: the dense layer (depth prior runtime, scale/shift alignment, ...).
+//! - [`frame`]: an undistorted frame with its pyramid, shared by every stage.
+//! - [`tracking`]: coarse-to-fine SE(3) direct image alignment against the keyframe.
+//! - [`mapping`]: the semi-dense inverse-depth filter of each keyframe, keyframe selection.
+//! - [`graph`]: keyframe-to-keyframe Sim(3) constraints and the pose graph.
+//! - [`export`]: PLY point clouds (and later meshes) for people to open.
 //! - [`npy`]: minimal NumPy `.npy` float32 reader/writer for depth maps and benchmarks.
 //!
 //! Conventions used everywhere: poses are named by their frames (`world_from_camera`,
@@ -17,9 +22,14 @@ pub mod dataset;
 pub mod dense;
 pub mod error;
 pub mod eval;
+pub mod export;
+pub mod frame;
 pub mod geometry;
 pub mod gpu;
+pub mod graph;
 pub mod image;
+pub mod mapping;
 pub mod npy;
+pub mod tracking;
 
 pub use error::{Error, Result};

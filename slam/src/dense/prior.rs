@@ -56,7 +56,7 @@ impl InverseDepth {
 }
 
 /// A single-image relative depth predictor (the paper's `D_CNN` source).
-pub trait DepthPrior: Send {
+pub trait DepthPrior: Send + std::fmt::Debug {
     /// Predicts the relative inverse depth of `rgb`, returned at `rgb`'s resolution.
     fn predict(&mut self, rgb: &::image::RgbImage) -> Result<InverseDepth>;
     /// How the model is fed and read.

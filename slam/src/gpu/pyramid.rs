@@ -345,14 +345,7 @@ impl PyramidKernel {
 
 /// Creates the four level buffers, after checking the sizes against the device limits.
 fn allocate(ctx: &GpuContext, image: &ImageF32, levels: usize) -> Result<GpuPyramid> {
-    if image.data.len() != image.width * image.height {
-        return Err(Error::Shape(format!(
-            "image claims {}x{} but holds {} values",
-            image.width,
-            image.height,
-            image.data.len()
-        )));
-    }
+    image.check_size()?;
     let sizes = level_sizes(image.width, image.height, levels)?;
     let limits = ctx.limits();
     let max_groups = u64::from(limits.max_compute_workgroups_per_dimension);

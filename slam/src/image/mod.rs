@@ -40,6 +40,20 @@ impl ImageF32 {
         })
     }
 
+    /// Fails unless `data` holds exactly `width × height` pixels (the fields are public, so a
+    /// hand-built image can be inconsistent; kernels check before indexing).
+    pub fn check_size(&self) -> Result<()> {
+        if self.data.len() != self.width * self.height {
+            return Err(Error::Shape(format!(
+                "image claims {}x{} but holds {} values",
+                self.width,
+                self.height,
+                self.data.len()
+            )));
+        }
+        Ok(())
+    }
+
     /// Pixel at column `x`, row `y` (panics when out of bounds, like slice indexing).
     #[inline]
     pub fn at(&self, x: usize, y: usize) -> f32 {

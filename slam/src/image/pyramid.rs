@@ -57,14 +57,7 @@ impl Pyramid {
     /// (see [`level_sizes`]).
     pub fn build_cpu(image: &ImageF32, levels: usize) -> Result<Self> {
         let sizes = level_sizes(image.width, image.height, levels)?;
-        if image.data.len() != image.width * image.height {
-            return Err(Error::Shape(format!(
-                "image claims {}x{} but holds {} values",
-                image.width,
-                image.height,
-                image.data.len()
-            )));
-        }
+        image.check_size()?;
         let mut out = Vec::with_capacity(sizes.len());
         let mut current = image.clone();
         for level in 0..sizes.len() {

@@ -1,0 +1,209 @@
+//! Parameters of the back end: Sim(3) keyframe-to-keyframe alignment, constraint search and
+//! pose-graph optimisation, with LSD-SLAM's defaults (`DenseDepthTrackerSettings`,
+//! `util/settings.{h,cpp}`, `SlamSystem::testConstraint` in tum-vision/lsd_slam) except where the
+//! DeepRelativeFusion paper changes them (`KFDistWeight` = 7.5, §IV).
+
+use serde::{Deserialize, Serialize};
+
+use crate::frame::PYRAMID_LEVELS;
+use crate::{Error, Result};
+
+/// Configuration of [`super::Sim3Tracker`], the constraint search and [`super::Backend`]. Every
+/// field has a default, so a config file only lists what it changes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct BackendConfig {
+    // ---------------------------------------------------------------- Sim(3) tracking
+    /// Finest pyramid level of a full coarse-to-fine Sim(3) alignment. Default 1
+    /// (`SIM3TRACKING_MIN_LEVEL`): level 1 is sub-pixel accurate for semi-dense depth noise.
+    pub min_level: usize,
+    /// Coarsest level, where the alignment starts. Default 4 (`SIM3TRACKING_MAX_LEVEL` − 1).
+    pub max_level: usize,
+    /// Maximum Levenberg–Marquardt iterations per level, finest first. Default
+    /// `[5, 20, 50, 100, 100]` (`maxItsPerLvl`).
+    pub max_iterations: [usize; PYRAMID_LEVELS],
+    /// Initial LM damping λ per level. Default 0 (`lambdaInitial`): start as Gauss–Newton.
+    pub lambda_initial: f64,
+    /// λ ← λ·this after an accepted step (and λ ← 0 once ≤ 0.2). Default 0.5
+    /// (`lambdaSuccessFac`).
+    pub lambda_success_factor: f64,
+    /// After the k-th rejected try λ ← λ·this^k (0 becomes 0.2). Default 2 (`lambdaFailFac`).
+    pub lambda_fail_factor: f64,
+    /// A level ends when a rejected increment has `|δ|² ≤` this. Default 1e-8 (`stepSizeMin`).
+    pub step_size_min: f64,
+    /// A level ends when an accepted step leaves `cost_new / cost_old >` this. Default 0.999
+    /// (`convergenceEps`).
+    pub convergence_eps: f64,
+    /// Image-noise variance (8-bit units²) of a photometric residual,
+    /// `σ_p² = camera_pixel_noise2 + var_weight·V_d·(∂r_p/∂d)²` (ECCV 2014 eq. (13)/(16)).
+    /// Default 16 = 4² (`cameraPixelNoise2`).
+    pub camera_pixel_noise2: f64,
+    /// Multiplier on every inverse-depth variance (LSD-SLAM calls the filter's variances
+    /// over-confident). Default 1 (`var_weight`).
+    pub var_weight: f64,
+    /// Huber width on the summed normalised residual `|r_p|/σ_p + |r_d|/σ_d` of a point: weight
+    /// 1 below, `huber_d / (…)` above (`Sim3Tracker::calcSim3WeightsAndResidual`). Default 3
+    /// (`huber_d`).
+    pub huber_d: f64,
+    /// A warped point is *good* when `r_p² < max_diff_constant + max_diff_grad_mult·|∇I|²`.
+    /// Default 40² (`MAX_DIFF_CONSTANT`).
+    pub max_diff_constant: f64,
+    /// Gradient term of the good-point test. Default 0.5² (`MAX_DIFF_GRAD_MULT`).
+    pub max_diff_grad_mult: f64,
+    /// A Sim(3) alignment is *good* only if `good / (good + bad) ≥` this at its finest level.
+    /// Default 0.5 (`MIN_GOODPERGOODBAD_PIXEL`; LSD-SLAM applies it to SE(3) tracking and
+    /// relies on the reciprocal check alone for Sim(3); here both apply, which rejects
+    /// unrelated views before the costlier finer stages).
+    pub min_good_ratio: f64,
+    /// The alignment diverged when fewer than this share of a level's pixels received a warped
+    /// reference point (or fewer than 10 points). Default 0.01 (`MIN_GOODPERALL_PIXEL_ABSMIN`,
+    /// used with a factor 0.5 as in `Sim3Tracker::trackFrameSim3`).
+    pub min_warped_share: f64,
+
+    // ---------------------------------------------------------------- constraint search
+    /// Weight of the keyframe distance in LSD-SLAM's keyframe score; candidates lie within
+    /// squared distance `close_distance / kf_dist_weight²` (in units of the mean depth).
+    /// Default 7.5 (DeepRelativeFusion §IV; LSD-SLAM's default is 4).
+    pub kf_dist_weight: f64,
+    /// Numerator of the candidate distance threshold. Default 15
+    /// (`TrackableKeyFrameSearch::findCandidates`: `15 / KFDistWeight²`).
+    pub close_distance: f64,
+    /// Candidates' viewing directions differ by at most this fraction of the mean field of
+    /// view. Default 0.75 (`findCandidates`: `1 − 0.25·closenessTH` with closenessTH = 1).
+    pub close_angle_fraction: f64,
+    /// At most this many pose-proximity candidates are tracked per keyframe (the best
+    /// connected ones are dropped first). Default 10 (`maxLoopClosureCandidates`).
+    pub max_loop_closure_candidates: usize,
+    /// Propose far-away keyframes by appearance (the role FAB-MAP plays in LSD-SLAM, here a
+    /// normalised 16×12 thumbnail of the coarsest pyramid level compared by correlation).
+    /// Default true.
+    pub appearance_search: bool,
+    /// Minimum thumbnail correlation (in [−1, 1]) of an appearance candidate. Default 0.8
+    /// (a thumbnail of the same place from a nearby viewpoint scores ≳ 0.9, unrelated views of
+    /// textured scenes ≲ 0.5).
+    pub appearance_min_score: f64,
+    /// At most this many appearance candidates per keyframe. Default 5 (LSD-SLAM keeps
+    /// `max(5, (maxLoopClosureCandidates + 1)/2)` far candidates).
+    pub max_far_candidates: usize,
+    /// Appearance candidates must be at least this many graph edges away from the new
+    /// keyframe's parent (closer ones are already constrained). Default 4
+    /// (`findConstraintsForNewKeyFrames`).
+    pub min_far_graph_distance: usize,
+    /// Keyframes created before this many others are never loop-closure candidates: their
+    /// depth comes from the unreliable initialisation. Default 5 (`INITIALIZATION_PHASE_COUNT`).
+    pub skip_initial_keyframes: usize,
+    /// Multiplier on the reciprocal-consistency thresholds. Default 1.5
+    /// (`loopclosureStrictness`).
+    pub loop_closure_strictness: f64,
+    /// Strictness used for the new keyframe's tracking parent, whose constraint is forced.
+    /// Default 100 (`testConstraint(parent, …, 100)`).
+    pub parent_strictness: f64,
+    /// The staged reciprocal test: the two directions are aligned on levels
+    /// `max_level..=stage_levels[0]`, then `stage_levels[1]`, then `stage_levels[2]`, and after
+    /// each stage the Mahalanobis distance of `T_ab·T_ba` from identity must stay below
+    /// `stage_thresholds[k]·strictness`. Defaults `[3, 2, 1]` (`testConstraint`).
+    pub stage_levels: [usize; 3],
+    /// Thresholds of the staged reciprocal test (squared Mahalanobis distances). Default
+    /// `[3000, 4000, 6000]` (`testConstraint`).
+    pub stage_thresholds: [f64; 3],
+    /// Skip a candidate that already failed against this keyframe from an initial relative
+    /// pose within this `|log|` of the current one. Default 0.1 (`trackingFailed` check).
+    pub retry_min_change: f64,
+
+    // ---------------------------------------------------------------- pose graph
+    /// LM iterations of the pose graph after new constraints. Default 100
+    /// (`maxOptimizationIterations`).
+    pub max_optimization_iterations: usize,
+    /// Huber width on `sqrt(rᵀΩr)` of a pose-graph edge; `None` disables it. Default
+    /// `5·sqrt(6000·loop_closure_strictness)` ≈ 474 (`kernelDelta` of `testConstraint`).
+    pub pose_graph_huber: Option<f64>,
+    /// Capacity of the command channel of a spawned back end. Default 16 (keyframes arrive at a
+    /// few Hz; a full channel means the back end is far behind and the sender waits).
+    pub channel_capacity: usize,
+}
+
+impl Default for BackendConfig {
+    fn default() -> Self {
+        Self {
+            min_level: 1,
+            max_level: PYRAMID_LEVELS - 1,
+            max_iterations: [5, 20, 50, 100, 100],
+            lambda_initial: 0.0,
+            lambda_success_factor: 0.5,
+            lambda_fail_factor: 2.0,
+            step_size_min: 1e-8,
+            convergence_eps: 0.999,
+            camera_pixel_noise2: 16.0,
+            var_weight: 1.0,
+            huber_d: 3.0,
+            max_diff_constant: 40.0 * 40.0,
+            max_diff_grad_mult: 0.5 * 0.5,
+            min_good_ratio: 0.5,
+            min_warped_share: 0.01,
+            kf_dist_weight: 7.5,
+            close_distance: 15.0,
+            close_angle_fraction: 0.75,
+            max_loop_closure_candidates: 10,
+            appearance_search: true,
+            appearance_min_score: 0.8,
+            max_far_candidates: 5,
+            min_far_graph_distance: 4,
+            skip_initial_keyframes: 5,
+            loop_closure_strictness: 1.5,
+            parent_strictness: 100.0,
+            stage_levels: [3, 2, 1],
+            stage_thresholds: [3000.0, 4000.0, 6000.0],
+            retry_min_change: 0.1,
+            max_optimization_iterations: 100,
+            pose_graph_huber: Some(5.0 * (6000.0f64 * 1.5).sqrt()),
+            channel_capacity: 16,
+        }
+    }
+}
+
+impl BackendConfig {
+    /// Checks level ranges and that every factor is positive and finite.
+    pub fn validate(&self) -> Result<()> {
+        if self.min_level > self.max_level || self.max_level >= PYRAMID_LEVELS {
+            return Err(Error::Config(format!(
+                "backend: levels {}..={} outside 0..{PYRAMID_LEVELS}",
+                self.min_level, self.max_level
+            )));
+        }
+        if self.stage_levels.iter().any(|&l| l > self.max_level)
+            || self.stage_levels.windows(2).any(|w| w[1] > w[0])
+        {
+            return Err(Error::Config(format!(
+                "backend: stage_levels {:?} must be non-increasing and ≤ max_level {}",
+                self.stage_levels, self.max_level
+            )));
+        }
+        let positive = [
+            ("lambda_success_factor", self.lambda_success_factor),
+            ("lambda_fail_factor", self.lambda_fail_factor),
+            ("convergence_eps", self.convergence_eps),
+            ("camera_pixel_noise2", self.camera_pixel_noise2),
+            ("var_weight", self.var_weight),
+            ("huber_d", self.huber_d),
+            ("max_diff_constant", self.max_diff_constant),
+            ("kf_dist_weight", self.kf_dist_weight),
+            ("close_distance", self.close_distance),
+            ("close_angle_fraction", self.close_angle_fraction),
+            ("loop_closure_strictness", self.loop_closure_strictness),
+            ("parent_strictness", self.parent_strictness),
+        ];
+        for (name, v) in positive
+            .into_iter()
+            .chain(self.stage_thresholds.iter().map(|&t| ("stage_thresholds", t)))
+            .chain(self.pose_graph_huber.map(|h| ("pose_graph_huber", h)))
+        {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(Error::Config(format!("backend: {name} must be > 0, got {v}")));
+            }
+        }
+        if self.channel_capacity == 0 {
+            return Err(Error::Config("backend: channel_capacity must be ≥ 1".into()));
+        }
+        Ok(())
+    }
+}

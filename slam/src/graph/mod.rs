@@ -1,0 +1,1 @@
+//! Keyframe graph, Sim(3) constraints, pose-graph optimisation (being written).

@@ -1,0 +1,287 @@
+//! The keyframe pose graph on Sim(3) and its Levenberg–Marquardt optimisation (LSD-SLAM §3.5
+//! "Map optimization", which uses g2o; DeepRelativeFusion keeps this back end).
+//!
+//! Vertices are `world_from_keyframe` similarities; an edge is a measured relative transform
+//! `to_from_from` with its information matrix (from [`super::Sim3Tracker`]). With `i = to`,
+//! `j = from` the residual is
+//!
+//! `r = log(T_ij⁻¹ · T_wi⁻¹ · T_wj) ∈ 𝔰𝔦𝔪(3)`,
+//!
+//! i.e. the measured relative pose is perturbed on the right to reach the estimated one,
+//! matching the right-perturbation information of the tracker. With right increments
+//! `T_wi ← T_wi·exp(δ_i)`, writing `E = T_wi⁻¹·T_wj` and `J_r⁻¹ = J_r⁻¹(r)`:
+//!
+//! - `∂r/∂δ_j = J_r⁻¹`  (since `Z⁻¹·E·exp(δ) = exp(r)·exp(δ)`),
+//! - `∂r/∂δ_i = −J_r⁻¹·Ad(E⁻¹)`  (since `exp(−δ)·E = E·exp(−Ad(E⁻¹)·δ)`).
+//!
+//! The cost is `½ Σ ρ(rᵀ Ω r)` with g2o's Huber kernel ρ on the squared Mahalanobis norm. The
+//! first vertex is held fixed (it fixes the 7-DoF gauge of a monocular map). The normal
+//! equations are solved by the block-sparse Cholesky of [`super::cholesky`].
+
+use std::collections::{BTreeMap, HashMap};
+
+use serde::{Deserialize, Serialize};
+
+use super::KeyframeId;
+use super::cholesky::BlockSparseSymmetric;
+use crate::geometry::{Matrix7, Sim3, Vector7};
+use crate::{Error, Result};
+
+/// A relative Sim(3) measurement between two keyframes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Constraint {
+    pub from: KeyframeId,
+    pub to: KeyframeId,
+    /// Maps `from`-keyframe coordinates to `to`-keyframe coordinates.
+    pub to_from_from: Sim3,
+    /// Information (inverse covariance) of a right perturbation of `to_from_from`, tangent
+    /// order (ρ, φ, σ).
+    pub information: Matrix7,
+}
+
+/// One keyframe pose of the graph.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Vertex {
+    pub world_from_keyframe: Sim3,
+    /// Held constant by the optimisation.
+    pub fixed: bool,
+}
+
+/// What [`PoseGraph::optimize`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OptimizeReport {
+    /// Robust cost `½ Σ ρ(rᵀΩr)` before and after.
+    pub initial_cost: f64,
+    pub final_cost: f64,
+    /// LM iterations run (accepted or not).
+    pub iterations: usize,
+}
+
+/// The residual `log(T_ij⁻¹ · T_wi⁻¹ · T_wj)` of a measurement `to_from_from = T_ij`
+/// (`i = to`, `j = from`).
+pub fn relative_residual(to_from_from: &Sim3, world_from_to: &Sim3, world_from_from: &Sim3) -> Vector7 {
+    (to_from_from.inverse() * world_from_to.inverse() * *world_from_from).log()
+}
+
+/// The residual and its Jacobians with respect to right perturbations of `world_from_to`
+/// (`∂r/∂δ_i`) and `world_from_from` (`∂r/∂δ_j`); see the module docs for the derivation.
+pub fn relative_residual_jacobians(
+    to_from_from: &Sim3,
+    world_from_to: &Sim3,
+    world_from_from: &Sim3,
+) -> (Vector7, Matrix7, Matrix7) {
+    let estimate = world_from_to.inverse() * *world_from_from;
+    let r = (to_from_from.inverse() * estimate).log();
+    let jr_inv = Sim3::right_jacobian_inverse(&r);
+    let j_to = -jr_inv * estimate.inverse().adjoint();
+    (r, j_to, jr_inv)
+}
+
+/// Sim(3) pose graph over keyframes.
+#[derive(Clone, Debug, Default)]
+pub struct PoseGraph {
+    vertices: BTreeMap<KeyframeId, Vertex>,
+    edges: Vec<Constraint>,
+    /// Huber width on `sqrt(rᵀΩr)`; `None` = plain least squares.
+    huber: Option<f64>,
+}
+
+/// `ρ(e)` and `ρ'(e)` of g2o's Huber kernel on a squared error e.
+fn huber(e: f64, delta: Option<f64>) -> (f64, f64) {
+    match delta {
+        Some(d) if e > d * d => {
+            let s = e.sqrt();
+            (2.0 * d * s - d * d, d / s)
+        }
+        _ => (e, 1.0),
+    }
+}
+
+impl PoseGraph {
+    /// An empty graph; `huber` is the robust-kernel width (see
+    /// [`super::BackendConfig::pose_graph_huber`]).
+    pub fn new(huber: Option<f64>) -> Self {
+        Self { vertices: BTreeMap::new(), edges: Vec::new(), huber }
+    }
+
+    /// Adds (or re-poses) a vertex. The first vertex ever added is fixed.
+    pub fn add_vertex(&mut self, id: KeyframeId, world_from_keyframe: Sim3) {
+        let fixed = self.vertices.is_empty();
+        self.vertices
+            .entry(id)
+            .and_modify(|v| v.world_from_keyframe = world_from_keyframe)
+            .or_insert(Vertex { world_from_keyframe, fixed });
+    }
+
+    /// Holds a vertex constant (or releases it).
+    pub fn set_fixed(&mut self, id: KeyframeId, fixed: bool) -> Result<()> {
+        let v = self.vertices.get_mut(&id).ok_or_else(|| unknown(id))?;
+        v.fixed = fixed;
+        Ok(())
+    }
+
+    /// Adds a measurement; both keyframes must be vertices and the information finite.
+    pub fn add_edge(&mut self, constraint: Constraint) -> Result<()> {
+        for id in [constraint.from, constraint.to] {
+            if !self.vertices.contains_key(&id) {
+                return Err(unknown(id));
+            }
+        }
+        if constraint.from == constraint.to
+            || !constraint.information.iter().all(|v| v.is_finite())
+        {
+            return Err(Error::Backend(format!(
+                "pose graph: edge {} -> {} is a self-loop or has non-finite information",
+                constraint.from, constraint.to
+            )));
+        }
+        self.edges.push(constraint);
+        Ok(())
+    }
+
+    /// The vertex of `id`.
+    pub fn vertex(&self, id: KeyframeId) -> Option<&Vertex> {
+        self.vertices.get(&id)
+    }
+
+    /// `world_from_keyframe` of `id`.
+    pub fn pose(&self, id: KeyframeId) -> Option<Sim3> {
+        self.vertices.get(&id).map(|v| v.world_from_keyframe)
+    }
+
+    /// All poses.
+    pub fn poses(&self) -> HashMap<KeyframeId, Sim3> {
+        self.vertices.iter().map(|(&k, v)| (k, v.world_from_keyframe)).collect()
+    }
+
+    /// Vertex ids in increasing order.
+    pub fn ids(&self) -> impl Iterator<Item = KeyframeId> + '_ {
+        self.vertices.keys().copied()
+    }
+
+    /// Number of vertices.
+    pub fn len(&self) -> usize {
+        self.vertices.len()
+    }
+
+    /// Whether the graph has no vertex.
+    pub fn is_empty(&self) -> bool {
+        self.vertices.is_empty()
+    }
+
+    /// All edges in insertion order.
+    pub fn edges(&self) -> &[Constraint] {
+        &self.edges
+    }
+
+    /// The robust cost `½ Σ ρ(rᵀΩr)` at the current poses.
+    pub fn cost(&self) -> f64 {
+        self.cost_with(&|id| self.pose(id))
+    }
+
+    fn cost_with(&self, pose: &dyn Fn(KeyframeId) -> Option<Sim3>) -> f64 {
+        self.edges
+            .iter()
+            .filter_map(|e| {
+                let (wi, wj) = (pose(e.to)?, pose(e.from)?);
+                let r = relative_residual(&e.to_from_from, &wi, &wj);
+                Some(0.5 * huber(r.dot(&(e.information * r)), self.huber).0)
+            })
+            .sum()
+    }
+
+    /// Levenberg–Marquardt with Marquardt's diagonal damping (`H + λ·diag(H)`), at most
+    /// `max_iterations` linearisations; stops early when the cost no longer decreases by more
+    /// than 1e-12 relative. Fails only when the graph has no free vertex to move (returns the
+    /// unchanged cost then) — it never leaves the poses worse than they were.
+    pub fn optimize(&mut self, max_iterations: usize) -> Result<OptimizeReport> {
+        let free: Vec<KeyframeId> =
+            self.vertices.iter().filter(|(_, v)| !v.fixed).map(|(&k, _)| k).collect();
+        let index: HashMap<KeyframeId, usize> =
+            free.iter().enumerate().map(|(i, &k)| (k, i)).collect();
+        let initial_cost = self.cost();
+        let mut report = OptimizeReport { initial_cost, final_cost: initial_cost, iterations: 0 };
+        if free.is_empty() || self.edges.is_empty() {
+            return Ok(report);
+        }
+        let mut cost = initial_cost;
+        let mut lambda = 1e-4;
+        for _ in 0..max_iterations {
+            report.iterations += 1;
+            let (h, g) = self.normal_equations(&index, free.len());
+            let mut improved = false;
+            while lambda < 1e12 {
+                let mut damped = h.clone();
+                for i in 0..free.len() {
+                    let d = h.diagonal(i);
+                    let mut add = Matrix7::zeros();
+                    for k in 0..7 {
+                        add[(k, k)] = lambda * d[(k, k)].max(1e-12) + 1e-12;
+                    }
+                    damped.add(i, i, &add);
+                }
+                let rhs: Vec<Vector7> = g.iter().map(|v| -v).collect();
+                let Some(step) = damped.solve(&rhs) else {
+                    lambda *= 10.0;
+                    continue;
+                };
+                let candidate: HashMap<KeyframeId, Sim3> = free
+                    .iter()
+                    .zip(&step)
+                    .filter_map(|(&k, d)| Some((k, self.pose(k)? * Sim3::exp(d))))
+                    .collect();
+                let new_cost = self.cost_with(&|id| candidate.get(&id).copied().or_else(|| self.pose(id)));
+                if new_cost.is_finite() && new_cost < cost {
+                    for (k, p) in candidate {
+                        if let Some(v) = self.vertices.get_mut(&k) {
+                            v.world_from_keyframe = p;
+                        }
+                    }
+                    let relative = (cost - new_cost) / cost.max(f64::MIN_POSITIVE);
+                    cost = new_cost;
+                    lambda = (lambda / 3.0).max(1e-12);
+                    improved = relative > 1e-12;
+                    break;
+                }
+                lambda *= 4.0;
+            }
+            if !improved {
+                break;
+            }
+        }
+        report.final_cost = cost;
+        Ok(report)
+    }
+
+    /// `H = Σ Jᵀ ρ' Ω J`, `g = Σ Jᵀ ρ' Ω r` over the free vertices (IRLS form of the Huber cost).
+    fn normal_equations(
+        &self,
+        index: &HashMap<KeyframeId, usize>,
+        n: usize,
+    ) -> (BlockSparseSymmetric, Vec<Vector7>) {
+        let mut h = BlockSparseSymmetric::new(n);
+        let mut g = vec![Vector7::zeros(); n];
+        for e in &self.edges {
+            let (Some(wi), Some(wj)) = (self.pose(e.to), self.pose(e.from)) else { continue };
+            let (r, j_to, j_from) = relative_residual_jacobians(&e.to_from_from, &wi, &wj);
+            let weight = huber(r.dot(&(e.information * r)), self.huber).1;
+            let omega = e.information * weight;
+            let blocks = [(index.get(&e.to), j_to), (index.get(&e.from), j_from)];
+            for (a, ja) in &blocks {
+                let Some(&a) = a else { continue };
+                g[a] += ja.transpose() * (omega * r);
+                for (b, jb) in &blocks {
+                    let Some(&b) = b else { continue };
+                    if a >= b {
+                        h.add(a, b, &(ja.transpose() * omega * jb));
+                    }
+                }
+            }
+        }
+        (h, g)
+    }
+}
+
+fn unknown(id: KeyframeId) -> Error {
+    Error::Backend(format!("pose graph: keyframe {id} is not a vertex"))
+}

@@ -1,0 +1,368 @@
+//! Sim(3) direct alignment of two keyframes (LSD-SLAM, Engel et al. ECCV 2014, §3.4 "Direct
+//! Sim(3) image alignment"; `Sim3Tracker` in tum-vision/lsd_slam).
+//!
+//! Two keyframes' depth maps have different, unknown scales (scale drift), so the relative
+//! pose between them is a similarity. Photometric residuals alone cannot observe that scale;
+//! eq. (15) adds, for every reference point, a *depth residual*: the point's inverse depth
+//! predicted in the other keyframe, `1/z'`, against that keyframe's own inverse-depth map at the
+//! warped position. Each residual is normalised by its propagated variance (eq. (16)), the
+//! point's two normalised residuals share one Huber weight, and the 7-DoF normal equations are
+//! solved by Levenberg–Marquardt coarse-to-fine.
+//!
+//! Conventions: the estimate is `frame_from_reference` (maps reference-keyframe coordinates to
+//! frame-keyframe coordinates, in their respective depth scales); increments are applied on the
+//! right, `T ← T·exp(δ)`, with δ = (ρ, φ, σ), and the returned `information` is the
+//! Gauss–Newton Hessian `Σ Jᵀ W J` of that right perturbation at the final estimate (what the
+//! pose-graph edge needs, see [`super::pose_graph`]).
+//!
+//! Deviations from LSD-SLAM, on purpose: the frame's gradient alone is used (no ESM average with
+//! the rotated reference gradient), no affine brightness model (keyframes of one sequence share
+//! exposure more than consecutive frames do not), and the frame's inverse depth is interpolated
+//! bilinearly over valid neighbours instead of read at the rounded position. As in LSD-SLAM the
+//! depth residual's Jacobian ignores the gradient of the frame's depth map (too noisy on a
+//! semi-dense map to differentiate).
+
+use nalgebra::{Cholesky, Vector2, Vector3};
+
+use super::config::BackendConfig;
+use super::points::{KeyframeLevel, KeyframeLevels};
+use crate::frame::Frame;
+use crate::geometry::{Matrix7, Sim3, Vector7};
+use crate::image::pyramid::PyramidLevel;
+use crate::mapping::DepthMap;
+use crate::Result;
+
+/// Outcome of one Sim(3) alignment.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Sim3TrackResult {
+    /// The estimate, reference-keyframe coordinates → frame-keyframe coordinates.
+    pub frame_from_reference: Sim3,
+    /// `Σ Jᵀ W J` at the estimate, on the finest level (right perturbation of
+    /// `frame_from_reference`, tangent order ρ, φ, σ). Zero when diverged.
+    pub information: Matrix7,
+    /// Mean Huber-weighted, variance-normalised squared residual over photometric and depth
+    /// terms (LSD-SLAM's `lastResidual`).
+    pub residual: f64,
+    /// Mean of the photometric terms alone.
+    pub residual_photometric: f64,
+    /// Mean of the depth terms alone (0 without depth terms).
+    pub residual_depth: f64,
+    /// Share of warped points whose photometric error is small (`good / (good + bad)`).
+    pub good_ratio: f64,
+    /// LSD-SLAM's `pointUsage`: mean over reference points of `min(1, z_ref / z_frame)`, 0 for
+    /// points warped out of the image.
+    pub point_usage: f64,
+    /// Number of points with a depth residual at the finest level.
+    pub depth_terms: usize,
+    /// The optimisation broke down (too few points in the image, or an absurd step).
+    pub diverged: bool,
+    /// Not diverged, finite sane scale, non-zero information, and `good_ratio` above
+    /// [`BackendConfig::min_good_ratio`].
+    pub good: bool,
+}
+
+/// Coarse-to-fine Sim(3) alignment between keyframes.
+#[derive(Clone, Debug)]
+pub struct Sim3Tracker {
+    config: BackendConfig,
+}
+
+/// Residual sums and normal equations at one pose.
+#[derive(Clone, Debug)]
+struct Evaluation {
+    warped: usize,
+    sum_p: f64,
+    sum_d: f64,
+    num_p: usize,
+    num_d: usize,
+    good: usize,
+    bad: usize,
+    usage: f64,
+    /// `Σ Jᵀ W J` and `Σ Jᵀ W r` (unnormalised).
+    hessian: Matrix7,
+    gradient: Vector7,
+}
+
+impl Evaluation {
+    fn mean(&self) -> f64 {
+        let n = self.num_p + self.num_d;
+        if n == 0 { f64::INFINITY } else { (self.sum_p + self.sum_d) / n as f64 }
+    }
+}
+
+/// Scales outside `(ε, 1/ε)` mean the alignment collapsed (LSD-SLAM's `tryTrackSim3`).
+const SCALE_EPS: f64 = 1e-6;
+
+/// Give up an iteration after this many rejected damped steps (the step-size test normally
+/// ends it far earlier).
+const MAX_TRIES: usize = 60;
+
+impl Sim3Tracker {
+    /// A tracker with `config`'s tracking parameters (the config is assumed validated).
+    pub fn new(config: BackendConfig) -> Self {
+        Self { config }
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &BackendConfig {
+        &self.config
+    }
+
+    /// Aligns `frame` to `reference` from `initial_frame_from_reference`, coarse-to-fine from
+    /// [`BackendConfig::max_level`] to [`BackendConfig::min_level`]. Builds both keyframes'
+    /// depth pyramids; use [`Sim3Tracker::track_levels`] to reuse them.
+    pub fn track(
+        &self,
+        reference: &Frame,
+        reference_depth: &DepthMap,
+        frame: &Frame,
+        frame_depth: &DepthMap,
+        initial_frame_from_reference: &Sim3,
+    ) -> Result<Sim3TrackResult> {
+        let reference_levels = KeyframeLevels::new(reference, reference_depth)?;
+        let frame_levels = KeyframeLevels::new(frame, frame_depth)?;
+        Ok(self.track_levels(
+            &reference_levels,
+            frame,
+            &frame_levels,
+            initial_frame_from_reference,
+            self.config.max_level,
+            self.config.min_level,
+        ))
+    }
+
+    /// Aligns on levels `coarsest` down to `finest` (clamped to what both keyframes have).
+    pub fn track_levels(
+        &self,
+        reference: &KeyframeLevels,
+        frame: &Frame,
+        frame_levels: &KeyframeLevels,
+        initial_frame_from_reference: &Sim3,
+        coarsest: usize,
+        finest: usize,
+    ) -> Sim3TrackResult {
+        let available = reference
+            .levels
+            .len()
+            .min(frame_levels.levels.len())
+            .min(frame.pyramid.levels.len());
+        let coarsest = coarsest.min(available.saturating_sub(1));
+        let finest = finest.min(coarsest);
+        let cfg = &self.config;
+        let mut pose = *initial_frame_from_reference;
+        let mut last: Option<(usize, Evaluation)> = None;
+
+        for level in (finest..=coarsest).rev() {
+            let its = cfg.max_iterations.get(level).copied().unwrap_or(0);
+            if its == 0 && level != finest {
+                continue;
+            }
+            let ctx = LevelContext {
+                reference: &reference.levels[level],
+                image: frame.level(level),
+                frame: &frame_levels.levels[level],
+                config: cfg,
+            };
+            let Some(mut eval) = ctx.evaluate(&pose) else {
+                return self.diverged(pose, reference, level, last);
+            };
+            let mut lambda = cfg.lambda_initial;
+            'iterations: for _ in 0..its {
+                let mut tries = 0;
+                loop {
+                    tries += 1;
+                    let n = (eval.num_p + eval.num_d).max(1) as f64;
+                    let mut a = eval.hessian / n;
+                    for i in 0..7 {
+                        a[(i, i)] *= 1.0 + lambda;
+                    }
+                    let b = -eval.gradient / n;
+                    let inc = solve7(a, &b);
+                    let step2 = inc.map_or(f64::NAN, |v| v.norm_squared());
+                    // An increment of unit size (≈ the scene depth, or a radian) is absurd.
+                    let Some(inc) = inc.filter(|_| step2 < 1.0) else {
+                        return self.diverged(pose, reference, level, Some((level, eval)));
+                    };
+                    let candidate = pose * Sim3::exp(&inc);
+                    let Some(new_eval) = ctx.evaluate(&candidate) else {
+                        return self.diverged(pose, reference, level, Some((level, eval)));
+                    };
+                    if new_eval.mean() < eval.mean() {
+                        let converged = new_eval.mean() / eval.mean() > cfg.convergence_eps;
+                        pose = candidate;
+                        eval = new_eval;
+                        lambda = if lambda <= 0.2 { 0.0 } else { lambda * cfg.lambda_success_factor };
+                        if converged {
+                            break 'iterations;
+                        }
+                        break;
+                    }
+                    if !(step2 > cfg.step_size_min) || tries >= MAX_TRIES {
+                        break 'iterations;
+                    }
+                    lambda = if lambda == 0.0 {
+                        0.2
+                    } else {
+                        lambda * cfg.lambda_fail_factor.powi(tries as i32)
+                    };
+                }
+            }
+            last = Some((level, eval));
+        }
+
+        let Some((level, eval)) = last else {
+            return self.diverged(pose, reference, finest, None);
+        };
+        let total_points = reference.levels[level].points.len().max(1) as f64;
+        let good_ratio = eval.good as f64 / (eval.good + eval.bad).max(1) as f64;
+        let information = eval.hessian;
+        let sane = pose.scale.is_finite()
+            && pose.scale > SCALE_EPS
+            && pose.scale < 1.0 / SCALE_EPS
+            && pose.translation.iter().all(|v| v.is_finite())
+            && information.iter().all(|v| v.is_finite())
+            && information[(0, 0)] > 0.0
+            && information[(6, 6)] > 0.0;
+        Sim3TrackResult {
+            frame_from_reference: pose,
+            information,
+            residual: eval.mean(),
+            residual_photometric: eval.sum_p / eval.num_p.max(1) as f64,
+            residual_depth: eval.sum_d / eval.num_d.max(1) as f64,
+            good_ratio,
+            point_usage: eval.usage / total_points,
+            depth_terms: eval.num_d,
+            diverged: false,
+            good: sane && good_ratio >= cfg.min_good_ratio,
+        }
+    }
+
+    fn diverged(
+        &self,
+        pose: Sim3,
+        reference: &KeyframeLevels,
+        level: usize,
+        last: Option<(usize, Evaluation)>,
+    ) -> Sim3TrackResult {
+        let total = reference.levels.get(level).map_or(1, |l| l.points.len().max(1)) as f64;
+        let (residual, usage) = last.map_or((f64::INFINITY, 0.0), |(_, e)| (e.mean(), e.usage));
+        Sim3TrackResult {
+            frame_from_reference: pose,
+            information: Matrix7::zeros(),
+            residual,
+            residual_photometric: f64::INFINITY,
+            residual_depth: f64::INFINITY,
+            good_ratio: 0.0,
+            point_usage: usage / total,
+            depth_terms: 0,
+            diverged: true,
+            good: false,
+        }
+    }
+}
+
+/// Solves the damped 7×7 system (Cholesky, LU as fallback for a semi-definite matrix).
+fn solve7(a: Matrix7, b: &Vector7) -> Option<Vector7> {
+    match Cholesky::new(a) {
+        Some(c) => Some(c.solve(b)),
+        None => a.lu().solve(b),
+    }
+    .filter(|v| v.iter().all(|x| x.is_finite()))
+}
+
+/// The data one level's evaluation reads.
+struct LevelContext<'a> {
+    reference: &'a KeyframeLevel,
+    image: &'a PyramidLevel,
+    frame: &'a KeyframeLevel,
+    config: &'a BackendConfig,
+}
+
+impl LevelContext<'_> {
+    /// Residuals, weights and normal equations at `frame_from_reference`; `None` when too few
+    /// points land in the frame (diverged).
+    fn evaluate(&self, frame_from_reference: &Sim3) -> Option<Evaluation> {
+        let cfg = self.config;
+        let cam = &self.frame.camera;
+        let (w, h) = (f64::from(cam.width), f64::from(cam.height));
+        let t = &frame_from_reference.translation;
+        let mut e = Evaluation {
+            warped: 0,
+            sum_p: 0.0,
+            sum_d: 0.0,
+            num_p: 0,
+            num_d: 0,
+            good: 0,
+            bad: 0,
+            usage: 0.0,
+            hessian: Matrix7::zeros(),
+            gradient: Vector7::zeros(),
+        };
+        for pt in &self.reference.points {
+            let pw = frame_from_reference.act(&pt.point);
+            if !(pw.z > 1e-9) {
+                continue;
+            }
+            let uv = cam.project(&pw);
+            // Strictly inside with a margin for the central-difference gradients.
+            if !(uv.x > 1.0 && uv.y > 1.0 && uv.x < w - 2.0 && uv.y < h - 2.0) {
+                continue;
+            }
+            let (x, y) = (uv.x as f32, uv.y as f32);
+            let (Some(intensity), Some(gx), Some(gy)) = (
+                self.image.image.bilinear(x, y),
+                self.image.gx.bilinear(x, y),
+                self.image.gy.bilinear(x, y),
+            ) else {
+                continue;
+            };
+            e.warped += 1;
+            let grad = Vector2::new(f64::from(gx), f64::from(gy));
+            // ∂I/∂p' (3-vector) through the projection.
+            let grad_point: Vector3<f64> = cam.project_jacobian(&pw).transpose() * grad;
+            let r_p = pt.intensity - f64::from(intensity);
+            // Sensitivity of the warped point to the reference inverse depth d: p = p̂/d, so
+            // ∂p'/∂d = −sR·p/d = −(p' − t)/d. Propagated into both residual variances (eq. 16).
+            let dpw_dd = -(pw - t) / pt.idepth;
+            let var_ref = cfg.var_weight * pt.var;
+            let drp_dd = -grad_point.dot(&dpw_dd);
+            let w_p = 1.0 / (cfg.camera_pixel_noise2 + var_ref * drp_dd * drp_dd);
+            let inv_z = 1.0 / pw.z;
+            let depth = self.frame.depth.sample(&uv).map(|(d_f, v_f)| {
+                let r_d = inv_z - d_f;
+                let drd_dd = -inv_z * inv_z * dpw_dd.z;
+                let w_d = 1.0 / (cfg.var_weight * v_f + var_ref * drd_dd * drd_dd);
+                (r_d, w_d)
+            });
+            let norm_abs = r_p.abs() * w_p.sqrt() + depth.map_or(0.0, |(r, w)| r.abs() * w.sqrt());
+            let huber = if norm_abs < cfg.huber_d { 1.0 } else { cfg.huber_d / norm_abs };
+
+            let j_act = frame_from_reference.act_jacobian(&pt.point);
+            // r_p = I_ref − I_frame(π(T·p)): ∂r_p/∂δ = −∇I·∂π/∂p'·∂p'/∂δ.
+            let j_p: Vector7 = -(j_act.transpose() * grad_point);
+            let wp = huber * w_p;
+            e.hessian += j_p * j_p.transpose() * wp;
+            e.gradient += j_p * (wp * r_p);
+            e.sum_p += wp * r_p * r_p;
+            e.num_p += 1;
+            if let Some((r_d, w_d)) = depth {
+                // r_d = 1/z' − D_frame(π(T·p)), the map's own gradient neglected.
+                let j_d: Vector7 = j_act.row(2).transpose() * (-inv_z * inv_z);
+                let wd = huber * w_d;
+                e.hessian += j_d * j_d.transpose() * wd;
+                e.gradient += j_d * (wd * r_d);
+                e.sum_d += wd * r_d * r_d;
+                e.num_d += 1;
+            }
+            let good_limit = cfg.max_diff_constant + cfg.max_diff_grad_mult * grad.norm_squared();
+            if r_p * r_p < good_limit {
+                e.good += 1;
+            } else {
+                e.bad += 1;
+            }
+            e.usage += (pt.point.z / pw.z).min(1.0);
+        }
+        let min_warped = (0.5 * cfg.min_warped_share * w * h).max(10.0);
+        (e.warped as f64 >= min_warped).then_some(e)
+    }
+}

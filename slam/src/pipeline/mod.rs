@@ -1,0 +1,528 @@
+//! The SLAM pipeline: frames in, events out (`Pipeline::push`).
+//!
+//! A thin orchestration over the components, in LSD-SLAM's order (Engel et al. ECCV 2014,
+//! Fig. 3): each frame is tracked against the current keyframe (SE(3) direct alignment); a good
+//! frame refines the keyframe's semi-dense depth (epipolar stereo + filtering); when the camera
+//! has moved far enough, the frame becomes the next keyframe (depth propagated, scale
+//! normalised) and the finished keyframe goes to the back end (Sim(3) constraints, pose graph).
+//! Tracking and mapping run in the caller's thread, one frame at a time; the back end runs on
+//! its own thread unless `pipeline.deterministic` is set.
+
+pub mod config;
+pub mod events;
+
+use std::sync::Arc;
+
+use nalgebra::{Matrix6, Vector3};
+
+pub use config::{Config, DepthInit, PipelineConfig};
+pub use events::{Event, KeyframeEvent, PoseEvent, TrackingState};
+
+use crate::dense::prior::DepthPrior;
+use crate::export::ColoredPoint;
+use crate::frame::Frame;
+use crate::geometry::{PinholeCamera, SE3, Sim3, UndistortMap};
+use crate::graph::{Backend, BackendHandle, KeyframeId, NewKeyframe};
+use crate::image::ImageF32;
+use crate::mapping::{DepthFilter, DepthMap, keyframe_selection};
+use crate::tracking::{SE3Tracker, TrackingReference};
+use crate::{Error, Result};
+
+/// One input frame: a colour image (distorted as the camera delivers it) and its time.
+#[derive(Clone, Debug)]
+pub struct FrameInput {
+    pub timestamp: f64,
+    pub rgb: ::image::RgbImage,
+}
+
+/// Where each frame ended up, kept so that the final trajectory follows the optimised
+/// keyframe poses.
+#[derive(Clone, Copy, Debug)]
+struct FrameRecord {
+    timestamp: f64,
+    keyframe: KeyframeId,
+    keyframe_from_frame: SE3,
+    lost: bool,
+}
+
+/// A finished (or current) keyframe.
+#[derive(Debug)]
+struct KeyframeRecord {
+    frame: Arc<Frame>,
+    /// Its semi-dense depth as last published (final once the keyframe is finished).
+    depth: Arc<DepthMap>,
+    /// Pose at creation (the front end's estimate, before any optimisation).
+    world_from_keyframe: Sim3,
+    /// For relocalisation against finished keyframes.
+    reference: Arc<TrackingReference>,
+}
+
+/// The keyframe being mapped.
+#[derive(Debug)]
+struct CurrentKeyframe {
+    id: KeyframeId,
+    filter: DepthFilter,
+    reference: Arc<TrackingReference>,
+}
+
+/// Where the back end runs.
+#[derive(Debug)]
+enum BackendLink {
+    InStep(Box<Backend>),
+    Threaded(BackendHandle),
+}
+
+/// Summary counters of a run.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Stats {
+    pub frames: usize,
+    pub keyframes: usize,
+    pub frames_lost: usize,
+    /// Accumulated wall time of tracking, mapping and keyframe creation (seconds).
+    pub tracking_s: f64,
+    pub mapping_s: f64,
+}
+
+/// The pipeline of one session.
+#[derive(Debug)]
+pub struct Pipeline {
+    config: Config,
+    /// The camera as given (possibly distorted).
+    camera: PinholeCamera,
+    undistort: Option<UndistortMap>,
+    prior: Option<Box<dyn DepthPrior>>,
+    tracker: SE3Tracker,
+    backend: BackendLink,
+    keyframes: Vec<KeyframeRecord>,
+    current: Option<CurrentKeyframe>,
+    frames: Vec<FrameRecord>,
+    /// Pose of the last good frame relative to the current keyframe (the tracking prior).
+    last_frame_from_keyframe: SE3,
+    lost: bool,
+    next_frame_id: u64,
+    stats: Stats,
+}
+
+impl Pipeline {
+    /// A pipeline for frames of `camera` (with its distortion, if any). `prior` initialises the
+    /// first keyframe's depth when `config.pipeline.init` is `Prior`.
+    pub fn new(
+        config: Config,
+        camera: PinholeCamera,
+        prior: Option<Box<dyn DepthPrior>>,
+    ) -> Result<Self> {
+        config.validate()?;
+        let undistort = camera.distortion.is_some().then(|| UndistortMap::new(&camera));
+        let tracker = SE3Tracker::new(config.tracking.clone())?;
+        let backend = if config.pipeline.deterministic {
+            BackendLink::InStep(Box::new(Backend::new(config.backend.clone())))
+        } else {
+            BackendLink::Threaded(Backend::spawn(config.backend.clone())?)
+        };
+        Ok(Self {
+            config,
+            camera,
+            undistort,
+            prior,
+            tracker,
+            backend,
+            keyframes: Vec::new(),
+            current: None,
+            frames: Vec::new(),
+            last_frame_from_keyframe: SE3::identity(),
+            lost: false,
+            next_frame_id: 0,
+            stats: Stats::default(),
+        })
+    }
+
+    /// The configuration in force.
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> &Stats {
+        &self.stats
+    }
+
+    /// Processes one frame and returns what happened (a pose event always; keyframe events
+    /// when one was created).
+    pub fn push(&mut self, input: FrameInput) -> Result<Vec<Event>> {
+        let frame = Arc::new(self.make_frame(input)?);
+        self.stats.frames += 1;
+        let Some(current) = self.current.as_mut() else {
+            return self.start(frame);
+        };
+        let t0 = std::time::Instant::now();
+        let result = self.tracker.track(&current.reference, &frame, &self.last_frame_from_keyframe);
+        self.stats.tracking_s += t0.elapsed().as_secs_f64();
+        if !result.good {
+            return Ok(vec![self.lost_or_relocalised(&frame)]);
+        }
+        let state = if std::mem::take(&mut self.lost) {
+            TrackingState::Relocalized
+        } else {
+            TrackingState::Tracking
+        };
+        let keyframe_from_frame = result.frame_from_keyframe.inverse();
+        self.last_frame_from_keyframe = result.frame_from_keyframe;
+
+        let kf_id = current.id;
+        let mean_idepth = current.filter.depth_map().mean_idepth().unwrap_or(1.0);
+        let make_keyframe = keyframe_selection::needs_new_keyframe(
+            &self.config.mapping,
+            &keyframe_from_frame,
+            mean_idepth,
+            result.point_usage,
+            self.keyframes.len(),
+        );
+        if make_keyframe {
+            return self.new_keyframe(frame, &result.frame_from_keyframe, &result.information, state);
+        }
+
+        let t1 = std::time::Instant::now();
+        let current = self.current.as_mut().ok_or_else(|| Error::Config("no keyframe".into()))?;
+        current.filter.observe(&frame, &keyframe_from_frame)?;
+        current.filter.regularize();
+        let depth = current.filter.depth_map();
+        let kf_frame = &self.keyframes[kf_id].frame;
+        current.reference = Arc::new(TrackingReference::new(kf_frame, &depth)?);
+        self.stats.mapping_s += t1.elapsed().as_secs_f64();
+
+        self.frames.push(FrameRecord {
+            timestamp: frame.timestamp,
+            keyframe: kf_id,
+            keyframe_from_frame,
+            lost: false,
+        });
+        let world_from_camera = self.keyframes[kf_id].world_from_keyframe
+            * Sim3::from_se3(&keyframe_from_frame, 1.0);
+        Ok(vec![Event::Pose(PoseEvent {
+            frame_id: frame.id,
+            timestamp: frame.timestamp,
+            world_from_camera,
+            state,
+            keyframe_id: kf_id,
+            is_keyframe: false,
+        })])
+    }
+
+    /// Ends the session: publishes the last keyframe, runs the final pose-graph optimisation
+    /// and returns the optimised pose of every keyframe.
+    pub fn finish(&mut self) -> Result<Vec<(KeyframeId, Sim3)>> {
+        if let Some(current) = self.current.take() {
+            let depth = Arc::new(current.filter.depth_map());
+            self.keyframes[current.id].depth = depth;
+        }
+        let poses = match &mut self.backend {
+            BackendLink::InStep(backend) => {
+                backend.optimize_full()?;
+                backend.poses()
+            }
+            BackendLink::Threaded(handle) => handle.finish()?,
+        };
+        Ok(self.keyframe_poses_from(&poses))
+    }
+
+    /// Current pose of every keyframe: optimised where the back end has one, else the front
+    /// end's estimate.
+    pub fn keyframe_poses(&self) -> Vec<(KeyframeId, Sim3)> {
+        let poses = match &self.backend {
+            BackendLink::InStep(backend) => backend.poses(),
+            BackendLink::Threaded(handle) => handle.poses(),
+        };
+        self.keyframe_poses_from(&poses)
+    }
+
+    fn keyframe_poses_from(
+        &self,
+        optimised: &std::collections::HashMap<KeyframeId, Sim3>,
+    ) -> Vec<(KeyframeId, Sim3)> {
+        (0..self.keyframes.len())
+            .map(|id| (id, optimised.get(&id).copied().unwrap_or(self.keyframes[id].world_from_keyframe)))
+            .collect()
+    }
+
+    /// Keyframe timestamps with their current poses (for `keyframes.txt`).
+    pub fn keyframe_trajectory(&self) -> Vec<(f64, Sim3)> {
+        self.keyframe_poses()
+            .into_iter()
+            .map(|(id, pose)| (self.keyframes[id].frame.timestamp, pose))
+            .collect()
+    }
+
+    /// Every frame's pose (camera-to-world) through its keyframe's current pose; lost frames
+    /// are left out.
+    pub fn trajectory(&self) -> Vec<(f64, Sim3)> {
+        let poses = self.keyframe_poses();
+        self.frames
+            .iter()
+            .filter(|f| !f.lost)
+            .map(|f| (f.timestamp, poses[f.keyframe].1 * Sim3::from_se3(&f.keyframe_from_frame, 1.0)))
+            .collect()
+    }
+
+    /// The semi-dense points of every keyframe at its current pose, coloured from its image.
+    pub fn semidense_points(&self) -> Vec<ColoredPoint> {
+        let poses = self.keyframe_poses();
+        let mut points = Vec::new();
+        for (kf, (_, world_from_kf)) in self.keyframes.iter().zip(poses) {
+            let depth = match (&self.current, kf) {
+                (Some(current), _) if std::ptr::eq(kf, &self.keyframes[current.id]) => {
+                    Arc::new(current.filter.depth_map())
+                }
+                _ => kf.depth.clone(),
+            };
+            let camera = &kf.frame.camera;
+            for y in 0..depth.height {
+                for x in 0..depth.width {
+                    let Some((idepth, _)) = depth.at(x, y).estimate() else { continue };
+                    if idepth <= 0.0 {
+                        continue;
+                    }
+                    let p = camera.unproject(
+                        &nalgebra::Vector2::new(x as f64, y as f64),
+                        1.0 / f64::from(idepth),
+                    );
+                    let w: Vector3<f64> = world_from_kf.act(&p);
+                    let color = kf
+                        .frame
+                        .rgb
+                        .as_ref()
+                        .map(|rgb| rgb.get_pixel(x as u32, y as u32).0)
+                        .unwrap_or([200, 200, 200]);
+                    points.push(ColoredPoint {
+                        position: [w.x as f32, w.y as f32, w.z as f32],
+                        color,
+                    });
+                }
+            }
+        }
+        points
+    }
+
+    /// Undistorts and converts the input; rejects a size that does not match the camera.
+    fn make_frame(&mut self, input: FrameInput) -> Result<Frame> {
+        let (w, h) = input.rgb.dimensions();
+        if (w, h) != (self.camera.width, self.camera.height) {
+            return Err(Error::Shape(format!(
+                "frame is {w}x{h} but the camera is {}x{}",
+                self.camera.width, self.camera.height
+            )));
+        }
+        let rgb = match &self.undistort {
+            Some(map) => map.apply_rgb(&input.rgb)?,
+            None => input.rgb,
+        };
+        let gray = ImageF32::from_rgb8(&rgb);
+        let id = self.next_frame_id;
+        self.next_frame_id += 1;
+        Frame::new(id, input.timestamp, self.camera.undistorted(), &gray, Some(Arc::new(rgb)))
+    }
+
+    /// The first frame becomes the first keyframe, its depth initialised from the prior (or
+    /// randomly).
+    fn start(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
+        let mut filter = DepthFilter::new(frame.clone(), self.config.mapping.clone())?;
+        let prior_depth = match (self.config.pipeline.init, self.prior.as_mut(), frame.rgb.as_ref()) {
+            (DepthInit::Prior, Some(prior), Some(rgb)) => Some(prior.predict(rgb)?.0),
+            _ => None,
+        };
+        match prior_depth {
+            Some(idepth) => filter.init_from_depth(&normalise_mean(&idepth)?, self.config.pipeline.prior_init_var)?,
+            None => filter.init_random(self.config.pipeline.seed),
+        }
+        filter.regularize();
+        let world_from_keyframe = Sim3::identity();
+        self.publish_keyframe(frame.clone(), filter, world_from_keyframe, None)?;
+        self.frames.push(FrameRecord {
+            timestamp: frame.timestamp,
+            keyframe: 0,
+            keyframe_from_frame: SE3::identity(),
+            lost: false,
+        });
+        Ok(vec![
+            Event::Keyframe(KeyframeEvent {
+                keyframe_id: 0,
+                frame_id: frame.id,
+                timestamp: frame.timestamp,
+                world_from_keyframe,
+            }),
+            Event::Pose(PoseEvent {
+                frame_id: frame.id,
+                timestamp: frame.timestamp,
+                world_from_camera: world_from_keyframe,
+                state: TrackingState::Initializing,
+                keyframe_id: 0,
+                is_keyframe: true,
+            }),
+        ])
+    }
+
+    /// `frame` becomes the next keyframe: the current keyframe's depth is propagated into it
+    /// and scale-normalised (mean inverse depth 1, LSD-SLAM's gauge), and the finished keyframe
+    /// goes to the back end with its tracking constraint.
+    fn new_keyframe(
+        &mut self,
+        frame: Arc<Frame>,
+        frame_from_keyframe: &SE3,
+        information: &Matrix6<f64>,
+        state: TrackingState,
+    ) -> Result<Vec<Event>> {
+        let t0 = std::time::Instant::now();
+        let old = self.current.take().ok_or_else(|| Error::Config("no keyframe".into()))?;
+        let mut filter = old.filter.propagate_to(frame.clone(), frame_from_keyframe)?;
+        filter.regularize();
+        // New keyframe coordinates are divided by `factor` (inverse depths multiplied by it).
+        let factor = filter.normalize_scale();
+        let old_from_new =
+            Sim3::from_se3(&frame_from_keyframe.inverse(), 1.0) * Sim3::new(Default::default(), Vector3::zeros(), factor);
+        let world_from_new = self.keyframes[old.id].world_from_keyframe * old_from_new;
+        self.keyframes[old.id].depth = Arc::new(old.filter.depth_map());
+        self.publish_keyframe(frame.clone(), filter, world_from_new, Some((old.id, old_from_new, *information)))?;
+        self.stats.mapping_s += t0.elapsed().as_secs_f64();
+
+        let id = self.keyframes.len() - 1;
+        self.frames.push(FrameRecord {
+            timestamp: frame.timestamp,
+            keyframe: id,
+            keyframe_from_frame: SE3::identity(),
+            lost: false,
+        });
+        self.last_frame_from_keyframe = SE3::identity();
+        let mut events = vec![
+            Event::Keyframe(KeyframeEvent {
+                keyframe_id: id,
+                frame_id: frame.id,
+                timestamp: frame.timestamp,
+                world_from_keyframe: world_from_new,
+            }),
+            Event::Pose(PoseEvent {
+                frame_id: frame.id,
+                timestamp: frame.timestamp,
+                world_from_camera: world_from_new,
+                state,
+                keyframe_id: id,
+                is_keyframe: true,
+            }),
+        ];
+        if let BackendLink::InStep(backend) = &mut self.backend {
+            backend.process()?;
+            events.push(Event::KeyframePoses { poses: self.keyframe_poses() });
+        }
+        Ok(events)
+    }
+
+    /// Registers a keyframe (as the current one) and hands the finished previous keyframe, if
+    /// any, to the back end.
+    fn publish_keyframe(
+        &mut self,
+        frame: Arc<Frame>,
+        filter: DepthFilter,
+        world_from_keyframe: Sim3,
+        parent: Option<(KeyframeId, Sim3, Matrix6<f64>)>,
+    ) -> Result<()> {
+        let id = self.keyframes.len();
+        let depth = Arc::new(filter.depth_map());
+        let reference = Arc::new(TrackingReference::new(&frame, &depth)?);
+        if let Some((parent_id, _, _)) = parent {
+            self.keyframes[parent_id].reference =
+                Arc::new(TrackingReference::new(&self.keyframes[parent_id].frame, &self.keyframes[parent_id].depth)?);
+        }
+        let new = NewKeyframe {
+            id,
+            frame: frame.clone(),
+            depth: depth.clone(),
+            world_from_keyframe,
+            parent,
+        };
+        match &mut self.backend {
+            BackendLink::InStep(backend) => backend.add_keyframe(new)?,
+            BackendLink::Threaded(handle) => handle.add_keyframe(new)?,
+        }
+        self.keyframes.push(KeyframeRecord { frame, depth, world_from_keyframe, reference: reference.clone() });
+        self.current = Some(CurrentKeyframe { id, filter, reference });
+        self.stats.keyframes = self.keyframes.len();
+        Ok(())
+    }
+
+    /// Tracking failed: try the most recent keyframes; on success the frame is relocalised
+    /// (and tracking continues from that keyframe), else it is reported lost.
+    fn lost_or_relocalised(&mut self, frame: &Arc<Frame>) -> Event {
+        let current_id = self.current.as_ref().map_or(0, |c| c.id);
+        let n = self.config.pipeline.relocalisation_candidates;
+        let candidates: Vec<KeyframeId> =
+            (0..self.keyframes.len()).rev().filter(|&id| id != current_id).take(n).collect();
+        let refs: Vec<(&TrackingReference, SE3)> = candidates
+            .iter()
+            .map(|&id| (self.keyframes[id].reference.as_ref(), SE3::identity()))
+            .collect();
+        if let Some((i, result)) = self.tracker.try_relocalise(&refs, frame) {
+            let kf = candidates[i];
+            // Re-activate that keyframe for mapping: its depth continues to be refined.
+            if let Ok(filter) = DepthFilter::from_depth_map(
+                self.keyframes[kf].frame.clone(),
+                &self.keyframes[kf].depth,
+                self.config.mapping.clone(),
+            ) {
+                self.current = Some(CurrentKeyframe {
+                    id: kf,
+                    filter,
+                    reference: self.keyframes[kf].reference.clone(),
+                });
+                self.last_frame_from_keyframe = result.frame_from_keyframe;
+                self.lost = false;
+                let keyframe_from_frame = result.frame_from_keyframe.inverse();
+                self.frames.push(FrameRecord {
+                    timestamp: frame.timestamp,
+                    keyframe: kf,
+                    keyframe_from_frame,
+                    lost: false,
+                });
+                return Event::Pose(PoseEvent {
+                    frame_id: frame.id,
+                    timestamp: frame.timestamp,
+                    world_from_camera: self.keyframes[kf].world_from_keyframe
+                        * Sim3::from_se3(&keyframe_from_frame, 1.0),
+                    state: TrackingState::Relocalized,
+                    keyframe_id: kf,
+                    is_keyframe: false,
+                });
+            }
+        }
+        self.lost = true;
+        self.stats.frames_lost += 1;
+        self.frames.push(FrameRecord {
+            timestamp: frame.timestamp,
+            keyframe: current_id,
+            keyframe_from_frame: self.last_frame_from_keyframe.inverse(),
+            lost: true,
+        });
+        Event::Pose(PoseEvent {
+            frame_id: frame.id,
+            timestamp: frame.timestamp,
+            world_from_camera: self.keyframes[current_id].world_from_keyframe
+                * Sim3::from_se3(&self.last_frame_from_keyframe.inverse(), 1.0),
+            state: TrackingState::Lost,
+            keyframe_id: current_id,
+            is_keyframe: false,
+        })
+    }
+}
+
+/// Scales a relative inverse-depth map so that its mean over positive pixels is 1 (the
+/// keyframe scale gauge), leaving non-positive pixels at 0 ("no prediction").
+fn normalise_mean(idepth: &ImageF32) -> Result<ImageF32> {
+    let (sum, n) = idepth
+        .data
+        .iter()
+        .filter(|v| v.is_finite() && **v > 0.0)
+        .fold((0.0f64, 0usize), |(s, n), &v| (s + f64::from(v), n + 1));
+    if n == 0 {
+        return Err(Error::Prior("the depth prior predicted no positive inverse depth".into()));
+    }
+    let k = (n as f64 / sum) as f32;
+    let data = idepth.data.iter().map(|&v| if v.is_finite() && v > 0.0 { v * k } else { 0.0 }).collect();
+    ImageF32::from_vec(idepth.width, idepth.height, data)
+}

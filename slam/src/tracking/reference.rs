@@ -1,0 +1,194 @@
+//! The keyframe side of direct image alignment: its semi-dense inverse-depth map turned into a
+//! point cloud per pyramid level (LSD-SLAM's `TrackingReference::makePointCloud` over the depth
+//! pyramid of `Frame::buildIDepthAndIDepthVar`).
+
+use nalgebra::Vector2;
+
+use crate::frame::{Frame, PYRAMID_LEVELS};
+use crate::mapping::{DepthMap, InverseDepth};
+use crate::{Error, Result};
+
+/// The reference points of one pyramid level, as a struct of arrays so that the tracking inner
+/// loop streams through contiguous `f32`s.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ReferenceLevel {
+    /// 3-D point in keyframe coordinates, x component (keyframe scale).
+    pub x: Vec<f32>,
+    /// y component.
+    pub y: Vec<f32>,
+    /// z component (= depth = 1 / inverse depth).
+    pub z: Vec<f32>,
+    /// Keyframe intensity at the point's pixel (8-bit units).
+    pub intensity: Vec<f32>,
+    /// Variance of the point's inverse depth.
+    pub idepth_var: Vec<f32>,
+    /// Pixel index `x + y·width` in the level (for residual images and debugging).
+    pub pixel: Vec<u32>,
+}
+
+impl ReferenceLevel {
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.x.len()
+    }
+
+    /// Whether the level has no point.
+    pub fn is_empty(&self) -> bool {
+        self.x.is_empty()
+    }
+}
+
+/// A keyframe prepared for tracking: one [`ReferenceLevel`] per pyramid level.
+///
+/// Coarse levels are not subsampled points of level 0 but points of their own pixels, whose
+/// inverse depth is the inverse-variance-weighted mean of the (up to four) estimated 2×2
+/// children, so that the depth pyramid lines up with the image pyramid of [`Frame`] (each
+/// level-L+1 pixel is the 2×2 average of level L).
+#[derive(Clone, Debug)]
+pub struct TrackingReference {
+    /// Id of the keyframe this reference was built from.
+    pub keyframe_id: u64,
+    levels: Vec<ReferenceLevel>,
+    sizes: Vec<(usize, usize)>,
+}
+
+/// Inverse depth and variance of one pixel of the depth pyramid; `var ≤ 0` means "no estimate"
+/// (the convention of LSD-SLAM's `idepthVar` buffers).
+#[derive(Clone, Copy, Debug)]
+struct IdepthVar {
+    idepth: f32,
+    var: f32,
+}
+
+const NONE: IdepthVar = IdepthVar {
+    idepth: -1.0,
+    var: -1.0,
+};
+
+impl TrackingReference {
+    /// Builds the per-level point clouds of `keyframe` from its semi-dense map `depth`.
+    ///
+    /// Only [`InverseDepth::Estimate`]s with positive inverse depth and variance become points;
+    /// the one-pixel image border is skipped (its gradients are one-sided). Fails with
+    /// [`Error::Shape`] when the map and the keyframe differ in size.
+    pub fn new(keyframe: &Frame, depth: &DepthMap) -> Result<Self> {
+        let (w0, h0) = (keyframe.level(0).width(), keyframe.level(0).height());
+        if (depth.width, depth.height) != (w0, h0) || depth.pixels.len() != w0 * h0 {
+            return Err(Error::Shape(format!(
+                "depth map {}x{} for a {w0}x{h0} keyframe",
+                depth.width, depth.height
+            )));
+        }
+        let mut current: Vec<IdepthVar> = depth
+            .pixels
+            .iter()
+            .map(|p| match *p {
+                InverseDepth::Estimate { idepth, var }
+                    if idepth > 0.0 && var > 0.0 && idepth.is_finite() && var.is_finite() =>
+                {
+                    IdepthVar { idepth, var }
+                }
+                _ => NONE,
+            })
+            .collect();
+        let levels_available = keyframe.pyramid.levels.len().min(PYRAMID_LEVELS);
+        let mut levels = Vec::with_capacity(levels_available);
+        let mut sizes = Vec::with_capacity(levels_available);
+        for level in 0..levels_available {
+            let image_level = keyframe.level(level);
+            let (w, h) = (image_level.width(), image_level.height());
+            if level > 0 {
+                let (pw, ph) = sizes[level - 1];
+                current = downsample_idepth(&current, pw, ph, w, h);
+            }
+            let camera = keyframe.camera_at(level);
+            let mut out = ReferenceLevel::default();
+            for y in 1..h.saturating_sub(1) {
+                for x in 1..w.saturating_sub(1) {
+                    let idx = y * w + x;
+                    let d = current[idx];
+                    if d.var <= 0.0 {
+                        continue;
+                    }
+                    let p = camera.unproject(
+                        &Vector2::new(x as f64, y as f64),
+                        1.0 / f64::from(d.idepth),
+                    );
+                    out.x.push(p.x as f32);
+                    out.y.push(p.y as f32);
+                    out.z.push(p.z as f32);
+                    out.intensity.push(image_level.image.data[idx]);
+                    out.idepth_var.push(d.var);
+                    out.pixel.push(idx as u32);
+                }
+            }
+            levels.push(out);
+            sizes.push((w, h));
+        }
+        Ok(Self {
+            keyframe_id: keyframe.id,
+            levels,
+            sizes,
+        })
+    }
+
+    /// The points of pyramid level `level` (empty beyond the keyframe's pyramid).
+    pub fn level(&self, level: usize) -> &ReferenceLevel {
+        static EMPTY: ReferenceLevel = ReferenceLevel {
+            x: Vec::new(),
+            y: Vec::new(),
+            z: Vec::new(),
+            intensity: Vec::new(),
+            idepth_var: Vec::new(),
+            pixel: Vec::new(),
+        };
+        self.levels.get(level).unwrap_or(&EMPTY)
+    }
+
+    /// Number of points at `level`.
+    pub fn num_points(&self, level: usize) -> usize {
+        self.level(level).len()
+    }
+
+    /// Image size `(width, height)` of `level` in the keyframe's pyramid.
+    pub fn level_size(&self, level: usize) -> Option<(usize, usize)> {
+        self.sizes.get(level).copied()
+    }
+}
+
+/// One level of the inverse-depth pyramid (LSD-SLAM `Frame::buildIDepthAndIDepthVar`): each
+/// output pixel fuses its estimated 2×2 children with inverse-variance weights,
+/// `d = Σ(dᵢ/vᵢ) / Σ(1/vᵢ)`, and takes the *harmonic mean* of their variances,
+/// `v = n / Σ(1/vᵢ)`, rather than the fused variance `1/Σ(1/vᵢ)`: neighbouring estimates come
+/// from the same stereo observations and are far from independent, so averaging them must
+/// not make the coarse point look n times more certain.
+fn downsample_idepth(
+    src: &[IdepthVar],
+    src_w: usize,
+    _src_h: usize,
+    w: usize,
+    h: usize,
+) -> Vec<IdepthVar> {
+    let mut out = vec![NONE; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (mut sum_d, mut sum_iv, mut n) = (0.0f32, 0.0f32, 0u32);
+            for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                let c = src[(2 * y + dy) * src_w + 2 * x + dx];
+                if c.var > 0.0 {
+                    let iv = 1.0 / c.var;
+                    sum_d += c.idepth * iv;
+                    sum_iv += iv;
+                    n += 1;
+                }
+            }
+            if n > 0 && sum_iv.is_finite() && sum_iv > 0.0 {
+                out[y * w + x] = IdepthVar {
+                    idepth: sum_d / sum_iv,
+                    var: n as f32 / sum_iv,
+                };
+            }
+        }
+    }
+    out
+}

@@ -1,0 +1,240 @@
+//! Coarse-to-fine Levenberg–Marquardt on SE(3) (LSD-SLAM ECCV 2014 §3.3, `SE3Tracker`).
+
+use std::mem;
+
+use nalgebra::{Matrix6, Vector6};
+
+use super::config::TrackingConfig;
+use super::reference::TrackingReference;
+use super::warp::{
+    InterleavedLevel, WarpBuffers, WarpParams, evaluate, left_to_right_information,
+    normal_equations,
+};
+use crate::Result;
+use crate::frame::{Frame, PYRAMID_LEVELS};
+use crate::geometry::SE3;
+
+/// LSD-SLAM resets the LM damping to 0 (pure Gauss–Newton) once it has decayed to this, and
+/// restarts it at this value after the first rejected Gauss–Newton step.
+const LAMBDA_RESTART: f64 = 0.2;
+
+/// The outcome of [`SE3Tracker::track`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrackingResult {
+    /// The estimated pose: maps keyframe coordinates to frame coordinates (keyframe scale).
+    /// On divergence, the initial guess.
+    pub frame_from_keyframe: SE3,
+    /// Whether tracking succeeded; false (= tracking lost) when the optimisation diverged
+    /// (too few points in the image, singular normal equations), or at the finest level
+    /// `good_ratio ≤ min_good_per_good_bad` (0.5) or `good / pixels ≤ min_good_per_all`
+    /// (0.04) — LSD-SLAM's `trackingWasGood`.
+    pub good: bool,
+    /// Final cost: mean of `w_huber · r² / σ_r²` over the warped points at the finest level
+    /// (LSD-SLAM `lastResidual`).
+    pub residual: f32,
+    /// `good / (good + bad)` warped points at the finest level.
+    pub good_ratio: f32,
+    /// Share of the finest level's reference points that landed in the image, each weighted by
+    /// `min(1, z_keyframe / z_frame)` (LSD-SLAM `pointUsage`, an input of keyframe selection).
+    pub point_usage: f32,
+    /// Number of LM iterations (normal-equation builds) over all levels.
+    pub iterations: usize,
+    /// The final normal-equation matrix `Σ w·Jᵀ·J` at the finest level (unnormalised, in units
+    /// of the variance-normalised residual, Huber-weighted) with respect to a *right*
+    /// perturbation `frame_from_keyframe · exp(δ)`, δ = (ρ, φ); its inverse approximates the
+    /// pose covariance. Zero when tracking diverged.
+    pub information: Matrix6<f64>,
+}
+
+impl TrackingResult {
+    fn lost(initial: &SE3, iterations: usize) -> Self {
+        Self {
+            frame_from_keyframe: *initial,
+            good: false,
+            residual: f32::INFINITY,
+            good_ratio: 0.0,
+            point_usage: 0.0,
+            iterations,
+            information: Matrix6::zeros(),
+        }
+    }
+}
+
+/// Direct SE(3) image alignment of frames against a keyframe's semi-dense depth.
+///
+/// Owns its work buffers: reuse one tracker for every frame so that tracking allocates nothing
+/// once the buffers have grown to the largest point cloud.
+#[derive(Debug)]
+pub struct SE3Tracker {
+    config: TrackingConfig,
+    current: WarpBuffers,
+    trial: WarpBuffers,
+    frame_levels: Vec<InterleavedLevel>,
+}
+
+impl SE3Tracker {
+    /// A tracker with `config` (validated).
+    pub fn new(config: TrackingConfig) -> Result<Self> {
+        config.validate()?;
+        Ok(Self {
+            config,
+            current: WarpBuffers::default(),
+            trial: WarpBuffers::default(),
+            frame_levels: vec![InterleavedLevel::default(); PYRAMID_LEVELS],
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &TrackingConfig {
+        &self.config
+    }
+
+    /// Aligns `frame` to the keyframe of `reference`, starting from
+    /// `initial_frame_from_keyframe` (the previous frame's pose composed with a motion model).
+    ///
+    /// Per level from `max_level` down to `min_level`: LM on the 6×6 normal equations with
+    /// LSD-SLAM's schedule — start at `lambda_initial`; after an accepted step
+    /// `λ ← 0 if λ ≤ 0.2 else λ·0.5`; after the k-th rejected try of an iteration
+    /// `λ ← 0.2 if λ = 0 else λ·2^k`; the diagonal is scaled by `1 + λ`. A level ends after
+    /// `max_iterations[level]` iterations, when an accepted step improves the cost by less than
+    /// 0.1 % (`convergence_eps`), or when a rejected step is tiny (`step_size_min`).
+    pub fn track(
+        &mut self,
+        reference: &TrackingReference,
+        frame: &Frame,
+        initial_frame_from_keyframe: &SE3,
+    ) -> TrackingResult {
+        let cfg = self.config.clone();
+        let mut pose = *initial_frame_from_keyframe;
+        let mut affine = (1.0f32, 0.0f32);
+        let mut iterations = 0usize;
+        let top = cfg.max_level.min(frame.pyramid.levels.len().saturating_sub(1));
+        if cfg.min_level > top {
+            return TrackingResult::lost(initial_frame_from_keyframe, 0);
+        }
+        for level in (cfg.min_level..=top).rev() {
+            let camera = frame.camera_at(level);
+            self.frame_levels[level].fill(frame.level(level));
+            let image = &self.frame_levels[level];
+            let points = reference.level(level);
+            let min_warped = cfg.min_good_per_all_absmin * (image.width * image.height) as f32;
+
+            let params = WarpParams::new(&pose, &camera, affine);
+            evaluate(points, image, &params, &cfg, &mut self.current);
+            if (self.current.len() as f32) < min_warped || self.current.is_empty() {
+                return TrackingResult::lost(initial_frame_from_keyframe, iterations);
+            }
+            if cfg.affine_lighting {
+                affine = self.current.affine_estimate.unwrap_or(affine);
+            }
+            let mut last_cost = self.current.cost;
+            let mut lambda = cfg.lambda_initial;
+
+            'iterations: for _ in 0..cfg.max_iterations[level] {
+                let (h, g) = normal_equations(&self.current);
+                iterations += 1;
+                let mut tries = 0i32;
+                loop {
+                    let mut a = h;
+                    for i in 0..6 {
+                        a[(i, i)] *= 1.0 + lambda;
+                    }
+                    tries += 1;
+                    let Some(step) = solve(a, &g) else {
+                        // No gradient information at all (e.g. a constant image).
+                        return TrackingResult::lost(initial_frame_from_keyframe, iterations);
+                    };
+                    let candidate = SE3::exp(&step) * pose;
+                    let params = WarpParams::new(&candidate, &camera, affine);
+                    evaluate(points, image, &params, &cfg, &mut self.trial);
+                    if (self.trial.len() as f32) < min_warped || self.trial.is_empty() {
+                        return TrackingResult::lost(initial_frame_from_keyframe, iterations);
+                    }
+                    let cost = self.trial.cost;
+                    if cost < last_cost {
+                        pose = candidate;
+                        mem::swap(&mut self.current, &mut self.trial);
+                        if cfg.affine_lighting {
+                            affine = self.current.affine_estimate.unwrap_or(affine);
+                        }
+                        let converged = cost / last_cost > cfg.convergence_eps;
+                        last_cost = cost;
+                        lambda = if lambda <= LAMBDA_RESTART {
+                            0.0
+                        } else {
+                            lambda * cfg.lambda_success_factor
+                        };
+                        if converged {
+                            break 'iterations;
+                        }
+                        break;
+                    }
+                    if step.norm_squared() <= cfg.step_size_min {
+                        break 'iterations;
+                    }
+                    lambda = if lambda == 0.0 {
+                        LAMBDA_RESTART
+                    } else {
+                        lambda * cfg.lambda_fail_factor.powi(tries)
+                    };
+                }
+            }
+
+            if level == cfg.min_level {
+                let buffers = &self.current;
+                let good = buffers.good as f32;
+                let total = (buffers.good + buffers.bad) as f32;
+                let good_ratio = if total > 0.0 { good / total } else { 0.0 };
+                let pixels = (image.width * image.height) as f32;
+                let point_usage = if points.is_empty() {
+                    0.0
+                } else {
+                    (buffers.usage / points.len() as f64) as f32
+                };
+                let (h_left, _) = normal_equations(buffers);
+                return TrackingResult {
+                    frame_from_keyframe: pose,
+                    good: good / pixels > cfg.min_good_per_all
+                        && good_ratio > cfg.min_good_per_good_bad
+                        && last_cost.is_finite(),
+                    residual: last_cost as f32,
+                    good_ratio,
+                    point_usage,
+                    iterations,
+                    information: left_to_right_information(&pose, &h_left),
+                };
+            }
+        }
+        TrackingResult::lost(initial_frame_from_keyframe, iterations)
+    }
+
+    /// Relocalisation / keyframe re-activation helper: tracks `frame` against every candidate
+    /// keyframe from its initial guess and returns the index and result of the best good one,
+    /// i.e. the largest `point_usage · good_ratio`, which must exceed
+    /// `relocalization_threshold` (LSD-SLAM's `Relocalizer` test with `relocalizationTH`).
+    pub fn try_relocalise(
+        &mut self,
+        candidates: &[(&TrackingReference, SE3)],
+        frame: &Frame,
+    ) -> Option<(usize, TrackingResult)> {
+        let mut best: Option<(usize, TrackingResult, f32)> = None;
+        for (i, (reference, guess)) in candidates.iter().enumerate() {
+            let result = self.track(reference, frame, guess);
+            let score = result.point_usage * result.good_ratio;
+            if result.good
+                && score > self.config.relocalization_threshold
+                && best.as_ref().is_none_or(|(_, _, s)| score > *s)
+            {
+                best = Some((i, result, score));
+            }
+        }
+        best.map(|(i, r, _)| (i, r))
+    }
+}
+
+/// Solves the damped normal equations `A·δ = g` by Cholesky; `None` when `A` is not positive
+/// definite (no constraint on some direction) or the step is not finite.
+fn solve(a: Matrix6<f64>, g: &Vector6<f64>) -> Option<Vector6<f64>> {
+    let step = a.cholesky()?.solve(g);
+    step.iter().all(|v| v.is_finite()).then_some(step)
+}
