@@ -17,6 +17,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Run the SLAM pipeline locally on a TUM-layout sequence (no server).
+    Run(cli::run::Args),
     /// Render a synthetic textured-room RGB-D sequence with exact ground truth (TUM layout).
     Synth(cli::synth::Args),
     /// Evaluate trajectories (ATE/RPE) or depth maps (percentage of correct depth).
@@ -40,6 +42,7 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {
+        Command::Run(args) => cli::run::run(args),
         Command::Synth(args) => cli::synth::run(args),
         Command::Eval(cmd) => cli::eval::run(cmd),
         Command::GpuInfo(args) => cli::gpu_info::run(args),

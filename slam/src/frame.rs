@@ -48,7 +48,13 @@ impl Frame {
             )));
         }
         let pyramid = Pyramid::build_cpu(gray, PYRAMID_LEVELS)?;
-        Ok(Self { id, timestamp, camera, pyramid, rgb })
+        Ok(Self {
+            id,
+            timestamp,
+            camera,
+            pyramid,
+            rgb,
+        })
     }
 
     /// Pyramid level `level` (0 = full resolution).

@@ -12,6 +12,7 @@
 //! - [`mapping`]: the semi-dense inverse-depth filter of each keyframe, keyframe selection.
 //! - [`graph`]: keyframe-to-keyframe Sim(3) constraints and the pose graph.
 //! - [`export`]: PLY point clouds (and later meshes) for people to open.
+//! - [`pipeline`]: `Pipeline::push(frame) -> events` over tracking, mapping and the back end.
 //! - [`npy`]: minimal NumPy `.npy` float32 reader/writer for depth maps and benchmarks.
 //!
 //! Conventions used everywhere: poses are named by their frames (`world_from_camera`,
@@ -30,6 +31,7 @@ pub mod graph;
 pub mod image;
 pub mod mapping;
 pub mod npy;
+pub mod pipeline;
 pub mod tracking;
 
 pub use error::{Error, Result};

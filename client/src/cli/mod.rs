@@ -4,4 +4,5 @@ pub mod bench;
 pub mod eval;
 pub mod gpu_info;
 pub mod prior;
+pub mod run;
 pub mod synth;

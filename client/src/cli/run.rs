@@ -54,8 +54,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let prior: Option<Box<dyn DepthPrior>> = match &args.model {
         Some(model) => {
-            let model_config =
-                args.model_config.as_deref().map(ModelConfig::from_file).transpose()?;
+            let model_config = args
+                .model_config
+                .as_deref()
+                .map(ModelConfig::from_file)
+                .transpose()?;
             Some(Box::new(
                 OnnxDepthPrior::load(model, model_config)
                     .with_context(|| format!("loading {}", model.display()))?,
@@ -77,7 +80,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let tl = Instant::now();
         let rgb = seq.load_rgb(i)?;
         load_s += tl.elapsed().as_secs_f64();
-        pipeline.push(FrameInput { timestamp: seq.frames[i].timestamp, rgb })?;
+        pipeline.push(FrameInput {
+            timestamp: seq.frames[i].timestamp,
+            rgb,
+        })?;
         if let Some(bar) = &progress {
             bar.inc(1);
         }
@@ -89,8 +95,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
 
     write_trajectory(&args.out.join("trajectory.txt"), &pipeline.trajectory())?;
-    write_trajectory(&args.out.join("keyframes.txt"), &pipeline.keyframe_trajectory())?;
-    write_points_ply(&args.out.join("semidense.ply"), &pipeline.semidense_points())?;
+    write_trajectory(
+        &args.out.join("keyframes.txt"),
+        &pipeline.keyframe_trajectory(),
+    )?;
+    write_points_ply(
+        &args.out.join("semidense.ply"),
+        &pipeline.semidense_points(),
+    )?;
     let stats = pipeline.stats();
     println!(
         "{}",
@@ -114,7 +126,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 fn write_trajectory(path: &Path, poses: &[(f64, Sim3)]) -> anyhow::Result<()> {
     let stamped: Vec<StampedPose> = poses
         .iter()
-        .map(|(t, pose)| StampedPose { timestamp: *t, world_from_camera: pose.to_se3_and_scale().0 })
+        .map(|(t, pose)| StampedPose {
+            timestamp: *t,
+            world_from_camera: pose.to_se3_and_scale().0,
+        })
         .collect();
     write_tum_trajectory(path, &stamped).with_context(|| format!("writing {}", path.display()))
 }
@@ -122,8 +137,10 @@ fn write_trajectory(path: &Path, poses: &[(f64, Sim3)]) -> anyhow::Result<()> {
 fn progress_bar(len: u64) -> indicatif::ProgressBar {
     let bar = indicatif::ProgressBar::new(len);
     bar.set_style(
-        indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} frames {per_sec}")
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        indicatif::ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} frames {per_sec}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     bar
 }

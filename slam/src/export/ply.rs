@@ -42,12 +42,20 @@ pub fn read_points_ply(path: &Path) -> Result<Vec<ColoredPoint>> {
     let mut count = None;
     loop {
         let mut line = String::new();
-        if reader.read_line(&mut line).map_err(|e| Error::io(path, e))? == 0 {
+        if reader
+            .read_line(&mut line)
+            .map_err(|e| Error::io(path, e))?
+            == 0
+        {
             return Err(bad("header ends before end_header"));
         }
         let line = line.trim();
         if let Some(n) = line.strip_prefix("element vertex ") {
-            count = Some(n.trim().parse::<usize>().map_err(|_| bad("bad vertex count"))?);
+            count = Some(
+                n.trim()
+                    .parse::<usize>()
+                    .map_err(|_| bad("bad vertex count"))?,
+            );
         } else if line.starts_with("format ") && line != "format binary_little_endian 1.0" {
             return Err(bad("not binary_little_endian"));
         } else if line == "end_header" {
@@ -56,7 +64,9 @@ pub fn read_points_ply(path: &Path) -> Result<Vec<ColoredPoint>> {
     }
     let count = count.ok_or_else(|| bad("no vertex element"))?;
     let mut body = Vec::new();
-    reader.read_to_end(&mut body).map_err(|e| Error::io(path, e))?;
+    reader
+        .read_to_end(&mut body)
+        .map_err(|e| Error::io(path, e))?;
     if body.len() != count * 15 {
         return Err(bad("vertex data does not match the header"));
     }
@@ -64,7 +74,10 @@ pub fn read_points_ply(path: &Path) -> Result<Vec<ColoredPoint>> {
         .chunks_exact(15)
         .map(|c| {
             let f = |i: usize| f32::from_le_bytes([c[i], c[i + 1], c[i + 2], c[i + 3]]);
-            ColoredPoint { position: [f(0), f(4), f(8)], color: [c[12], c[13], c[14]] }
+            ColoredPoint {
+                position: [f(0), f(4), f(8)],
+                color: [c[12], c[13], c[14]],
+            }
         })
         .collect())
 }

@@ -25,7 +25,9 @@ pub struct BlockSparseSymmetric {
 impl BlockSparseSymmetric {
     /// An all-zero matrix of `n` block rows and columns.
     pub fn new(n: usize) -> Self {
-        Self { columns: vec![BTreeMap::new(); n] }
+        Self {
+            columns: vec![BTreeMap::new(); n],
+        }
     }
 
     /// Number of block rows.
@@ -35,13 +37,20 @@ impl BlockSparseSymmetric {
 
     /// Adds `block` to block (row, col) and, implicitly, its transpose to (col, row).
     pub fn add(&mut self, row: usize, col: usize, block: &Matrix7) {
-        let (r, c, b) = if row >= col { (row, col, *block) } else { (col, row, block.transpose()) };
+        let (r, c, b) = if row >= col {
+            (row, col, *block)
+        } else {
+            (col, row, block.transpose())
+        };
         *self.columns[c].entry(r).or_insert_with(Matrix7::zeros) += b;
     }
 
     /// Block (i, i).
     pub fn diagonal(&self, i: usize) -> Matrix7 {
-        self.columns[i].get(&i).copied().unwrap_or_else(Matrix7::zeros)
+        self.columns[i]
+            .get(&i)
+            .copied()
+            .unwrap_or_else(Matrix7::zeros)
     }
 
     /// The dense matrix (tests and small debugging).
@@ -75,7 +84,8 @@ impl BlockSparseSymmetric {
             let below: Vec<(usize, Matrix7)> = l[k]
                 .range(k + 1..)
                 .map(|(&i, a_ik)| {
-                    let x = l_kk.solve_lower_triangular(&a_ik.transpose())
+                    let x = l_kk
+                        .solve_lower_triangular(&a_ik.transpose())
                         .unwrap_or_else(|| Matrix7::repeat(f64::NAN));
                     (i, x.transpose())
                 })
@@ -114,7 +124,9 @@ impl BlockSparseSymmetric {
             let l_kk = l[k].get(&k)?;
             x[k] = l_kk.transpose().solve_upper_triangular(&rhs)?;
         }
-        x.iter().all(|v| v.iter().all(|e| e.is_finite())).then_some(x)
+        x.iter()
+            .all(|v| v.iter().all(|e| e.is_finite()))
+            .then_some(x)
     }
 }
 
@@ -150,10 +162,16 @@ mod tests {
             h.add(j, i, &(b.transpose() * a));
         }
         h.add(0, 0, &(Matrix7::identity() * 1e-3));
-        let b: Vec<Vector7> = (0..n).map(|_| Vector7::from_fn(|_, _| rng.random_range(-1.0..1.0))).collect();
+        let b: Vec<Vector7> = (0..n)
+            .map(|_| Vector7::from_fn(|_, _| rng.random_range(-1.0..1.0)))
+            .collect();
         let x = h.solve(&b).expect("positive definite");
         let dense = h.to_dense();
-        let x_dense = dense.clone().cholesky().expect("dense SPD").solve(&flatten(&b));
+        let x_dense = dense
+            .clone()
+            .cholesky()
+            .expect("dense SPD")
+            .solve(&flatten(&b));
         let err = (flatten(&x) - &x_dense).norm() / x_dense.norm();
         assert!(err < 1e-9, "relative difference {err}");
         assert!((dense * flatten(&x) - flatten(&b)).norm() < 1e-8);

@@ -75,12 +75,12 @@ pub struct BackendConfig {
     /// connected ones are dropped first). Default 10 (`maxLoopClosureCandidates`).
     pub max_loop_closure_candidates: usize,
     /// Propose far-away keyframes by appearance (the role FAB-MAP plays in LSD-SLAM, here a
-    /// normalised 16×12 thumbnail of the coarsest pyramid level compared by correlation).
-    /// Default true.
+    /// box-averaged 32×24 thumbnail compared by shift-tolerant correlation, see
+    /// [`super::Thumbnail`]). Default true.
     pub appearance_search: bool,
     /// Minimum thumbnail correlation (in [−1, 1]) of an appearance candidate. Default 0.8
-    /// (a thumbnail of the same place from a nearby viewpoint scores ≳ 0.9, unrelated views of
-    /// textured scenes ≲ 0.5).
+    /// (measured on the synthetic room: a revisit 5 cm / 2° from a keyframe scores 0.96, the
+    /// opposite wall 0.43 and another room from the same pose 0.57).
     pub appearance_min_score: f64,
     /// At most this many appearance candidates per keyframe. Default 5 (LSD-SLAM keeps
     /// `max(5, (maxLoopClosureCandidates + 1)/2)` far candidates).
@@ -194,15 +194,23 @@ impl BackendConfig {
         ];
         for (name, v) in positive
             .into_iter()
-            .chain(self.stage_thresholds.iter().map(|&t| ("stage_thresholds", t)))
+            .chain(
+                self.stage_thresholds
+                    .iter()
+                    .map(|&t| ("stage_thresholds", t)),
+            )
             .chain(self.pose_graph_huber.map(|h| ("pose_graph_huber", h)))
         {
             if !(v.is_finite() && v > 0.0) {
-                return Err(Error::Config(format!("backend: {name} must be > 0, got {v}")));
+                return Err(Error::Config(format!(
+                    "backend: {name} must be > 0, got {v}"
+                )));
             }
         }
         if self.channel_capacity == 0 {
-            return Err(Error::Config("backend: channel_capacity must be ≥ 1".into()));
+            return Err(Error::Config(
+                "backend: channel_capacity must be ≥ 1".into(),
+            ));
         }
         Ok(())
     }

@@ -1,1 +1,36 @@
-//! Keyframe graph, Sim(3) constraints, pose-graph optimisation (being written).
+//! The back end of LSD-SLAM (Engel et al., ECCV 2014, §3.4–3.5): keyframe-to-keyframe Sim(3)
+//! constraints, their search and verification, and the Sim(3) pose graph. DeepRelativeFusion
+//! (Loo et al., IROS 2021) keeps this back end unchanged and only feeds it better depth.
+//!
+//! - [`sim3_tracker`]: direct Sim(3) alignment of two keyframes with photometric *and* depth
+//!   residuals ([`Sim3Tracker`]);
+//! - [`points`]: per-level inverse-depth pyramids and reference point clouds of a keyframe;
+//! - [`search`]: candidate keyframes (pose proximity, appearance thumbnail) and the staged
+//!   reciprocal consistency test;
+//! - [`pose_graph`]: the graph and its sparse Levenberg–Marquardt ([`PoseGraph`]), solved by the
+//!   block Cholesky of [`cholesky`];
+//! - [`backend`]: [`Backend`], synchronous (`process`) or on its own thread (`spawn`).
+//!
+//! Naming: a constraint's transform is `to_from_from` (maps `from`-keyframe coordinates to
+//! `to`-keyframe coordinates); vertices are `world_from_keyframe`. Perturbations are on the
+//! right, tangents (ρ, φ, σ), as everywhere in the crate.
+
+pub mod backend;
+pub mod cholesky;
+pub mod config;
+pub mod points;
+pub mod pose_graph;
+pub mod search;
+pub mod sim3_tracker;
+
+/// Keyframes are identified by the pipeline's keyframe counter.
+pub type KeyframeId = usize;
+
+pub use backend::{Backend, BackendCommand, BackendHandle, NewKeyframe, ParentEdge, ProcessReport};
+pub use config::BackendConfig;
+pub use pose_graph::{Constraint, OptimizeReport, PoseGraph};
+pub use search::{Keyframe, ReciprocalCheck, Thumbnail, reciprocal_consistency, reciprocal_test};
+pub use sim3_tracker::{Sim3TrackResult, Sim3Tracker};
+
+#[cfg(test)]
+mod tests;

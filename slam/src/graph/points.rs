@@ -41,7 +41,12 @@ impl DepthLevel {
                 var[i] = v;
             }
         }
-        Self { width: depth.width, height: depth.height, idepth, var }
+        Self {
+            width: depth.width,
+            height: depth.height,
+            idepth,
+            var,
+        }
     }
 
     /// The next coarser level (`floor(w/2) × floor(h/2)`, like the image pyramid): each pixel is
@@ -70,7 +75,12 @@ impl DepthLevel {
                 }
             }
         }
-        Self { width: w, height: h, idepth, var }
+        Self {
+            width: w,
+            height: h,
+            idepth,
+            var,
+        }
     }
 
     /// `(idepth, var)` at a sub-pixel position: the nearest pixel must hold an estimate (as in
@@ -97,7 +107,10 @@ impl DepthLevel {
             (0, 1, (1.0 - fx) * fy),
             (1, 1, fx * fy),
         ] {
-            let (xi, yi) = ((x0 + dx).min(self.width - 1), (y0 + dy).min(self.height - 1));
+            let (xi, yi) = (
+                (x0 + dx).min(self.width - 1),
+                (y0 + dy).min(self.height - 1),
+            );
             let i = yi * self.width + xi;
             if self.var[i] > 0.0 && w > 0.0 {
                 wsum += w;
@@ -185,18 +198,25 @@ impl KeyframeLevels {
                     }
                     let idepth = f64::from(depth_level.idepth[i]);
                     points.push(RefPoint {
-                        point: camera
-                            .unproject(&Vector2::new(x as f64, y as f64), 1.0 / idepth),
+                        point: camera.unproject(&Vector2::new(x as f64, y as f64), 1.0 / idepth),
                         idepth,
                         var: f64::from(depth_level.var[i]),
                         intensity: f64::from(image.at(x, y)),
                     });
                 }
             }
-            levels.push(KeyframeLevel { camera, points, depth: depth_level.clone() });
+            levels.push(KeyframeLevel {
+                camera,
+                points,
+                depth: depth_level.clone(),
+            });
         }
         let mean_idepth = if n > 0 { sum / n as f64 } else { 1.0 };
-        Ok(Self { levels, mean_idepth, estimates: n })
+        Ok(Self {
+            levels,
+            mean_idepth,
+            estimates: n,
+        })
     }
 }
 
@@ -208,10 +228,19 @@ mod tests {
     #[test]
     fn coarse_depth_is_inverse_variance_weighted_with_harmonic_variance() {
         let mut map = DepthMap::unknown(4, 2);
-        map.pixels[0] = InverseDepth::Estimate { idepth: 1.0, var: 1.0 };
-        map.pixels[1] = InverseDepth::Estimate { idepth: 2.0, var: 0.25 };
+        map.pixels[0] = InverseDepth::Estimate {
+            idepth: 1.0,
+            var: 1.0,
+        };
+        map.pixels[1] = InverseDepth::Estimate {
+            idepth: 2.0,
+            var: 0.25,
+        };
         map.pixels[4] = InverseDepth::Discarded;
-        map.pixels[5] = InverseDepth::Estimate { idepth: -1.0, var: 0.1 };
+        map.pixels[5] = InverseDepth::Estimate {
+            idepth: -1.0,
+            var: 0.1,
+        };
         let l0 = DepthLevel::from_depth_map(&map);
         let l1 = l0.downsample();
         assert_eq!((l1.width, l1.height), (2, 1));
@@ -229,12 +258,16 @@ mod tests {
             idepth: vec![1.0, 2.0, 0.0, 1.0, 2.0, 0.0],
             var: vec![1.0, 1.0, -1.0, 1.0, 1.0, -1.0],
         };
-        let (d, _) = level.sample(&Vector2::new(0.25, 0.5)).expect("inside the valid block");
+        let (d, _) = level
+            .sample(&Vector2::new(0.25, 0.5))
+            .expect("inside the valid block");
         assert!((d - 1.25).abs() < 1e-12, "{d}");
         // Nearest pixel (2, 0) has no estimate.
         assert!(level.sample(&Vector2::new(1.6, 0.0)).is_none());
         // Nearest valid, right neighbour invalid: the valid one alone.
-        let (d, _) = level.sample(&Vector2::new(1.4, 0.0)).expect("nearest (1, 0) valid");
+        let (d, _) = level
+            .sample(&Vector2::new(1.4, 0.0))
+            .expect("nearest (1, 0) valid");
         assert!((d - 2.0).abs() < 1e-12, "{d}");
         assert!(level.sample(&Vector2::new(-0.1, 0.0)).is_none());
     }

@@ -59,7 +59,11 @@ pub struct OptimizeReport {
 
 /// The residual `log(T_ij⁻¹ · T_wi⁻¹ · T_wj)` of a measurement `to_from_from = T_ij`
 /// (`i = to`, `j = from`).
-pub fn relative_residual(to_from_from: &Sim3, world_from_to: &Sim3, world_from_from: &Sim3) -> Vector7 {
+pub fn relative_residual(
+    to_from_from: &Sim3,
+    world_from_to: &Sim3,
+    world_from_from: &Sim3,
+) -> Vector7 {
     (to_from_from.inverse() * world_from_to.inverse() * *world_from_from).log()
 }
 
@@ -101,7 +105,11 @@ impl PoseGraph {
     /// An empty graph; `huber` is the robust-kernel width (see
     /// [`super::BackendConfig::pose_graph_huber`]).
     pub fn new(huber: Option<f64>) -> Self {
-        Self { vertices: BTreeMap::new(), edges: Vec::new(), huber }
+        Self {
+            vertices: BTreeMap::new(),
+            edges: Vec::new(),
+            huber,
+        }
     }
 
     /// Adds (or re-poses) a vertex. The first vertex ever added is fixed.
@@ -110,7 +118,10 @@ impl PoseGraph {
         self.vertices
             .entry(id)
             .and_modify(|v| v.world_from_keyframe = world_from_keyframe)
-            .or_insert(Vertex { world_from_keyframe, fixed });
+            .or_insert(Vertex {
+                world_from_keyframe,
+                fixed,
+            });
     }
 
     /// Holds a vertex constant (or releases it).
@@ -127,8 +138,7 @@ impl PoseGraph {
                 return Err(unknown(id));
             }
         }
-        if constraint.from == constraint.to
-            || !constraint.information.iter().all(|v| v.is_finite())
+        if constraint.from == constraint.to || !constraint.information.iter().all(|v| v.is_finite())
         {
             return Err(Error::Backend(format!(
                 "pose graph: edge {} -> {} is a self-loop or has non-finite information",
@@ -137,6 +147,14 @@ impl PoseGraph {
         }
         self.edges.push(constraint);
         Ok(())
+    }
+
+    /// Removes every edge between `a` and `b` (both directions); returns how many.
+    pub fn remove_edges_between(&mut self, a: KeyframeId, b: KeyframeId) -> usize {
+        let before = self.edges.len();
+        self.edges
+            .retain(|e| !((e.from == a && e.to == b) || (e.from == b && e.to == a)));
+        before - self.edges.len()
     }
 
     /// The vertex of `id`.
@@ -151,7 +169,10 @@ impl PoseGraph {
 
     /// All poses.
     pub fn poses(&self) -> HashMap<KeyframeId, Sim3> {
-        self.vertices.iter().map(|(&k, v)| (k, v.world_from_keyframe)).collect()
+        self.vertices
+            .iter()
+            .map(|(&k, v)| (k, v.world_from_keyframe))
+            .collect()
     }
 
     /// Vertex ids in increasing order.
@@ -195,12 +216,20 @@ impl PoseGraph {
     /// than 1e-12 relative. Fails only when the graph has no free vertex to move (returns the
     /// unchanged cost then) — it never leaves the poses worse than they were.
     pub fn optimize(&mut self, max_iterations: usize) -> Result<OptimizeReport> {
-        let free: Vec<KeyframeId> =
-            self.vertices.iter().filter(|(_, v)| !v.fixed).map(|(&k, _)| k).collect();
+        let free: Vec<KeyframeId> = self
+            .vertices
+            .iter()
+            .filter(|(_, v)| !v.fixed)
+            .map(|(&k, _)| k)
+            .collect();
         let index: HashMap<KeyframeId, usize> =
             free.iter().enumerate().map(|(i, &k)| (k, i)).collect();
         let initial_cost = self.cost();
-        let mut report = OptimizeReport { initial_cost, final_cost: initial_cost, iterations: 0 };
+        let mut report = OptimizeReport {
+            initial_cost,
+            final_cost: initial_cost,
+            iterations: 0,
+        };
         if free.is_empty() || self.edges.is_empty() {
             return Ok(report);
         }
@@ -230,7 +259,8 @@ impl PoseGraph {
                     .zip(&step)
                     .filter_map(|(&k, d)| Some((k, self.pose(k)? * Sim3::exp(d))))
                     .collect();
-                let new_cost = self.cost_with(&|id| candidate.get(&id).copied().or_else(|| self.pose(id)));
+                let new_cost =
+                    self.cost_with(&|id| candidate.get(&id).copied().or_else(|| self.pose(id)));
                 if new_cost.is_finite() && new_cost < cost {
                     for (k, p) in candidate {
                         if let Some(v) = self.vertices.get_mut(&k) {
@@ -262,16 +292,21 @@ impl PoseGraph {
         let mut h = BlockSparseSymmetric::new(n);
         let mut g = vec![Vector7::zeros(); n];
         for e in &self.edges {
-            let (Some(wi), Some(wj)) = (self.pose(e.to), self.pose(e.from)) else { continue };
+            let (Some(wi), Some(wj)) = (self.pose(e.to), self.pose(e.from)) else {
+                continue;
+            };
             let (r, j_to, j_from) = relative_residual_jacobians(&e.to_from_from, &wi, &wj);
             let weight = huber(r.dot(&(e.information * r)), self.huber).1;
             let omega = e.information * weight;
-            let blocks = [(index.get(&e.to), j_to), (index.get(&e.from), j_from)];
-            for (a, ja) in &blocks {
-                let Some(&a) = a else { continue };
+            let blocks = [
+                (index.get(&e.to).copied(), j_to),
+                (index.get(&e.from).copied(), j_from),
+            ];
+            for &(a, ja) in &blocks {
+                let Some(a) = a else { continue };
                 g[a] += ja.transpose() * (omega * r);
-                for (b, jb) in &blocks {
-                    let Some(&b) = b else { continue };
+                for &(b, jb) in &blocks {
+                    let Some(b) = b else { continue };
                     if a >= b {
                         h.add(a, b, &(ja.transpose() * omega * jb));
                     }

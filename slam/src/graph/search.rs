@@ -13,56 +13,119 @@
 
 use std::sync::Arc;
 
+use super::KeyframeId;
 use super::config::BackendConfig;
 use super::points::KeyframeLevels;
 use super::pose_graph::Constraint;
 use super::sim3_tracker::{Sim3TrackResult, Sim3Tracker};
-use super::KeyframeId;
+use crate::Result;
 use crate::frame::{Frame, PYRAMID_LEVELS};
 use crate::geometry::{Matrix7, Sim3};
 use crate::mapping::DepthMap;
-use crate::Result;
 
 /// Thumbnail size of the appearance descriptor (columns × rows).
-pub const THUMBNAIL_SIZE: (usize, usize) = (16, 12);
+pub const THUMBNAIL_SIZE: (usize, usize) = (32, 24);
 
-/// A cheap global image descriptor: the coarsest pyramid level resampled to
-/// [`THUMBNAIL_SIZE`], minus its mean, scaled to unit norm. Two views of the same place from
-/// nearby viewpoints correlate strongly; it is neither rotation- nor scale-invariant, which is
-/// acceptable because a proposal is verified by Sim(3) alignment from the identity anyway.
+/// Largest shift (cells, each axis) tried when comparing thumbnails: ±4 cells of 32 is ±1/8 of
+/// the image, about ±8° of yaw or pitch at a 62° field of view.
+pub const THUMBNAIL_MAX_SHIFT: usize = 4;
+
+/// A cheap global image descriptor standing in for FAB-MAP: the image box-averaged into
+/// [`THUMBNAIL_SIZE`] cells and smoothed by a binomial filter. Two views of one place from
+/// nearby viewpoints differ by roughly a shift of the thumbnail, so [`Thumbnail::score`] is the
+/// best normalised cross-correlation over shifts up to [`THUMBNAIL_MAX_SHIFT`] cells. It is
+/// neither rotation- nor scale-invariant, which is acceptable because a proposal is verified by
+/// Sim(3) alignment from the identity anyway.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Thumbnail(Vec<f32>);
 
 impl Thumbnail {
-    /// The descriptor of `frame`.
+    /// The descriptor of `frame`, computed on the coarsest pyramid level that still has at
+    /// least 2×2 pixels per cell.
     pub fn new(frame: &Frame) -> Self {
-        let level = frame.pyramid.levels.len().min(PYRAMID_LEVELS).saturating_sub(1);
-        let img = &frame.level(level).image;
         let (tw, th) = THUMBNAIL_SIZE;
-        let mut v = Vec::with_capacity(tw * th);
-        for j in 0..th {
-            for i in 0..tw {
-                let x = (i as f32 + 0.5) * img.width as f32 / tw as f32 - 0.5;
-                let y = (j as f32 + 0.5) * img.height as f32 / th as f32 - 0.5;
-                let x = x.clamp(0.0, (img.width - 1) as f32);
-                let y = y.clamp(0.0, (img.height - 1) as f32);
-                v.push(img.bilinear(x, y).unwrap_or(0.0));
+        let levels = frame.pyramid.levels.len().min(PYRAMID_LEVELS);
+        let level = (0..levels)
+            .rev()
+            .find(|&l| {
+                let img = &frame.level(l).image;
+                img.width >= 2 * tw && img.height >= 2 * th
+            })
+            .unwrap_or(0);
+        let img = &frame.level(level).image;
+        let mut sum = vec![0.0f32; tw * th];
+        let mut count = vec![0u32; tw * th];
+        for y in 0..img.height {
+            let cy = (y * th / img.height.max(1)).min(th - 1);
+            for x in 0..img.width {
+                let cx = (x * tw / img.width.max(1)).min(tw - 1);
+                sum[cy * tw + cx] += img.at(x, y);
+                count[cy * tw + cx] += 1;
             }
         }
-        let mean = v.iter().sum::<f32>() / v.len() as f32;
-        v.iter_mut().for_each(|x| *x -= mean);
-        let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-        if norm > 1e-3 {
-            v.iter_mut().for_each(|x| *x /= norm);
-        } else {
-            v.iter_mut().for_each(|x| *x = 0.0);
+        let mut v: Vec<f32> = sum
+            .iter()
+            .zip(&count)
+            .map(|(s, &n)| if n > 0 { s / n as f32 } else { 0.0 })
+            .collect();
+        // Two passes of the separable [1 2 1]/4 filter (clamped borders): shift tolerance.
+        for _ in 0..2 {
+            let src = v.clone();
+            for y in 0..th {
+                for x in 0..tw {
+                    let at = |xx: usize| src[y * tw + xx];
+                    v[y * tw + x] =
+                        0.25 * (at(x.saturating_sub(1)) + 2.0 * at(x) + at((x + 1).min(tw - 1)));
+                }
+            }
+            let src = v.clone();
+            for y in 0..th {
+                for x in 0..tw {
+                    let at = |yy: usize| src[yy * tw + x];
+                    v[y * tw + x] =
+                        0.25 * (at(y.saturating_sub(1)) + 2.0 * at(y) + at((y + 1).min(th - 1)));
+                }
+            }
         }
         Self(v)
     }
 
-    /// Normalised cross-correlation in [−1, 1] (0 for a textureless thumbnail).
+    /// Normalised cross-correlation of the overlap of `self` and `other` shifted by (dx, dy)
+    /// cells; 0 when either side is uniform there.
+    fn correlation(&self, other: &Thumbnail, dx: isize, dy: isize) -> f64 {
+        let (tw, th) = (THUMBNAIL_SIZE.0 as isize, THUMBNAIL_SIZE.1 as isize);
+        let (mut n, mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0);
+        for y in dy.max(0)..(th + dy).min(th) {
+            for x in dx.max(0)..(tw + dx).min(tw) {
+                let a = f64::from(self.0[(y * tw + x) as usize]);
+                let b = f64::from(other.0[((y - dy) * tw + x - dx) as usize]);
+                n += 1.0;
+                sa += a;
+                sb += b;
+                saa += a * a;
+                sbb += b * b;
+                sab += a * b;
+            }
+        }
+        let var = (n * saa - sa * sa) * (n * sbb - sb * sb);
+        if n < 1.0 || var.is_nan() || var <= 1e-9 {
+            0.0
+        } else {
+            (n * sab - sa * sb) / var.sqrt()
+        }
+    }
+
+    /// Best normalised cross-correlation in [−1, 1] over shifts of up to
+    /// [`THUMBNAIL_MAX_SHIFT`] cells.
     pub fn score(&self, other: &Thumbnail) -> f64 {
-        self.0.iter().zip(&other.0).map(|(a, b)| f64::from(a * b)).sum()
+        let m = THUMBNAIL_MAX_SHIFT as isize;
+        let mut best = f64::NEG_INFINITY;
+        for dy in -m..=m {
+            for dx in -m..=m {
+                best = best.max(self.correlation(other, dx, dy));
+            }
+        }
+        best
     }
 }
 
@@ -81,7 +144,13 @@ impl Keyframe {
     pub fn new(id: KeyframeId, frame: Arc<Frame>, depth: Arc<DepthMap>) -> Result<Self> {
         let levels = KeyframeLevels::new(&frame, &depth)?;
         let thumbnail = Thumbnail::new(&frame);
-        Ok(Self { id, frame, depth, levels, thumbnail })
+        Ok(Self {
+            id,
+            frame,
+            depth,
+            levels,
+            thumbnail,
+        })
     }
 
     /// Horizontal and vertical field of view (radians).
@@ -111,7 +180,8 @@ pub fn pose_proximity(
     let fac_b = b.levels.mean_idepth / world_from_b.scale;
     let dist2 = (world_from_a.translation - world_from_b.translation).norm_squared()
         * fac_a.min(fac_b).powi(2);
-    if !(dist2 <= config.close_distance / (config.kf_dist_weight * config.kf_dist_weight)) {
+    let limit = config.close_distance / (config.kf_dist_weight * config.kf_dist_weight);
+    if dist2.is_nan() || dist2 > limit {
         return None;
     }
     let (fx, fy) = a.field_of_view();
@@ -176,8 +246,11 @@ pub fn reciprocal_test(
         forward: None,
         backward: None,
     };
-    for (stage, (&level, &threshold)) in
-        cfg.stage_levels.iter().zip(&cfg.stage_thresholds).enumerate()
+    for (stage, (&level, &threshold)) in cfg
+        .stage_levels
+        .iter()
+        .zip(&cfg.stage_thresholds)
+        .enumerate()
     {
         let coarsest = if stage == 0 { cfg.max_level } else { level };
         let forward =
@@ -207,15 +280,25 @@ pub fn reciprocal_test(
         check.consistency =
             reciprocal_consistency(&b_from_a, &fw.information, &a_from_b, &bw.information)
                 .unwrap_or(f64::INFINITY);
-        if !(check.consistency <= threshold * strictness) {
+        if check.consistency.is_nan() || check.consistency > threshold * strictness {
             check.failed_stage = Some(stage);
             return check;
         }
     }
     if let (Some(fw), Some(bw)) = (&check.forward, &check.backward) {
         check.constraints = Some((
-            Constraint { from: a.id, to: b.id, to_from_from: b_from_a, information: fw.information },
-            Constraint { from: b.id, to: a.id, to_from_from: a_from_b, information: bw.information },
+            Constraint {
+                from: a.id,
+                to: b.id,
+                to_from_from: b_from_a,
+                information: fw.information,
+            },
+            Constraint {
+                from: b.id,
+                to: a.id,
+                to_from_from: a_from_b,
+                information: bw.information,
+            },
         ));
     }
     check

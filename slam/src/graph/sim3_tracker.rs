@@ -16,8 +16,9 @@
 //! pose-graph edge needs, see [`super::pose_graph`]).
 //!
 //! Deviations from LSD-SLAM, on purpose: the frame's gradient alone is used (no ESM average with
-//! the rotated reference gradient), no affine brightness model (keyframes of one sequence share
-//! exposure more than consecutive frames do not), and the frame's inverse depth is interpolated
+//! the rotated reference gradient), no affine brightness model (`useAffineLightningEstimation`;
+//! a simplification — an exposure change between keyframes raises the residuals and is left to
+//! the Huber weights and the reciprocal test), and the frame's inverse depth is interpolated
 //! bilinearly over valid neighbours instead of read at the rounded position. As in LSD-SLAM the
 //! depth residual's Jacobian ignores the gradient of the frame's depth map (too noisy on a
 //! semi-dense map to differentiate).
@@ -25,12 +26,12 @@
 use nalgebra::{Cholesky, Vector2, Vector3};
 
 use super::config::BackendConfig;
-use super::points::{KeyframeLevel, KeyframeLevels};
+use super::points::{KeyframeLevel, KeyframeLevels, RefPoint};
+use crate::Result;
 use crate::frame::Frame;
 use crate::geometry::{Matrix7, Sim3, Vector7};
 use crate::image::pyramid::PyramidLevel;
 use crate::mapping::DepthMap;
-use crate::Result;
 
 /// Outcome of one Sim(3) alignment.
 #[derive(Clone, Debug, PartialEq)]
@@ -86,7 +87,11 @@ struct Evaluation {
 impl Evaluation {
     fn mean(&self) -> f64 {
         let n = self.num_p + self.num_d;
-        if n == 0 { f64::INFINITY } else { (self.sum_p + self.sum_d) / n as f64 }
+        if n == 0 {
+            f64::INFINITY
+        } else {
+            (self.sum_p + self.sum_d) / n as f64
+        }
     }
 }
 
@@ -191,13 +196,17 @@ impl Sim3Tracker {
                         let converged = new_eval.mean() / eval.mean() > cfg.convergence_eps;
                         pose = candidate;
                         eval = new_eval;
-                        lambda = if lambda <= 0.2 { 0.0 } else { lambda * cfg.lambda_success_factor };
+                        lambda = if lambda <= 0.2 {
+                            0.0
+                        } else {
+                            lambda * cfg.lambda_success_factor
+                        };
                         if converged {
                             break 'iterations;
                         }
                         break;
                     }
-                    if !(step2 > cfg.step_size_min) || tries >= MAX_TRIES {
+                    if step2.is_nan() || step2 <= cfg.step_size_min || tries >= MAX_TRIES {
                         break 'iterations;
                     }
                     lambda = if lambda == 0.0 {
@@ -244,7 +253,10 @@ impl Sim3Tracker {
         level: usize,
         last: Option<(usize, Evaluation)>,
     ) -> Sim3TrackResult {
-        let total = reference.levels.get(level).map_or(1, |l| l.points.len().max(1)) as f64;
+        let total = reference
+            .levels
+            .get(level)
+            .map_or(1, |l| l.points.len().max(1)) as f64;
         let (residual, usage) = last.map_or((f64::INFINITY, 0.0), |(_, e)| (e.mean(), e.usage));
         Sim3TrackResult {
             frame_from_reference: pose,
@@ -271,21 +283,89 @@ fn solve7(a: Matrix7, b: &Vector7) -> Option<Vector7> {
 }
 
 /// The data one level's evaluation reads.
-struct LevelContext<'a> {
-    reference: &'a KeyframeLevel,
-    image: &'a PyramidLevel,
-    frame: &'a KeyframeLevel,
-    config: &'a BackendConfig,
+pub(crate) struct LevelContext<'a> {
+    pub reference: &'a KeyframeLevel,
+    pub image: &'a PyramidLevel,
+    pub frame: &'a KeyframeLevel,
+    pub config: &'a BackendConfig,
+}
+
+/// One reference point warped into the frame: residuals, their Jacobians with respect to a
+/// right perturbation of `frame_from_reference`, and their variance weights.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct WarpedPoint {
+    /// `r_p = I_ref − I_frame(π(T·p))`.
+    pub r_p: f64,
+    pub j_p: Vector7,
+    /// `1 / σ_p²`.
+    pub w_p: f64,
+    /// `(r_d, ∂r_d/∂δ, 1/σ_d²)` with `r_d = 1/z' − D_frame(π(T·p))`, when the frame has depth
+    /// there.
+    pub depth: Option<(f64, Vector7, f64)>,
+    /// `|∇I_frame|²` at the warped position.
+    pub grad2: f64,
+    /// `min(1, z_ref / z')`.
+    pub usage: f64,
 }
 
 impl LevelContext<'_> {
+    /// Warps one reference point; `None` when it lands outside the frame (1-pixel margin) or
+    /// behind the camera.
+    pub(crate) fn warp(&self, frame_from_reference: &Sim3, pt: &RefPoint) -> Option<WarpedPoint> {
+        let cfg = self.config;
+        let cam = &self.frame.camera;
+        let (w, h) = (f64::from(cam.width), f64::from(cam.height));
+        let pw = frame_from_reference.act(&pt.point);
+        if pw.z.is_nan() || pw.z <= 1e-9 {
+            return None;
+        }
+        let uv = cam.project(&pw);
+        // Strictly inside with a margin for the central-difference gradients.
+        if !(uv.x > 1.0 && uv.y > 1.0 && uv.x < w - 2.0 && uv.y < h - 2.0) {
+            return None;
+        }
+        let (x, y) = (uv.x as f32, uv.y as f32);
+        let intensity = self.image.image.bilinear(x, y)?;
+        let grad = Vector2::new(
+            f64::from(self.image.gx.bilinear(x, y)?),
+            f64::from(self.image.gy.bilinear(x, y)?),
+        );
+        // ∂I/∂p' (3-vector) through the projection.
+        let grad_point: Vector3<f64> = cam.project_jacobian(&pw).transpose() * grad;
+        let r_p = pt.intensity - f64::from(intensity);
+        // Sensitivity of the warped point to the reference inverse depth d: p = p̂/d, so
+        // ∂p'/∂d = −sR·p/d = −(p' − t)/d. Propagated into both residual variances (eq. (16)).
+        let dpw_dd = -(pw - frame_from_reference.translation) / pt.idepth;
+        let var_ref = cfg.var_weight * pt.var;
+        let drp_dd = -grad_point.dot(&dpw_dd);
+        let w_p = 1.0 / (cfg.camera_pixel_noise2 + var_ref * drp_dd * drp_dd);
+        let j_act = frame_from_reference.act_jacobian(&pt.point);
+        // ∂r_p/∂δ = −∇I·∂π/∂p'·∂p'/∂δ.
+        let j_p: Vector7 = -(j_act.transpose() * grad_point);
+        let inv_z = 1.0 / pw.z;
+        let depth = self.frame.depth.sample(&uv).map(|(d_f, v_f)| {
+            let r_d = inv_z - d_f;
+            let drd_dd = -inv_z * inv_z * dpw_dd.z;
+            let w_d = 1.0 / (cfg.var_weight * v_f + var_ref * drd_dd * drd_dd);
+            // The frame map's own gradient is neglected (module docs).
+            let j_d: Vector7 = j_act.row(2).transpose() * (-inv_z * inv_z);
+            (r_d, j_d, w_d)
+        });
+        Some(WarpedPoint {
+            r_p,
+            j_p,
+            w_p,
+            depth,
+            grad2: grad.norm_squared(),
+            usage: (pt.point.z / pw.z).min(1.0),
+        })
+    }
+
     /// Residuals, weights and normal equations at `frame_from_reference`; `None` when too few
     /// points land in the frame (diverged).
     fn evaluate(&self, frame_from_reference: &Sim3) -> Option<Evaluation> {
         let cfg = self.config;
         let cam = &self.frame.camera;
-        let (w, h) = (f64::from(cam.width), f64::from(cam.height));
-        let t = &frame_from_reference.translation;
         let mut e = Evaluation {
             warped: 0,
             sum_p: 0.0,
@@ -299,69 +379,38 @@ impl LevelContext<'_> {
             gradient: Vector7::zeros(),
         };
         for pt in &self.reference.points {
-            let pw = frame_from_reference.act(&pt.point);
-            if !(pw.z > 1e-9) {
-                continue;
-            }
-            let uv = cam.project(&pw);
-            // Strictly inside with a margin for the central-difference gradients.
-            if !(uv.x > 1.0 && uv.y > 1.0 && uv.x < w - 2.0 && uv.y < h - 2.0) {
-                continue;
-            }
-            let (x, y) = (uv.x as f32, uv.y as f32);
-            let (Some(intensity), Some(gx), Some(gy)) = (
-                self.image.image.bilinear(x, y),
-                self.image.gx.bilinear(x, y),
-                self.image.gy.bilinear(x, y),
-            ) else {
+            let Some(wp) = self.warp(frame_from_reference, pt) else {
                 continue;
             };
             e.warped += 1;
-            let grad = Vector2::new(f64::from(gx), f64::from(gy));
-            // ∂I/∂p' (3-vector) through the projection.
-            let grad_point: Vector3<f64> = cam.project_jacobian(&pw).transpose() * grad;
-            let r_p = pt.intensity - f64::from(intensity);
-            // Sensitivity of the warped point to the reference inverse depth d: p = p̂/d, so
-            // ∂p'/∂d = −sR·p/d = −(p' − t)/d. Propagated into both residual variances (eq. 16).
-            let dpw_dd = -(pw - t) / pt.idepth;
-            let var_ref = cfg.var_weight * pt.var;
-            let drp_dd = -grad_point.dot(&dpw_dd);
-            let w_p = 1.0 / (cfg.camera_pixel_noise2 + var_ref * drp_dd * drp_dd);
-            let inv_z = 1.0 / pw.z;
-            let depth = self.frame.depth.sample(&uv).map(|(d_f, v_f)| {
-                let r_d = inv_z - d_f;
-                let drd_dd = -inv_z * inv_z * dpw_dd.z;
-                let w_d = 1.0 / (cfg.var_weight * v_f + var_ref * drd_dd * drd_dd);
-                (r_d, w_d)
-            });
-            let norm_abs = r_p.abs() * w_p.sqrt() + depth.map_or(0.0, |(r, w)| r.abs() * w.sqrt());
-            let huber = if norm_abs < cfg.huber_d { 1.0 } else { cfg.huber_d / norm_abs };
-
-            let j_act = frame_from_reference.act_jacobian(&pt.point);
-            // r_p = I_ref − I_frame(π(T·p)): ∂r_p/∂δ = −∇I·∂π/∂p'·∂p'/∂δ.
-            let j_p: Vector7 = -(j_act.transpose() * grad_point);
-            let wp = huber * w_p;
-            e.hessian += j_p * j_p.transpose() * wp;
-            e.gradient += j_p * (wp * r_p);
-            e.sum_p += wp * r_p * r_p;
+            // One Huber weight per point on the sum of its normalised residuals.
+            let norm_abs =
+                wp.r_p.abs() * wp.w_p.sqrt() + wp.depth.map_or(0.0, |(r, _, w)| r.abs() * w.sqrt());
+            let huber = if norm_abs < cfg.huber_d {
+                1.0
+            } else {
+                cfg.huber_d / norm_abs
+            };
+            let weight_p = huber * wp.w_p;
+            e.hessian += wp.j_p * wp.j_p.transpose() * weight_p;
+            e.gradient += wp.j_p * (weight_p * wp.r_p);
+            e.sum_p += weight_p * wp.r_p * wp.r_p;
             e.num_p += 1;
-            if let Some((r_d, w_d)) = depth {
-                // r_d = 1/z' − D_frame(π(T·p)), the map's own gradient neglected.
-                let j_d: Vector7 = j_act.row(2).transpose() * (-inv_z * inv_z);
-                let wd = huber * w_d;
-                e.hessian += j_d * j_d.transpose() * wd;
-                e.gradient += j_d * (wd * r_d);
-                e.sum_d += wd * r_d * r_d;
+            if let Some((r_d, j_d, w_d)) = wp.depth {
+                let weight_d = huber * w_d;
+                e.hessian += j_d * j_d.transpose() * weight_d;
+                e.gradient += j_d * (weight_d * r_d);
+                e.sum_d += weight_d * r_d * r_d;
                 e.num_d += 1;
             }
-            let good_limit = cfg.max_diff_constant + cfg.max_diff_grad_mult * grad.norm_squared();
-            if r_p * r_p < good_limit {
+            if wp.r_p * wp.r_p < cfg.max_diff_constant + cfg.max_diff_grad_mult * wp.grad2 {
                 e.good += 1;
             } else {
                 e.bad += 1;
             }
-            e.usage += (pt.point.z / pw.z).min(1.0);
+            e.usage += wp.usage;
         }
+        let (w, h) = (f64::from(cam.width), f64::from(cam.height));
         let min_warped = (0.5 * cfg.min_warped_share * w * h).max(10.0);
         (e.warped as f64 >= min_warped).then_some(e)
     }

@@ -30,13 +30,19 @@ where
             .into_iter()
             .map(|bands| {
                 scope.spawn(move || {
-                    bands.into_iter().map(|(y0, band)| f(y0, band)).collect::<Vec<R>>()
+                    bands
+                        .into_iter()
+                        .map(|(y0, band)| f(y0, band))
+                        .collect::<Vec<R>>()
                 })
             })
             .collect();
         handles
             .into_iter()
-            .flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+            .flat_map(|h| {
+                h.join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+            })
             .collect()
     })
 }

@@ -229,7 +229,9 @@ impl MappingConfig {
         ];
         for (name, v) in positive {
             if !(v.is_finite() && v > 0.0) {
-                return Err(Error::Config(format!("mapping: {name} must be positive, got {v}")));
+                return Err(Error::Config(format!(
+                    "mapping: {name} must be positive, got {v}"
+                )));
             }
         }
         if self.min_epl_length_crop > self.max_epl_length_crop {
@@ -238,10 +240,14 @@ impl MappingConfig {
             ));
         }
         if !(self.kf_dist_weight.is_finite() && self.kf_usage_weight.is_finite()) {
-            return Err(Error::Config("mapping: keyframe weights must be finite".into()));
+            return Err(Error::Config(
+                "mapping: keyframe weights must be finite".into(),
+            ));
         }
         if self.initialization_phase_count == 0 {
-            return Err(Error::Config("mapping: initialization_phase_count must be ≥ 1".into()));
+            return Err(Error::Config(
+                "mapping: initialization_phase_count must be ≥ 1".into(),
+            ));
         }
         Ok(())
     }

@@ -38,7 +38,11 @@ pub struct DepthMap {
 impl DepthMap {
     /// A map with every pixel [`InverseDepth::Unknown`].
     pub fn unknown(width: usize, height: usize) -> Self {
-        Self { width, height, pixels: vec![InverseDepth::Unknown; width * height] }
+        Self {
+            width,
+            height,
+            pixels: vec![InverseDepth::Unknown; width * height],
+        }
     }
 
     /// The pixel at column `x`, row `y`.
@@ -49,7 +53,10 @@ impl DepthMap {
 
     /// Number of pixels holding an estimate.
     pub fn num_estimates(&self) -> usize {
-        self.pixels.iter().filter(|p| p.estimate().is_some()).count()
+        self.pixels
+            .iter()
+            .filter(|p| p.estimate().is_some())
+            .count()
     }
 
     /// Mean inverse depth over the estimates (LSD-SLAM normalises each new keyframe's map so

@@ -54,9 +54,5 @@ impl Pixel {
 #[inline]
 pub(crate) fn unzero(v: f32) -> f32 {
     const EPS: f32 = 1e-10;
-    if v < 0.0 {
-        v.min(-EPS)
-    } else {
-        v.max(EPS)
-    }
+    if v < 0.0 { v.min(-EPS) } else { v.max(EPS) }
 }

@@ -65,9 +65,11 @@ pub(crate) fn interp(img: &ImageF32, x: f32, y: f32) -> f32 {
     let y0 = (y.max(0.0) as usize).min(img.height.saturating_sub(2));
     let (dx, dy) = (x - x0 as f32, y - y0 as f32);
     let i = y0 * w + x0;
-    let d = &img.data;
-    let top = d[i] + dx * (d[i + 1] - d[i]);
-    let bottom = d[i + w] + dx * (d[i + w + 1] - d[i + w]);
+    let (Some(t), Some(b)) = (img.data.get(i..i + 2), img.data.get(i + w..i + w + 2)) else {
+        return 0.0;
+    };
+    let top = t[0] + dx * (t[1] - t[0]);
+    let bottom = b[0] + dx * (b[1] - b[0]);
     top + dy * (bottom - top)
 }
 
@@ -159,7 +161,12 @@ impl<'a> StereoPair<'a> {
     /// or `None` when stereo is hopeless there (LSD `makeAndCheckEPL`): the line is too short
     /// (tiny baseline — the pixel lies on the epipole), the gradient along it too weak, or the
     /// gradient almost orthogonal to it (ICCV 2013 §2.1.2, eq. 5 would explode).
-    pub fn epipolar_direction(&self, x: usize, y: usize, cfg: &MappingConfig) -> Option<Vector2<f32>> {
+    pub fn epipolar_direction(
+        &self,
+        x: usize,
+        y: usize,
+        cfg: &MappingConfig,
+    ) -> Option<Vector2<f32>> {
         let c = &self.centre;
         let k = &self.k;
         // Direction from the epipole K·c to the pixel, scaled by c_z (no division, so it also
@@ -195,7 +202,12 @@ impl<'a> StereoPair<'a> {
     ///
     /// With `p = ray/ρ` and the frame point `R·p + t`, the normalised x coordinate satisfies
     /// `x·(r₂·ray + t_z·ρ) = r₀·ray + t_x·ρ`, hence `ρ = (r₀·ray − x·r₂·ray)/(x·t_z − t_x)`.
-    pub fn idepth_from_match(&self, ray: &Vector3<f32>, m: Vector2<f32>, inc: Vector2<f32>) -> (f32, f32) {
+    pub fn idepth_from_match(
+        &self,
+        ray: &Vector3<f32>,
+        m: Vector2<f32>,
+        inc: Vector2<f32>,
+    ) -> (f32, f32) {
         let (r, t, k) = (&self.r, &self.t, &self.k);
         let dot2 = r.row(2).transpose().dot(ray);
         if inc.x * inc.x > inc.y * inc.y {
@@ -274,7 +286,7 @@ impl<'a> StereoPair<'a> {
         }
         let delta = close - far;
         let epl_length = delta.norm();
-        if !(epl_length > 0.0) || !epl_length.is_finite() {
+        if !epl_length.is_finite() || epl_length <= 0.0 {
             return Err(StereoFailure::Arithmetic);
         }
         if epl_length > cfg.max_epl_length_crop {
@@ -307,7 +319,7 @@ impl<'a> StereoPair<'a> {
                 close += inc * ((h - b - close.y) / inc.y);
             }
             let remaining = (close - far).norm();
-            if outside(&close) || !(remaining >= 8.0) {
+            if outside(&close) || remaining.is_nan() || remaining < 8.0 {
                 return Err(StereoFailure::OutOfBounds);
             }
         }
@@ -316,17 +328,20 @@ impl<'a> StereoPair<'a> {
         let mut best_pos = far + inc * best.index as f32;
         let mut best_err = best.err;
         let mut subpixel = false;
-        if cfg.use_subpixel_stereo {
-            if let Some((shift, err)) = best.subpixel() {
-                best_pos += inc * shift;
-                best_err = err;
-                subpixel = true;
-            }
+        if cfg.use_subpixel_stereo
+            && let Some((shift, err)) = best.subpixel()
+        {
+            best_pos += inc * shift;
+            best_err = err;
+            subpixel = true;
         }
 
         // Squared intensity gradient along the line, in the frame's pixel units.
         let sample_dist = cfg.gradient_sample_dist * rescale;
-        let grad_along = reference.windows(2).map(|p| (p[1] - p[0]) * (p[1] - p[0])).sum::<f32>()
+        let grad_along = reference
+            .windows(2)
+            .map(|p| (p[1] - p[0]) * (p[1] - p[0]))
+            .sum::<f32>()
             / (sample_dist * sample_dist);
         // LSD's allowance: strongly textured patches may match with a larger SSD.
         if best_err > cfg.max_error_stereo + grad_along.sqrt() * 20.0 {
@@ -350,7 +365,12 @@ impl<'a> StereoPair<'a> {
         // Discretisation: a quarter/half step depending on the sub-pixel refinement.
         let disc = if subpixel { 0.05 } else { 0.5 } * sample_dist * sample_dist;
         let var = alpha * alpha * (disc + geo + photo);
-        Ok(StereoMatch { idepth, var, epl_length, error: best_err })
+        Ok(StereoMatch {
+            idepth,
+            var,
+            epl_length,
+            error: best_err,
+        })
     }
 
     /// ICCV 2013 eq. (5): `σ²_λ(ξ,π) = σ_l²·|g|²/⟨g, l⟩²` with the keyframe gradient `g` at
@@ -488,11 +508,17 @@ impl BestMatch {
         match (pre, post) {
             (true, false) => {
                 let d = g_pre_here / (g_pre_here - g_pre_pre);
-                Some((-d, e - 2.0 * d * g_pre_here - (g_pre_pre - g_pre_here) * d * d))
+                Some((
+                    -d,
+                    e - 2.0 * d * g_pre_here - (g_pre_pre - g_pre_here) * d * d,
+                ))
             }
             (false, true) => {
                 let d = g_post_here / (g_post_here - g_post_post);
-                Some((d, e + 2.0 * d * g_post_here + (g_post_post - g_post_here) * d * d))
+                Some((
+                    d,
+                    e + 2.0 * d * g_post_here + (g_post_post - g_post_here) * d * d,
+                ))
             }
             _ => None,
         }

@@ -47,5 +47,7 @@ pub enum Event {
     Pose(PoseEvent),
     Keyframe(KeyframeEvent),
     /// The back end optimised the pose graph: the current pose of every keyframe.
-    KeyframePoses { poses: Vec<(KeyframeId, Sim3)> },
+    KeyframePoses {
+        poses: Vec<(KeyframeId, Sim3)>,
+    },
 }

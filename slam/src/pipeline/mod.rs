@@ -21,10 +21,10 @@ pub use events::{Event, KeyframeEvent, PoseEvent, TrackingState};
 use crate::dense::prior::DepthPrior;
 use crate::export::ColoredPoint;
 use crate::frame::Frame;
-use crate::geometry::{PinholeCamera, SE3, Sim3, UndistortMap};
-use crate::graph::{Backend, BackendHandle, KeyframeId, NewKeyframe};
+use crate::geometry::{PinholeCamera, SE3, SO3, Sim3, UndistortMap};
+use crate::graph::{Backend, BackendHandle, KeyframeId, NewKeyframe, ParentEdge};
 use crate::image::ImageF32;
-use crate::mapping::{DepthFilter, DepthMap, keyframe_selection};
+use crate::mapping::{DepthFilter, DepthMap, needs_new_keyframe};
 use crate::tracking::{SE3Tracker, TrackingReference};
 use crate::{Error, Result};
 
@@ -55,6 +55,9 @@ struct KeyframeRecord {
     world_from_keyframe: Sim3,
     /// For relocalisation against finished keyframes.
     reference: Arc<TrackingReference>,
+    /// The tracking constraint to the keyframe it was created from (sent with it to the back
+    /// end once the keyframe is finished).
+    parent: Option<ParentEdge>,
 }
 
 /// The keyframe being mapped.
@@ -63,6 +66,9 @@ struct CurrentKeyframe {
     id: KeyframeId,
     filter: DepthFilter,
     reference: Arc<TrackingReference>,
+    /// Frames whose observations refined this keyframe (LSD-SLAM replaces a keyframe only
+    /// after a few, so that its depth had time to converge).
+    frames_mapped: usize,
 }
 
 /// Where the back end runs.
@@ -101,6 +107,8 @@ pub struct Pipeline {
     lost: bool,
     next_frame_id: u64,
     stats: Stats,
+    /// The back end's poses after [`Pipeline::finish`] (the threaded back end is gone then).
+    final_poses: Option<std::collections::HashMap<KeyframeId, Sim3>>,
 }
 
 impl Pipeline {
@@ -112,10 +120,13 @@ impl Pipeline {
         prior: Option<Box<dyn DepthPrior>>,
     ) -> Result<Self> {
         config.validate()?;
-        let undistort = camera.distortion.is_some().then(|| UndistortMap::new(&camera));
+        let undistort = camera
+            .distortion
+            .is_some()
+            .then(|| UndistortMap::new(&camera));
         let tracker = SE3Tracker::new(config.tracking.clone())?;
         let backend = if config.pipeline.deterministic {
-            BackendLink::InStep(Box::new(Backend::new(config.backend.clone())))
+            BackendLink::InStep(Box::new(Backend::new(config.backend.clone())?))
         } else {
             BackendLink::Threaded(Backend::spawn(config.backend.clone())?)
         };
@@ -133,6 +144,7 @@ impl Pipeline {
             lost: false,
             next_frame_id: 0,
             stats: Stats::default(),
+            final_poses: None,
         })
     }
 
@@ -155,10 +167,12 @@ impl Pipeline {
             return self.start(frame);
         };
         let t0 = std::time::Instant::now();
-        let result = self.tracker.track(&current.reference, &frame, &self.last_frame_from_keyframe);
+        let result = self
+            .tracker
+            .track(&current.reference, &frame, &self.last_frame_from_keyframe);
         self.stats.tracking_s += t0.elapsed().as_secs_f64();
         if !result.good {
-            return Ok(vec![self.lost_or_relocalised(&frame)]);
+            return self.lost_or_relocalised(&frame);
         }
         let state = if std::mem::take(&mut self.lost) {
             TrackingState::Relocalized
@@ -170,21 +184,40 @@ impl Pipeline {
 
         let kf_id = current.id;
         let mean_idepth = current.filter.depth_map().mean_idepth().unwrap_or(1.0);
-        let make_keyframe = keyframe_selection::needs_new_keyframe(
+        let make_keyframe = needs_new_keyframe(
             &self.config.mapping,
             &keyframe_from_frame,
             mean_idepth,
             result.point_usage,
             self.keyframes.len(),
+            current.frames_mapped,
         );
         if make_keyframe {
-            return self.new_keyframe(frame, &result.frame_from_keyframe, &result.information, state);
+            let t1 = std::time::Instant::now();
+            let propagated = current
+                .filter
+                .propagate_to(frame.clone(), &result.frame_from_keyframe)?;
+            self.stats.mapping_s += t1.elapsed().as_secs_f64();
+            return self.new_keyframe(
+                frame,
+                kf_id,
+                propagated,
+                &result.frame_from_keyframe,
+                &result.information,
+                state,
+            );
         }
 
         let t1 = std::time::Instant::now();
-        let current = self.current.as_mut().ok_or_else(|| Error::Config("no keyframe".into()))?;
-        current.filter.observe(&frame, &keyframe_from_frame)?;
+        let current = self
+            .current
+            .as_mut()
+            .ok_or_else(|| Error::Config("no keyframe".into()))?;
+        current
+            .filter
+            .observe_with_residual(&frame, &keyframe_from_frame, result.residual)?;
         current.filter.regularize();
+        current.frames_mapped += 1;
         let depth = current.filter.depth_map();
         let kf_frame = &self.keyframes[kf_id].frame;
         current.reference = Arc::new(TrackingReference::new(kf_frame, &depth)?);
@@ -196,8 +229,8 @@ impl Pipeline {
             keyframe_from_frame,
             lost: false,
         });
-        let world_from_camera = self.keyframes[kf_id].world_from_keyframe
-            * Sim3::from_se3(&keyframe_from_frame, 1.0);
+        let world_from_camera =
+            self.keyframes[kf_id].world_from_keyframe * Sim3::from_se3(&keyframe_from_frame, 1.0);
         Ok(vec![Event::Pose(PoseEvent {
             frame_id: frame.id,
             timestamp: frame.timestamp,
@@ -208,13 +241,10 @@ impl Pipeline {
         })])
     }
 
-    /// Ends the session: publishes the last keyframe, runs the final pose-graph optimisation
+    /// Ends the session: finishes the last keyframe, runs the final pose-graph optimisation
     /// and returns the optimised pose of every keyframe.
     pub fn finish(&mut self) -> Result<Vec<(KeyframeId, Sim3)>> {
-        if let Some(current) = self.current.take() {
-            let depth = Arc::new(current.filter.depth_map());
-            self.keyframes[current.id].depth = depth;
-        }
+        self.finish_current()?;
         let poses = match &mut self.backend {
             BackendLink::InStep(backend) => {
                 backend.optimize_full()?;
@@ -222,15 +252,17 @@ impl Pipeline {
             }
             BackendLink::Threaded(handle) => handle.finish()?,
         };
-        Ok(self.keyframe_poses_from(&poses))
+        self.final_poses = Some(poses);
+        Ok(self.keyframe_poses())
     }
 
     /// Current pose of every keyframe: optimised where the back end has one, else the front
     /// end's estimate.
     pub fn keyframe_poses(&self) -> Vec<(KeyframeId, Sim3)> {
-        let poses = match &self.backend {
-            BackendLink::InStep(backend) => backend.poses(),
-            BackendLink::Threaded(handle) => handle.poses(),
+        let poses = match (&self.final_poses, &self.backend) {
+            (Some(poses), _) => poses.clone(),
+            (None, BackendLink::InStep(backend)) => backend.poses(),
+            (None, BackendLink::Threaded(handle)) => handle.poses(),
         };
         self.keyframe_poses_from(&poses)
     }
@@ -240,7 +272,15 @@ impl Pipeline {
         optimised: &std::collections::HashMap<KeyframeId, Sim3>,
     ) -> Vec<(KeyframeId, Sim3)> {
         (0..self.keyframes.len())
-            .map(|id| (id, optimised.get(&id).copied().unwrap_or(self.keyframes[id].world_from_keyframe)))
+            .map(|id| {
+                (
+                    id,
+                    optimised
+                        .get(&id)
+                        .copied()
+                        .unwrap_or(self.keyframes[id].world_from_keyframe),
+                )
+            })
             .collect()
     }
 
@@ -259,7 +299,12 @@ impl Pipeline {
         self.frames
             .iter()
             .filter(|f| !f.lost)
-            .map(|f| (f.timestamp, poses[f.keyframe].1 * Sim3::from_se3(&f.keyframe_from_frame, 1.0)))
+            .map(|f| {
+                (
+                    f.timestamp,
+                    poses[f.keyframe].1 * Sim3::from_se3(&f.keyframe_from_frame, 1.0),
+                )
+            })
             .collect()
     }
 
@@ -268,8 +313,8 @@ impl Pipeline {
         let poses = self.keyframe_poses();
         let mut points = Vec::new();
         for (kf, (_, world_from_kf)) in self.keyframes.iter().zip(poses) {
-            let depth = match (&self.current, kf) {
-                (Some(current), _) if std::ptr::eq(kf, &self.keyframes[current.id]) => {
+            let depth = match &self.current {
+                Some(current) if std::ptr::eq(kf, &self.keyframes[current.id]) => {
                     Arc::new(current.filter.depth_map())
                 }
                 _ => kf.depth.clone(),
@@ -277,7 +322,9 @@ impl Pipeline {
             let camera = &kf.frame.camera;
             for y in 0..depth.height {
                 for x in 0..depth.width {
-                    let Some((idepth, _)) = depth.at(x, y).estimate() else { continue };
+                    let Some((idepth, _)) = depth.at(x, y).estimate() else {
+                        continue;
+                    };
                     if idepth <= 0.0 {
                         continue;
                     }
@@ -318,72 +365,109 @@ impl Pipeline {
         let gray = ImageF32::from_rgb8(&rgb);
         let id = self.next_frame_id;
         self.next_frame_id += 1;
-        Frame::new(id, input.timestamp, self.camera.undistorted(), &gray, Some(Arc::new(rgb)))
+        Frame::new(
+            id,
+            input.timestamp,
+            self.camera.undistorted(),
+            &gray,
+            Some(Arc::new(rgb)),
+        )
     }
 
     /// The first frame becomes the first keyframe, its depth initialised from the prior (or
     /// randomly).
     fn start(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
         let mut filter = DepthFilter::new(frame.clone(), self.config.mapping.clone())?;
-        let prior_depth = match (self.config.pipeline.init, self.prior.as_mut(), frame.rgb.as_ref()) {
-            (DepthInit::Prior, Some(prior), Some(rgb)) => Some(prior.predict(rgb)?.0),
+        let prior_depth = match (
+            self.config.pipeline.init,
+            self.prior.as_mut(),
+            frame.rgb.as_ref(),
+        ) {
+            (DepthInit::Prior, Some(prior), Some(rgb)) => Some(prior.predict(rgb)?.into_image()),
             _ => None,
         };
         match prior_depth {
-            Some(idepth) => filter.init_from_depth(&normalise_mean(&idepth)?, self.config.pipeline.prior_init_var)?,
+            Some(idepth) => filter.init_from_depth(
+                &normalise_mean(&idepth)?,
+                self.config.pipeline.prior_init_var,
+            )?,
             None => filter.init_random(self.config.pipeline.seed),
         }
         filter.regularize();
-        let world_from_keyframe = Sim3::identity();
-        self.publish_keyframe(frame.clone(), filter, world_from_keyframe, None)?;
-        self.frames.push(FrameRecord {
-            timestamp: frame.timestamp,
-            keyframe: 0,
-            keyframe_from_frame: SE3::identity(),
-            lost: false,
-        });
-        Ok(vec![
-            Event::Keyframe(KeyframeEvent {
-                keyframe_id: 0,
-                frame_id: frame.id,
-                timestamp: frame.timestamp,
-                world_from_keyframe,
-            }),
-            Event::Pose(PoseEvent {
-                frame_id: frame.id,
-                timestamp: frame.timestamp,
-                world_from_camera: world_from_keyframe,
-                state: TrackingState::Initializing,
-                keyframe_id: 0,
-                is_keyframe: true,
-            }),
-        ])
+        self.begin_keyframe(
+            frame,
+            filter,
+            Sim3::identity(),
+            None,
+            TrackingState::Initializing,
+        )
     }
 
-    /// `frame` becomes the next keyframe: the current keyframe's depth is propagated into it
-    /// and scale-normalised (mean inverse depth 1, LSD-SLAM's gauge), and the finished keyframe
-    /// goes to the back end with its tracking constraint.
+    /// `frame` becomes the next keyframe, with `filter` (the depth of keyframe `source_id`
+    /// propagated into it) scale-normalised (mean inverse depth 1, LSD-SLAM's gauge); the
+    /// current keyframe is finished and goes to the back end.
     fn new_keyframe(
         &mut self,
         frame: Arc<Frame>,
-        frame_from_keyframe: &SE3,
+        source_id: KeyframeId,
+        mut filter: DepthFilter,
+        frame_from_source: &SE3,
         information: &Matrix6<f64>,
         state: TrackingState,
     ) -> Result<Vec<Event>> {
         let t0 = std::time::Instant::now();
-        let old = self.current.take().ok_or_else(|| Error::Config("no keyframe".into()))?;
-        let mut filter = old.filter.propagate_to(frame.clone(), frame_from_keyframe)?;
-        filter.regularize();
-        // New keyframe coordinates are divided by `factor` (inverse depths multiplied by it).
+        // New inverse depths are multiplied by `factor`, so new-keyframe coordinates shrink by
+        // it: source_from_new = [R t] · diag(factor).
         let factor = filter.normalize_scale();
-        let old_from_new =
-            Sim3::from_se3(&frame_from_keyframe.inverse(), 1.0) * Sim3::new(Default::default(), Vector3::zeros(), factor);
-        let world_from_new = self.keyframes[old.id].world_from_keyframe * old_from_new;
-        self.keyframes[old.id].depth = Arc::new(old.filter.depth_map());
-        self.publish_keyframe(frame.clone(), filter, world_from_new, Some((old.id, old_from_new, *information)))?;
+        let source_from_new = Sim3::from_se3(&frame_from_source.inverse(), 1.0)
+            * Sim3::new(SO3::identity(), Vector3::zeros(), factor);
+        // The tracking information is for a right perturbation of frame_from_source; for its
+        // inverse, δ' = −Ad(T)·δ, so Λ' = Ad(T⁻¹)ᵀ Λ Ad(T⁻¹).
+        let ad = frame_from_source.inverse().adjoint();
+        let parent = ParentEdge::from_se3_information(
+            source_id,
+            source_from_new,
+            &(ad.transpose() * information * ad),
+        );
+        let world_from_source = self.current_pose(source_id);
+        self.finish_current()?;
+        let events = self.begin_keyframe(
+            frame,
+            filter,
+            world_from_source * source_from_new,
+            Some(parent),
+            state,
+        )?;
         self.stats.mapping_s += t0.elapsed().as_secs_f64();
+        Ok(events)
+    }
 
-        let id = self.keyframes.len() - 1;
+    /// Registers `frame` as the current keyframe and reports it.
+    fn begin_keyframe(
+        &mut self,
+        frame: Arc<Frame>,
+        filter: DepthFilter,
+        world_from_keyframe: Sim3,
+        parent: Option<ParentEdge>,
+        state: TrackingState,
+    ) -> Result<Vec<Event>> {
+        let id = self.keyframes.len();
+        let depth = Arc::new(filter.depth_map());
+        let reference = Arc::new(TrackingReference::new(&frame, &depth)?);
+        self.keyframes.push(KeyframeRecord {
+            frame: frame.clone(),
+            depth,
+            world_from_keyframe,
+            reference: reference.clone(),
+            parent,
+        });
+        self.current = Some(CurrentKeyframe {
+            id,
+            filter,
+            reference,
+            frames_mapped: 0,
+        });
+        self.stats.keyframes = self.keyframes.len();
         self.frames.push(FrameRecord {
             timestamp: frame.timestamp,
             keyframe: id,
@@ -396,118 +480,128 @@ impl Pipeline {
                 keyframe_id: id,
                 frame_id: frame.id,
                 timestamp: frame.timestamp,
-                world_from_keyframe: world_from_new,
+                world_from_keyframe,
             }),
             Event::Pose(PoseEvent {
                 frame_id: frame.id,
                 timestamp: frame.timestamp,
-                world_from_camera: world_from_new,
+                world_from_camera: world_from_keyframe,
                 state,
                 keyframe_id: id,
                 is_keyframe: true,
             }),
         ];
-        if let BackendLink::InStep(backend) = &mut self.backend {
-            backend.process()?;
-            events.push(Event::KeyframePoses { poses: self.keyframe_poses() });
+        if id > 0 && self.config.pipeline.deterministic {
+            events.push(Event::KeyframePoses {
+                poses: self.keyframe_poses(),
+            });
         }
         Ok(events)
     }
 
-    /// Registers a keyframe (as the current one) and hands the finished previous keyframe, if
-    /// any, to the back end.
-    fn publish_keyframe(
-        &mut self,
-        frame: Arc<Frame>,
-        filter: DepthFilter,
-        world_from_keyframe: Sim3,
-        parent: Option<(KeyframeId, Sim3, Matrix6<f64>)>,
-    ) -> Result<()> {
-        let id = self.keyframes.len();
-        let depth = Arc::new(filter.depth_map());
-        let reference = Arc::new(TrackingReference::new(&frame, &depth)?);
-        if let Some((parent_id, _, _)) = parent {
-            self.keyframes[parent_id].reference =
-                Arc::new(TrackingReference::new(&self.keyframes[parent_id].frame, &self.keyframes[parent_id].depth)?);
-        }
+    /// Finishes the current keyframe: its final depth is published and it goes to the back
+    /// end (constraint search and pose-graph optimisation; in step when deterministic).
+    fn finish_current(&mut self) -> Result<()> {
+        let Some(current) = self.current.take() else {
+            return Ok(());
+        };
+        let record = &mut self.keyframes[current.id];
+        record.depth = Arc::new(current.filter.depth_map());
+        record.reference = Arc::new(TrackingReference::new(&record.frame, &record.depth)?);
         let new = NewKeyframe {
-            id,
-            frame: frame.clone(),
-            depth: depth.clone(),
-            world_from_keyframe,
-            parent,
+            id: current.id,
+            frame: record.frame.clone(),
+            depth: record.depth.clone(),
+            world_from_keyframe: record.world_from_keyframe,
+            parent: record.parent.clone(),
         };
         match &mut self.backend {
-            BackendLink::InStep(backend) => backend.add_keyframe(new)?,
+            BackendLink::InStep(backend) => {
+                backend.add_keyframe(new)?;
+                backend.process()?;
+            }
             BackendLink::Threaded(handle) => handle.add_keyframe(new)?,
         }
-        self.keyframes.push(KeyframeRecord { frame, depth, world_from_keyframe, reference: reference.clone() });
-        self.current = Some(CurrentKeyframe { id, filter, reference });
-        self.stats.keyframes = self.keyframes.len();
         Ok(())
     }
 
-    /// Tracking failed: try the most recent keyframes; on success the frame is relocalised
-    /// (and tracking continues from that keyframe), else it is reported lost.
-    fn lost_or_relocalised(&mut self, frame: &Arc<Frame>) -> Event {
+    /// The best current estimate of a keyframe's pose: the back end's once it has one.
+    fn current_pose(&self, id: KeyframeId) -> Sim3 {
+        let optimised = match &self.backend {
+            BackendLink::InStep(backend) => backend.poses().get(&id).copied(),
+            BackendLink::Threaded(handle) => handle.poses().get(&id).copied(),
+        };
+        optimised.unwrap_or(self.keyframes[id].world_from_keyframe)
+    }
+
+    /// Tracking failed: try the current and the most recent keyframes. On success the frame
+    /// becomes a new keyframe whose depth is propagated from the keyframe it relocalised
+    /// against; otherwise it is reported lost.
+    fn lost_or_relocalised(&mut self, frame: &Arc<Frame>) -> Result<Vec<Event>> {
         let current_id = self.current.as_ref().map_or(0, |c| c.id);
         let n = self.config.pipeline.relocalisation_candidates;
-        let candidates: Vec<KeyframeId> =
-            (0..self.keyframes.len()).rev().filter(|&id| id != current_id).take(n).collect();
+        let candidates: Vec<KeyframeId> = std::iter::once(current_id)
+            .chain(
+                (0..self.keyframes.len())
+                    .rev()
+                    .filter(|&id| id != current_id),
+            )
+            .take(n.max(1))
+            .collect();
+        let guess = |id: KeyframeId| {
+            if id == current_id {
+                self.last_frame_from_keyframe
+            } else {
+                SE3::identity()
+            }
+        };
         let refs: Vec<(&TrackingReference, SE3)> = candidates
             .iter()
-            .map(|&id| (self.keyframes[id].reference.as_ref(), SE3::identity()))
+            .map(|&id| (self.keyframes[id].reference.as_ref(), guess(id)))
             .collect();
         if let Some((i, result)) = self.tracker.try_relocalise(&refs, frame) {
             let kf = candidates[i];
-            // Re-activate that keyframe for mapping: its depth continues to be refined.
-            if let Ok(filter) = DepthFilter::from_depth_map(
-                self.keyframes[kf].frame.clone(),
-                &self.keyframes[kf].depth,
-                self.config.mapping.clone(),
-            ) {
-                self.current = Some(CurrentKeyframe {
-                    id: kf,
-                    filter,
-                    reference: self.keyframes[kf].reference.clone(),
-                });
-                self.last_frame_from_keyframe = result.frame_from_keyframe;
-                self.lost = false;
-                let keyframe_from_frame = result.frame_from_keyframe.inverse();
-                self.frames.push(FrameRecord {
-                    timestamp: frame.timestamp,
-                    keyframe: kf,
-                    keyframe_from_frame,
-                    lost: false,
-                });
-                return Event::Pose(PoseEvent {
-                    frame_id: frame.id,
-                    timestamp: frame.timestamp,
-                    world_from_camera: self.keyframes[kf].world_from_keyframe
-                        * Sim3::from_se3(&keyframe_from_frame, 1.0),
-                    state: TrackingState::Relocalized,
-                    keyframe_id: kf,
-                    is_keyframe: false,
-                });
-            }
+            self.lost = false;
+            let t0 = std::time::Instant::now();
+            let propagated = match &self.current {
+                Some(current) if current.id == kf => current
+                    .filter
+                    .propagate_to(frame.clone(), &result.frame_from_keyframe)?,
+                _ => DepthFilter::from_depth_map(
+                    self.keyframes[kf].frame.clone(),
+                    &self.keyframes[kf].depth,
+                    self.config.mapping.clone(),
+                )?
+                .propagate_to(frame.clone(), &result.frame_from_keyframe)?,
+            };
+            self.stats.mapping_s += t0.elapsed().as_secs_f64();
+            return self.new_keyframe(
+                frame.clone(),
+                kf,
+                propagated,
+                &result.frame_from_keyframe,
+                &result.information,
+                TrackingState::Relocalized,
+            );
         }
         self.lost = true;
         self.stats.frames_lost += 1;
+        let keyframe_from_frame = self.last_frame_from_keyframe.inverse();
         self.frames.push(FrameRecord {
             timestamp: frame.timestamp,
             keyframe: current_id,
-            keyframe_from_frame: self.last_frame_from_keyframe.inverse(),
+            keyframe_from_frame,
             lost: true,
         });
-        Event::Pose(PoseEvent {
+        Ok(vec![Event::Pose(PoseEvent {
             frame_id: frame.id,
             timestamp: frame.timestamp,
             world_from_camera: self.keyframes[current_id].world_from_keyframe
-                * Sim3::from_se3(&self.last_frame_from_keyframe.inverse(), 1.0),
+                * Sim3::from_se3(&keyframe_from_frame, 1.0),
             state: TrackingState::Lost,
             keyframe_id: current_id,
             is_keyframe: false,
-        })
+        })])
     }
 }
 
@@ -520,9 +614,15 @@ fn normalise_mean(idepth: &ImageF32) -> Result<ImageF32> {
         .filter(|v| v.is_finite() && **v > 0.0)
         .fold((0.0f64, 0usize), |(s, n), &v| (s + f64::from(v), n + 1));
     if n == 0 {
-        return Err(Error::Prior("the depth prior predicted no positive inverse depth".into()));
+        return Err(Error::Prior(
+            "the depth prior predicted no positive inverse depth".into(),
+        ));
     }
     let k = (n as f64 / sum) as f32;
-    let data = idepth.data.iter().map(|&v| if v.is_finite() && v > 0.0 { v * k } else { 0.0 }).collect();
+    let data = idepth
+        .data
+        .iter()
+        .map(|&v| if v.is_finite() && v > 0.0 { v * k } else { 0.0 })
+        .collect();
     ImageF32::from_vec(idepth.width, idepth.height, data)
 }

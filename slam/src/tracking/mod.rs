@@ -6,10 +6,22 @@
 //! `r_p = I_kf(p) − I_frame(π(T(ξ)·p))` (eqs. (12)–(14)), coarse-to-fine over the image
 //! pyramid with Levenberg–Marquardt on the 6×6 normal equations.
 //!
-//! - [`reference`]: the keyframe side, its depth pyramid and per-level point clouds;
+//! - [`reference`](mod@reference): the keyframe side, its depth pyramid and per-level point clouds;
 //! - [`warp`]: the inner loops (warp, residuals, weights, Jacobians, normal equations);
 //! - [`se3_tracker`]: the LM schedule, loss detection and relocalisation;
 //! - [`config`]: [`TrackingConfig`] with LSD-SLAM's defaults.
+//!
+//! Internally the increments are applied on the left, `T ← exp(δ)·T` (LSD-SLAM's form: the
+//! Jacobian then depends only on the warped point); the reported information matrix is
+//! converted to the crate's right-perturbation convention.
+//!
+//! Performance (640×480, 2-core EPYC VM, test profile): ~2.8 ms per `track` for a keyframe
+//! with 44k semi-dense points (17k at level 1, where tracking stops by default), ~7.5 ms when
+//! tracking down to level 0. Inner loops are `f32` over struct-of-arrays buffers reused
+//! across calls; the weighting pass is written lane-wise and vectorises. Tracking stays on
+//! one thread: the pipeline's second core runs the depth-map filter concurrently (as
+//! LSD-SLAM's mapping thread), and one evaluation at level 1 takes only ~0.3 ms, so the
+//! ~40 per-evaluation thread hand-offs would eat most of a 2-way split.
 
 pub mod config;
 pub mod reference;
@@ -23,3 +35,6 @@ pub use warp::intensity_jacobian_right;
 
 #[cfg(test)]
 mod tests;
+
+#[cfg(test)]
+mod real_tests;

@@ -110,10 +110,8 @@ impl TrackingReference {
                     if d.var <= 0.0 {
                         continue;
                     }
-                    let p = camera.unproject(
-                        &Vector2::new(x as f64, y as f64),
-                        1.0 / f64::from(d.idepth),
-                    );
+                    let p = camera
+                        .unproject(&Vector2::new(x as f64, y as f64), 1.0 / f64::from(d.idepth));
                     out.x.push(p.x as f32);
                     out.y.push(p.y as f32);
                     out.z.push(p.z as f32);

@@ -18,6 +18,10 @@ use crate::geometry::SE3;
 /// restarts it at this value after the first rejected Gauss–Newton step.
 const LAMBDA_RESTART: f64 = 0.2;
 
+/// Safety stop for the damping (λ grows as `2^k` per rejected try): beyond this the step is
+/// far below `step_size_min` anyway, and `(1 + λ)` must not overflow into a non-finite system.
+const MAX_LAMBDA: f64 = 1e12;
+
 /// The outcome of [`SE3Tracker::track`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrackingResult {
@@ -25,9 +29,11 @@ pub struct TrackingResult {
     /// On divergence, the initial guess.
     pub frame_from_keyframe: SE3,
     /// Whether tracking succeeded; false (= tracking lost) when the optimisation diverged
-    /// (too few points in the image, singular normal equations), or at the finest level
-    /// `good_ratio ≤ min_good_per_good_bad` (0.5) or `good / pixels ≤ min_good_per_all`
-    /// (0.04) — LSD-SLAM's `trackingWasGood`.
+    /// (fewer than 1 % of the level's pixels received a point, or singular normal equations),
+    /// or at the finest level `good_ratio ≤ min_good_per_good_bad` (0.5) or
+    /// `good / pixels ≤ min_good_per_all` (0.04) — LSD-SLAM's `trackingWasGood` — or
+    /// `correlation ≤ min_correlation` (0.5, a relfusion addition that rejects unrelated
+    /// images, see [`TrackingConfig::min_correlation`]).
     pub good: bool,
     /// Final cost: mean of `w_huber · r² / σ_r²` over the warped points at the finest level
     /// (LSD-SLAM `lastResidual`).
@@ -39,6 +45,10 @@ pub struct TrackingResult {
     pub point_usage: f32,
     /// Number of LM iterations (normal-equation builds) over all levels.
     pub iterations: usize,
+    /// Pearson correlation between keyframe intensities and frame intensities at the warped
+    /// points of the finest level (≈ 1 when the frame shows the keyframe's edges where the
+    /// pose puts them, ≈ 0 for an unrelated image).
+    pub correlation: f32,
     /// The final normal-equation matrix `Σ w·Jᵀ·J` at the finest level (unnormalised, in units
     /// of the variance-normalised residual, Huber-weighted) with respect to a *right*
     /// perturbation `frame_from_keyframe · exp(δ)`, δ = (ρ, φ); its inverse approximates the
@@ -55,6 +65,7 @@ impl TrackingResult {
             good_ratio: 0.0,
             point_usage: 0.0,
             iterations,
+            correlation: 0.0,
             information: Matrix6::zeros(),
         }
     }
@@ -108,7 +119,9 @@ impl SE3Tracker {
         let mut pose = *initial_frame_from_keyframe;
         let mut affine = (1.0f32, 0.0f32);
         let mut iterations = 0usize;
-        let top = cfg.max_level.min(frame.pyramid.levels.len().saturating_sub(1));
+        let top = cfg
+            .max_level
+            .min(frame.pyramid.levels.len().saturating_sub(1));
         if cfg.min_level > top {
             return TrackingResult::lost(initial_frame_from_keyframe, 0);
         }
@@ -169,7 +182,7 @@ impl SE3Tracker {
                         }
                         break;
                     }
-                    if step.norm_squared() <= cfg.step_size_min {
+                    if step.norm_squared() <= cfg.step_size_min || lambda >= MAX_LAMBDA {
                         break 'iterations;
                     }
                     lambda = if lambda == 0.0 {
@@ -192,15 +205,18 @@ impl SE3Tracker {
                     (buffers.usage / points.len() as f64) as f32
                 };
                 let (h_left, _) = normal_equations(buffers);
+                let correlation = buffers.correlation();
                 return TrackingResult {
                     frame_from_keyframe: pose,
                     good: good / pixels > cfg.min_good_per_all
                         && good_ratio > cfg.min_good_per_good_bad
+                        && correlation > cfg.min_correlation
                         && last_cost.is_finite(),
                     residual: last_cost as f32,
                     good_ratio,
                     point_usage,
                     iterations,
+                    correlation,
                     information: left_to_right_information(&pose, &h_left),
                 };
             }

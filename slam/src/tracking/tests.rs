@@ -114,6 +114,34 @@ fn tracking_intensity_jacobian_left_matches_central_differences() {
     }
 }
 
+/// The information matrix is reported for the right perturbation: `Adᵀ·H_left·Ad` equals
+/// the normal matrix built from right-perturbation Jacobians.
+#[test]
+fn tracking_information_left_to_right_matches_right_jacobians() {
+    let cam = camera();
+    for t in test_poses() {
+        let (mut h_left, mut h_right) = (nalgebra::Matrix6::zeros(), nalgebra::Matrix6::zeros());
+        for p in test_points() {
+            let q = t.act(&p);
+            let uv = cam.project(&q);
+            let grad = smooth_gradient(uv.x, uv.y);
+            let left = intensity_jacobian_left(
+                q.x as f32,
+                q.y as f32,
+                q.z as f32,
+                (cam.fx * grad.0) as f32,
+                (cam.fy * grad.1) as f32,
+            );
+            let left = Vector6::from(left.map(f64::from));
+            let right = intensity_jacobian_right(&cam, &t, &p, grad);
+            h_left += left * left.transpose();
+            h_right += right * right.transpose();
+        }
+        let converted = super::warp::left_to_right_information(&t, &h_left);
+        assert!((converted - h_right).norm() <= 1e-9 * h_right.norm());
+    }
+}
+
 /// ∂(normalised projection)/∂(keyframe inverse depth), used for the residual variance.
 #[test]
 fn tracking_idepth_derivative_matches_central_differences() {
@@ -195,11 +223,21 @@ fn tracking_reference_pyramid_fuses_children_by_inverse_variance() {
                 f64::from(pts.z[i]),
             ));
             let px = pts.pixel[i] as usize;
-            assert!((uv.x - (px % lw) as f64).abs() < 1e-3, "level {level}: {uv:?}");
-            assert!((uv.y - (px / lw) as f64).abs() < 1e-3, "level {level}: {uv:?}");
+            assert!(
+                (uv.x - (px % lw) as f64).abs() < 1e-3,
+                "level {level}: {uv:?}"
+            );
+            assert!(
+                (uv.y - (px / lw) as f64).abs() < 1e-3,
+                "level {level}: {uv:?}"
+            );
         }
     }
-    assert!(reference.level(3).is_empty() && reference.level(9).is_empty());
+    // The fused estimate keeps fusing up the pyramid: one point per level.
+    for level in 1..crate::frame::PYRAMID_LEVELS {
+        assert_eq!(reference.num_points(level), 1, "level {level}");
+    }
+    assert!(reference.level(9).is_empty());
     let wrong = DepthMap::unknown(w / 2, h);
     assert!(TrackingReference::new(&frame, &wrong).is_err());
 }
@@ -240,7 +278,13 @@ struct View {
 }
 
 /// Renders `indices` of the sequence (`seed`, `motion`, `width × height`), two threads.
-fn render_views(seed: u64, motion: Motion, width: u32, height: u32, indices: &[usize]) -> Vec<View> {
+fn render_views(
+    seed: u64,
+    motion: Motion,
+    width: u32,
+    height: u32,
+    indices: &[usize],
+) -> Vec<View> {
     let config = SynthConfig {
         frames: indices.iter().max().map_or(1, |m| m + 1),
         seed,
@@ -334,8 +378,17 @@ fn tracking_follows_synthetic_orbit_against_first_frame() {
         let (et, er) = pose_error(&result.frame_from_keyframe, &truth);
         let (mt, mr) = pose_error(&SE3::identity(), &truth);
         eprintln!(
-            "frame {i:2}: motion {:.3} m {:.2}°, error {:.4} m {:.3}°, good {} ({:.2}), usage {:.2}, residual {:.2}, its {}",
-            mt, mr, et, er, result.good, result.good_ratio, result.point_usage, result.residual, result.iterations
+            "frame {i:2}: motion {:.3} m {:.2}°, error {:.4} m {:.3}°, good {} ({:.2}), usage {:.2}, residual {:.2}, correlation {:.3}, its {}",
+            mt,
+            mr,
+            et,
+            er,
+            result.good,
+            result.good_ratio,
+            result.point_usage,
+            result.residual,
+            result.correlation,
+            result.iterations
         );
         assert!(result.good, "frame {i} lost");
         worst_t = worst_t.max(et);
@@ -349,7 +402,10 @@ fn tracking_follows_synthetic_orbit_against_first_frame() {
         100.0 * worst_t / scene_depth,
         worst_r
     );
-    assert!(worst_t < 0.01 * scene_depth, "translation error {worst_t} m");
+    assert!(
+        worst_t < 0.01 * scene_depth,
+        "translation error {worst_t} m"
+    );
     assert!(worst_r < 0.2, "rotation error {worst_r}°");
 }
 
@@ -359,7 +415,6 @@ fn tracking_converges_from_perturbed_initial_guess() {
     let map = ground_truth_map(&views[0], 5.0);
     let reference = TrackingReference::new(&views[0].frame, &map).expect("reference");
     let mut tracker = SE3Tracker::new(TrackingConfig::default()).expect("tracker");
-    let truth = frame_from_keyframe(views, 0, 3);
     let scene_depth = mean_depth(&map);
     // 3 cm and 2° away from the truth, in several directions.
     let perturbations = [
@@ -371,15 +426,26 @@ fn tracking_converges_from_perturbed_initial_guess() {
             Vector3::new(-1.15, 1.15, 1.15),
         ),
     ];
-    for (dt, dr) in perturbations {
+    // The keyframe itself (truth = identity) and frame 3.
+    for (frame, (dt, dr)) in [0, 3]
+        .into_iter()
+        .flat_map(|f| perturbations.map(|p| (f, p)))
+    {
+        let truth = frame_from_keyframe(views, 0, frame);
         let delta = SE3::new(SO3::exp(&dr.map(f64::to_radians)), dt);
         let guess = delta * truth;
         let (gt, gr) = pose_error(&guess, &truth);
-        let result = tracker.track(&reference, &views[3].frame, &guess);
+        let result = tracker.track(&reference, &views[frame].frame, &guess);
         let (et, er) = pose_error(&result.frame_from_keyframe, &truth);
-        eprintln!("start {gt:.3} m {gr:.2}° → {et:.4} m {er:.3}° in {} its", result.iterations);
+        eprintln!(
+            "frame {frame}: start {gt:.3} m {gr:.2}° → {et:.4} m {er:.3}° in {} its",
+            result.iterations
+        );
         assert!(result.good);
-        assert!(et < 0.01 * scene_depth && er < 0.2, "did not converge: {et} m {er}°");
+        assert!(
+            et < 0.01 * scene_depth && er < 0.2,
+            "did not converge: {et} m {er}°"
+        );
         // The information matrix is symmetric positive definite.
         let info = result.information;
         assert!((info - info.transpose()).norm() <= 1e-9 * info.norm());
@@ -394,13 +460,20 @@ fn tracking_is_lost_on_another_room_or_a_constant_image() {
     let reference = TrackingReference::new(&views[0].frame, &map).expect("reference");
     let mut tracker = SE3Tracker::new(TrackingConfig::default()).expect("tracker");
 
-    let other = render_views(5, Motion::Orbit, 320, 240, &[0]);
-    let result = tracker.track(&reference, &other[0].frame, &SE3::identity());
-    eprintln!(
-        "other room: good {} ratio {:.2} usage {:.2} residual {:.2}",
-        result.good, result.good_ratio, result.point_usage, result.residual
-    );
-    assert!(!result.good, "tracking another room must be lost");
+    // Other seeds: other textures and furniture in a room of the same size, so the room's
+    // corners still line up; seeds 3 and 7 are the hardest (LSD's good ratio 0.87 and 0.94).
+    for seed in [3, 5, 7] {
+        let other = render_views(seed, Motion::Orbit, 320, 240, &[0]);
+        let result = tracker.track(&reference, &other[0].frame, &SE3::identity());
+        eprintln!(
+            "room {seed}: good {} ratio {:.2} usage {:.2} residual {:.2} correlation {:.3}",
+            result.good, result.good_ratio, result.point_usage, result.residual, result.correlation
+        );
+        assert!(
+            !result.good,
+            "tracking the room of seed {seed} must be lost"
+        );
+    }
 
     let constant = ImageF32::filled(320, 240, 128.0);
     let frame = Frame::new(99, 0.0, views[0].frame.camera, &constant, None).expect("frame");
@@ -409,7 +482,10 @@ fn tracking_is_lost_on_another_room_or_a_constant_image() {
 
     // The same tracker still tracks correctly afterwards (no stale state).
     let result = tracker.track(&reference, &views[1].frame, &SE3::identity());
-    let (et, er) = pose_error(&result.frame_from_keyframe, &frame_from_keyframe(views, 0, 1));
+    let (et, er) = pose_error(
+        &result.frame_from_keyframe,
+        &frame_from_keyframe(views, 0, 1),
+    );
     assert!(result.good && et < 0.01 && er < 0.2);
 }
 
@@ -432,9 +508,15 @@ fn tracking_relocalise_picks_the_matching_keyframe() {
     let (index, result) = tracker
         .try_relocalise(&candidates, &views[2].frame)
         .expect("relocalised");
-    eprintln!("relocalised on candidate {index}: usage {:.2} ratio {:.2}", result.point_usage, result.good_ratio);
+    eprintln!(
+        "relocalised on candidate {index}: usage {:.2} ratio {:.2}",
+        result.point_usage, result.good_ratio
+    );
     assert_eq!(index, 2);
-    let (et, er) = pose_error(&result.frame_from_keyframe, &frame_from_keyframe(views, 0, 2));
+    let (et, er) = pose_error(
+        &result.frame_from_keyframe,
+        &frame_from_keyframe(views, 0, 2),
+    );
     assert!(et < 0.01 && er < 0.2);
     let none = [(&ref_other, SE3::identity())];
     assert!(tracker.try_relocalise(&none, &views[2].frame).is_none());
@@ -454,22 +536,65 @@ fn tracking_benchmark_640x480() {
         };
         let mut tracker = SE3Tracker::new(config).expect("tracker");
         let _ = tracker.track(&reference, &views[1].frame, &SE3::identity()); // warm-up
-        let runs = 10;
-        let t = Instant::now();
+        // Median and best of 15 (the machine is shared with other builds).
+        let mut times = Vec::new();
         let mut result = None;
-        for _ in 0..runs {
+        for _ in 0..15 {
+            let t = Instant::now();
             result = Some(tracker.track(&reference, &views[1].frame, &SE3::identity()));
+            times.push(t.elapsed().as_secs_f64() * 1e3);
         }
-        let ms = t.elapsed().as_secs_f64() * 1e3 / f64::from(runs);
+        times.sort_by(f64::total_cmp);
+        let (best, ms) = (times[0], times[times.len() / 2]);
         let result = result.expect("ran");
         let (et, er) = pose_error(&result.frame_from_keyframe, &truth);
         eprintln!(
-            "640x480, min grad {min_grad}, {} points (level 1: {}), min level {min_level}: {ms:.2} ms/track, {} its, error {et:.4} m {er:.3}°, good {}",
+            "640x480, min grad {min_grad}, {} points (level 1: {}), min level {min_level}: {ms:.2} ms/track (median; best {best:.2}), {} its, error {et:.4} m {er:.3}°, good {}",
             reference.num_points(0),
             reference.num_points(1),
             result.iterations,
             result.good
         );
         assert!(result.good);
+        if min_level == 1 {
+            // Inner loops alone, at level 1 with the converged pose.
+            let mut image = super::warp::InterleavedLevel::default();
+            image.fill(views[1].frame.level(1));
+            let params = super::warp::WarpParams::new(
+                &result.frame_from_keyframe,
+                &views[1].frame.camera_at(1),
+                (1.0, 0.0),
+            );
+            let mut buffers = super::warp::WarpBuffers::default();
+            let points = reference.level(1);
+            let config = TrackingConfig::default();
+            // Best of 30 (the machine is shared): per-point cost of the two inner loops.
+            let best = |f: &mut dyn FnMut()| {
+                (0..30)
+                    .map(|_| {
+                        let t = Instant::now();
+                        f();
+                        t.elapsed().as_secs_f64()
+                    })
+                    .fold(f64::INFINITY, f64::min)
+            };
+            let eval_ns =
+                best(&mut || super::warp::evaluate(points, &image, &params, &config, &mut buffers))
+                    * 1e9
+                    / points.len() as f64;
+            let warp_ns =
+                best(&mut || super::warp::warp_points(points, &image, &params, &mut buffers)) * 1e9
+                    / points.len() as f64;
+            let weigh_ns = best(&mut || super::warp::weigh(&params, &config, &mut buffers)) * 1e9
+                / points.len() as f64;
+            eprintln!("  warp {warp_ns:.1} weigh {weigh_ns:.1}");
+            let mut trace = 0.0;
+            let ne_ns = best(&mut || trace += super::warp::normal_equations(&buffers).0.trace())
+                * 1e9
+                / buffers.len() as f64;
+            eprintln!(
+                "  level 1: evaluate {eval_ns:.1} ns/point, normal equations {ne_ns:.1} ns/point ({trace:.1e})"
+            );
+        }
     }
 }

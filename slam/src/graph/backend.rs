@@ -1,0 +1,691 @@
+//! The back end: keyframe store, constraint search and pose-graph optimisation, run either
+//! synchronously ([`Backend::process`], deterministic, used by the pipeline in tests) or on its
+//! own thread behind a bounded channel ([`Backend::spawn`]), so that it never blocks the frame
+//! path (LSD-SLAM runs the same work in its `constraintSearchThread` and `optimizationThread`).
+//!
+//! Flow per keyframe: the pipeline sends it once its depth map is final (when the *next*
+//! keyframe is created), with the tracking estimate of its pose relative to its parent. The
+//! back end inserts a vertex at `world_from_parent · parent_from_keyframe` (using the parent's
+//! *optimised* pose), searches constraints (the forced parent constraint, pose-proximity and
+//! appearance candidates, each verified by the reciprocal test), adds every accepted pair of
+//! edges and re-optimises the graph when edges were added. A later depth update of a keyframe
+//! (DeepRelativeFusion's refined depth) re-estimates the constraints it takes part in.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
+use std::sync::{Arc, Mutex, RwLock};
+use std::thread::JoinHandle;
+
+use serde::{Deserialize, Serialize};
+
+use super::KeyframeId;
+use super::config::BackendConfig;
+use super::pose_graph::{Constraint, OptimizeReport, PoseGraph};
+use super::search::{Keyframe, pose_proximity, reciprocal_test};
+use super::sim3_tracker::Sim3Tracker;
+use crate::frame::Frame;
+use nalgebra::Matrix6;
+
+use crate::geometry::{Matrix7, Sim3};
+use crate::mapping::DepthMap;
+use crate::{Error, Result};
+
+/// The tracking estimate of a new keyframe relative to the keyframe it was tracked against.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParentEdge {
+    pub id: KeyframeId,
+    /// Maps the new keyframe's coordinates to the parent's (including the depth-scale change
+    /// of the new keyframe's normalised map).
+    pub parent_from_keyframe: Sim3,
+    /// Information of a right perturbation of `parent_from_keyframe`, used as the parent edge
+    /// only if the reciprocal Sim(3) test on the parent fails (LSD-SLAM's fallback odometry
+    /// edge). It must be positive definite, including the scale entry.
+    pub information: Matrix7,
+}
+
+/// Scale information of an odometry edge built from SE(3) tracking, relative to the mean of its
+/// translation informations: 0.02, the ratio in LSD-SLAM's hard-coded fallback edge
+/// (`findConstraintsForNewKeyFrames`: 0.0228 against ≈ 1.08).
+pub const SE3_EDGE_SCALE_INFORMATION_RATIO: f64 = 0.02;
+
+impl ParentEdge {
+    /// A parent edge from SE(3) tracking, whose 6×6 information (ρ, φ) says nothing about the
+    /// scale: it is embedded in the (ρ, φ) block (a Sim(3) tangent with σ = 0 is the SE(3)
+    /// one) and the scale gets [`SE3_EDGE_SCALE_INFORMATION_RATIO`] × the mean translation
+    /// information.
+    pub fn from_se3_information(
+        id: KeyframeId,
+        parent_from_keyframe: Sim3,
+        information: &Matrix6<f64>,
+    ) -> Self {
+        let mut info = Matrix7::zeros();
+        info.fixed_view_mut::<6, 6>(0, 0).copy_from(information);
+        let mean_translation =
+            (information[(0, 0)] + information[(1, 1)] + information[(2, 2)]) / 3.0;
+        info[(6, 6)] = SE3_EDGE_SCALE_INFORMATION_RATIO * mean_translation.max(0.0);
+        Self {
+            id,
+            parent_from_keyframe,
+            information: info,
+        }
+    }
+}
+
+/// A finalised keyframe handed to the back end.
+#[derive(Clone, Debug)]
+pub struct NewKeyframe {
+    pub id: KeyframeId,
+    pub frame: Arc<Frame>,
+    pub depth: Arc<DepthMap>,
+    /// The front end's estimate; used as the vertex's initial pose when there is no parent in
+    /// the graph.
+    pub world_from_keyframe: Sim3,
+    pub parent: Option<ParentEdge>,
+}
+
+/// Commands of a spawned back end.
+#[derive(Debug)]
+pub enum BackendCommand {
+    AddKeyframe(Box<NewKeyframe>),
+    /// Replace a keyframe's depth map and re-estimate the constraints it takes part in
+    /// ([`Backend::update_keyframe_depth`]).
+    UpdateDepth {
+        id: KeyframeId,
+        depth: Arc<DepthMap>,
+    },
+    /// Process pending keyframes, then optimise the whole graph even without new edges.
+    Optimize,
+    /// Process what is pending and stop the thread.
+    Shutdown,
+}
+
+/// What one [`Backend::process`] call did.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ProcessReport {
+    /// Keyframes whose constraints were searched.
+    pub keyframes_searched: usize,
+    /// Reciprocal tests run (parent included).
+    pub candidates_tested: usize,
+    /// Pairs of edges accepted by the reciprocal test (parent included).
+    pub constraints_accepted: usize,
+    /// Parent edges added from the front end's estimate after a failed test.
+    pub fallback_parent_edges: usize,
+    /// Existing pairs of edges re-estimated after a depth update (and replaced).
+    pub constraints_refreshed: usize,
+    /// The optimisation run, if any.
+    pub optimize: Option<OptimizeReport>,
+}
+
+/// Graph bookkeeping of one keyframe.
+#[derive(Clone, Debug)]
+struct Entry {
+    keyframe: Keyframe,
+    /// Insertion index (LSD-SLAM's `idxInKeyframes`).
+    order: usize,
+    parent: Option<ParentEdge>,
+    /// Keyframes joined to this one by an edge.
+    neighbours: BTreeSet<KeyframeId>,
+    /// Candidates whose test failed, with the initial relative pose tried.
+    failed: Vec<(KeyframeId, Sim3)>,
+}
+
+/// Where a candidate comes from (decides its initial relative pose).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Source {
+    /// Close in pose: start from the graph's relative pose.
+    Pose,
+    /// Proposed by appearance: poses may have drifted apart, start from the identity as
+    /// LSD-SLAM does for its FAB-MAP candidates.
+    Appearance,
+}
+
+/// The back end (see the module docs).
+#[derive(Debug)]
+pub struct Backend {
+    config: BackendConfig,
+    tracker: Sim3Tracker,
+    graph: PoseGraph,
+    keyframes: BTreeMap<KeyframeId, Entry>,
+    pending: Vec<KeyframeId>,
+    /// Keyframes whose depth changed: their existing constraints are re-estimated.
+    refresh: Vec<KeyframeId>,
+}
+
+impl Backend {
+    /// An empty back end (validates `config`).
+    pub fn new(config: BackendConfig) -> Result<Self> {
+        config.validate()?;
+        Ok(Self {
+            tracker: Sim3Tracker::new(config.clone()),
+            graph: PoseGraph::new(config.pose_graph_huber),
+            config,
+            keyframes: BTreeMap::new(),
+            pending: Vec::new(),
+            refresh: Vec::new(),
+        })
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &BackendConfig {
+        &self.config
+    }
+
+    /// Inserts a keyframe as a vertex; its constraints are searched by the next
+    /// [`Backend::process`]. Fails for a duplicate id or a depth map of the wrong size.
+    pub fn add_keyframe(&mut self, new: NewKeyframe) -> Result<()> {
+        if self.keyframes.contains_key(&new.id) {
+            return Err(Error::Backend(format!("keyframe {} added twice", new.id)));
+        }
+        let keyframe = Keyframe::new(new.id, new.frame, new.depth)?;
+        let initial = new
+            .parent
+            .as_ref()
+            .and_then(|p| Some(self.graph.pose(p.id)? * p.parent_from_keyframe))
+            .unwrap_or(new.world_from_keyframe);
+        self.graph.add_vertex(new.id, initial);
+        let order = self.keyframes.len();
+        self.keyframes.insert(
+            new.id,
+            Entry {
+                keyframe,
+                order,
+                parent: new.parent,
+                neighbours: BTreeSet::new(),
+                failed: Vec::new(),
+            },
+        );
+        self.pending.push(new.id);
+        Ok(())
+    }
+
+    /// Replaces the depth map of keyframe `id` — e.g. DeepRelativeFusion's two-view consistent
+    /// densified depth (§III "Pose-graph refinement": "we update the Sim(3) constraints in the
+    /// pose-graph to refine the keyframe poses") — and schedules the re-estimation of every
+    /// constraint it takes part in by the next [`Backend::process`]: each pair of edges with a
+    /// neighbour is re-tested from the current relative pose and replaced when the reciprocal
+    /// test accepts it (kept otherwise). A keyframe still pending simply uses the new depth.
+    pub fn update_keyframe_depth(&mut self, id: KeyframeId, depth: Arc<DepthMap>) -> Result<()> {
+        let entry = self
+            .keyframes
+            .get_mut(&id)
+            .ok_or_else(|| Error::Backend(format!("depth update for unknown keyframe {id}")))?;
+        entry.keyframe = Keyframe::new(id, Arc::clone(&entry.keyframe.frame), depth)?;
+        entry.failed.clear();
+        if !self.pending.contains(&id) && !self.refresh.contains(&id) {
+            self.refresh.push(id);
+        }
+        Ok(())
+    }
+
+    /// Searches constraints for every pending keyframe (in arrival order), re-estimates those of
+    /// keyframes whose depth was updated, and optimises the graph when edges changed.
+    /// Deterministic: same inputs, same outputs.
+    pub fn process(&mut self) -> Result<ProcessReport> {
+        let mut report = ProcessReport::default();
+        let mut added = false;
+        for id in std::mem::take(&mut self.pending) {
+            report.keyframes_searched += 1;
+            added |= self.search(id, &mut report)?;
+        }
+        for id in std::mem::take(&mut self.refresh) {
+            added |= self.refresh_constraints(id, &mut report)?;
+        }
+        if added {
+            report.optimize = Some(
+                self.graph
+                    .optimize(self.config.max_optimization_iterations)?,
+            );
+        }
+        Ok(report)
+    }
+
+    /// Processes pending keyframes, then optimises the graph regardless of new edges (the final
+    /// optimisation of a session, or [`BackendCommand::Optimize`]).
+    pub fn optimize_full(&mut self) -> Result<OptimizeReport> {
+        let report = self.process()?;
+        match report.optimize {
+            Some(r) => Ok(r),
+            None => self.graph.optimize(self.config.max_optimization_iterations),
+        }
+    }
+
+    /// The current `world_from_keyframe` of every keyframe.
+    pub fn poses(&self) -> HashMap<KeyframeId, Sim3> {
+        self.graph.poses()
+    }
+
+    /// The pose graph (vertices and edges).
+    pub fn graph(&self) -> &PoseGraph {
+        &self.graph
+    }
+
+    /// All edges in insertion order.
+    pub fn constraints(&self) -> &[Constraint] {
+        self.graph.edges()
+    }
+
+    /// The edges keyframe `id` takes part in (either end), in insertion order; their
+    /// informations give the pose uncertainty DeepRelativeFusion propagates into the dense
+    /// depth's variance (§III "Pose-graph refinement", `Σ_ξ`).
+    pub fn constraints_of(&self, id: KeyframeId) -> impl Iterator<Item = &Constraint> + '_ {
+        self.graph
+            .edges()
+            .iter()
+            .filter(move |c| c.from == id || c.to == id)
+    }
+
+    /// Keyframes whose constraint search has not run yet.
+    pub fn pending(&self) -> &[KeyframeId] {
+        &self.pending
+    }
+
+    /// Graph distances (edges) from `start` over the current neighbour sets.
+    fn graph_distances(&self, start: KeyframeId) -> HashMap<KeyframeId, usize> {
+        let mut dist = HashMap::from([(start, 0)]);
+        let mut queue = VecDeque::from([start]);
+        while let Some(k) = queue.pop_front() {
+            let d = dist[&k];
+            for &n in self
+                .keyframes
+                .get(&k)
+                .map(|e| &e.neighbours)
+                .into_iter()
+                .flatten()
+            {
+                if let std::collections::hash_map::Entry::Vacant(v) = dist.entry(n) {
+                    v.insert(d + 1);
+                    queue.push_back(n);
+                }
+            }
+        }
+        dist
+    }
+
+    /// Candidates for keyframe `id`, in test order (LSD-SLAM's `findCandidates` plus the
+    /// close/far split of `findConstraintsForNewKeyFrames`).
+    fn candidates(&self, id: KeyframeId) -> Vec<(KeyframeId, Source)> {
+        let Some(entry) = self.keyframes.get(&id) else {
+            return Vec::new();
+        };
+        let Some(pose) = self.graph.pose(id) else {
+            return Vec::new();
+        };
+        let parent = entry.parent.as_ref().map(|p| p.id);
+        let eligible = |cid: KeyframeId, c: &Entry| {
+            cid != id
+                && Some(cid) != parent
+                && !entry.neighbours.contains(&cid)
+                && c.order >= self.config.skip_initial_keyframes
+                && c.keyframe.levels.estimates > 0
+        };
+        let mut close: Vec<(KeyframeId, f64)> = self
+            .keyframes
+            .iter()
+            .filter(|(cid, c)| eligible(**cid, c))
+            .filter_map(|(&cid, c)| {
+                let cpose = self.graph.pose(cid)?;
+                pose_proximity(&self.config, &entry.keyframe, &pose, &c.keyframe, &cpose)
+                    .map(|d2| (cid, d2))
+            })
+            .collect();
+        // Too many: drop the one best connected to the other candidates (ties: the farther,
+        // then the larger id), as `findConstraintsForNewKeyFrames` does.
+        while close.len() > self.config.max_loop_closure_candidates {
+            let set: BTreeSet<KeyframeId> = close.iter().map(|c| c.0).collect();
+            let connectivity = |k: KeyframeId| {
+                self.keyframes[&k]
+                    .neighbours
+                    .iter()
+                    .filter(|n| set.contains(n))
+                    .count()
+            };
+            let worst = close
+                .iter()
+                .enumerate()
+                .max_by(|(_, a), (_, b)| {
+                    connectivity(a.0)
+                        .cmp(&connectivity(b.0))
+                        .then(a.1.total_cmp(&b.1))
+                        .then(a.0.cmp(&b.0))
+                })
+                .map(|(i, _)| i);
+            if let Some(i) = worst {
+                close.remove(i);
+            }
+        }
+        let mut out: Vec<(KeyframeId, Source)> =
+            close.iter().map(|&(c, _)| (c, Source::Pose)).collect();
+
+        if self.config.appearance_search {
+            let distances = self.graph_distances(parent.unwrap_or(id));
+            let mut far: Vec<(KeyframeId, f64)> = self
+                .keyframes
+                .iter()
+                .filter(|(cid, c)| eligible(**cid, c) && !close.iter().any(|x| x.0 == **cid))
+                .filter(|(cid, _)| {
+                    distances
+                        .get(cid)
+                        .is_none_or(|&d| d >= self.config.min_far_graph_distance)
+                })
+                .map(|(&cid, c)| (cid, entry.keyframe.thumbnail.score(&c.keyframe.thumbnail)))
+                .filter(|&(_, s)| s >= self.config.appearance_min_score)
+                .collect();
+            far.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+            far.truncate(self.config.max_far_candidates);
+            out.extend(far.into_iter().map(|(c, _)| (c, Source::Appearance)));
+        }
+        out
+    }
+
+    /// Runs the constraint search of keyframe `id`; returns whether edges were added.
+    fn search(&mut self, id: KeyframeId, report: &mut ProcessReport) -> Result<bool> {
+        let Some(pose) = self.graph.pose(id) else {
+            return Ok(false);
+        };
+        let candidates = self.candidates(id);
+        let mut accepted: Vec<(Constraint, Constraint)> = Vec::new();
+        let mut failed: Vec<(KeyframeId, Sim3)> = Vec::new();
+        {
+            let entry = &self.keyframes[&id];
+            let mut tests: Vec<(KeyframeId, Sim3, f64)> = Vec::new();
+            for (cid, source) in candidates {
+                let Some(cpose) = self.graph.pose(cid) else {
+                    continue;
+                };
+                let initial = match source {
+                    Source::Pose => cpose.inverse() * pose,
+                    Source::Appearance => Sim3::identity(),
+                };
+                let tried_before = entry.failed.iter().any(|(f, init)| {
+                    *f == cid
+                        && (initial * init.inverse()).log().norm() < self.config.retry_min_change
+                });
+                if !tried_before {
+                    tests.push((cid, initial, self.config.loop_closure_strictness));
+                }
+            }
+            let parent = entry.parent.as_ref().filter(|p| {
+                self.keyframes.contains_key(&p.id) && !entry.neighbours.contains(&p.id)
+            });
+            if let Some(p) = parent {
+                // candidate_from_keyframe = parent_from_keyframe.
+                tests.push((p.id, p.parent_from_keyframe, self.config.parent_strictness));
+            }
+            for (cid, initial, strictness) in tests {
+                report.candidates_tested += 1;
+                let candidate = &self.keyframes[&cid].keyframe;
+                let check = reciprocal_test(
+                    &self.tracker,
+                    &entry.keyframe,
+                    candidate,
+                    &initial,
+                    strictness,
+                );
+                tracing::debug!(
+                    keyframe = id,
+                    candidate = cid,
+                    consistency = check.consistency,
+                    failed_stage = ?check.failed_stage,
+                    "reciprocal Sim(3) test"
+                );
+                match check.constraints {
+                    Some(pair) => accepted.push(pair),
+                    None => failed.push((cid, initial)),
+                }
+            }
+        }
+        let parent_fallback = self.keyframes[&id].parent.clone().filter(|p| {
+            self.keyframes.contains_key(&p.id)
+                && !accepted.iter().any(|(a, _)| a.to == p.id)
+                && !self.keyframes[&id].neighbours.contains(&p.id)
+        });
+        let mut any = false;
+        report.constraints_accepted += accepted.len();
+        for (forward, backward) in accepted {
+            self.link(forward.from, forward.to);
+            self.graph.add_edge(forward)?;
+            self.graph.add_edge(backward)?;
+            any = true;
+        }
+        if let Some(p) = parent_fallback {
+            tracing::warn!(
+                keyframe = id,
+                parent = p.id,
+                "parent Sim(3) test failed; odometry edge"
+            );
+            self.link(id, p.id);
+            self.graph.add_edge(Constraint {
+                from: id,
+                to: p.id,
+                to_from_from: p.parent_from_keyframe,
+                information: p.information,
+            })?;
+            report.fallback_parent_edges += 1;
+            any = true;
+        }
+        if let Some(entry) = self.keyframes.get_mut(&id) {
+            entry.failed.extend(failed);
+        }
+        Ok(any)
+    }
+
+    /// Re-tests keyframe `id` against each neighbour from the current relative pose and
+    /// replaces the pair of edges when accepted.
+    fn refresh_constraints(&mut self, id: KeyframeId, report: &mut ProcessReport) -> Result<bool> {
+        let Some(entry) = self.keyframes.get(&id) else {
+            return Ok(false);
+        };
+        let Some(pose) = self.graph.pose(id) else {
+            return Ok(false);
+        };
+        let parent = entry.parent.as_ref().map(|p| p.id);
+        let mut accepted = Vec::new();
+        for &n in &entry.neighbours {
+            let (Some(other), Some(npose)) = (self.keyframes.get(&n), self.graph.pose(n)) else {
+                continue;
+            };
+            let strictness = if Some(n) == parent {
+                self.config.parent_strictness
+            } else {
+                self.config.loop_closure_strictness
+            };
+            report.candidates_tested += 1;
+            let initial = npose.inverse() * pose;
+            let check = reciprocal_test(
+                &self.tracker,
+                &entry.keyframe,
+                &other.keyframe,
+                &initial,
+                strictness,
+            );
+            if let Some(pair) = check.constraints {
+                accepted.push(pair);
+            }
+        }
+        let any = !accepted.is_empty();
+        report.constraints_refreshed += accepted.len();
+        for (forward, backward) in accepted {
+            self.graph.remove_edges_between(forward.from, forward.to);
+            self.graph.add_edge(forward)?;
+            self.graph.add_edge(backward)?;
+        }
+        Ok(any)
+    }
+
+    fn link(&mut self, a: KeyframeId, b: KeyframeId) {
+        if let Some(e) = self.keyframes.get_mut(&a) {
+            e.neighbours.insert(b);
+        }
+        if let Some(e) = self.keyframes.get_mut(&b) {
+            e.neighbours.insert(a);
+        }
+    }
+
+    /// Starts a back end on its own thread.
+    pub fn spawn(config: BackendConfig) -> Result<BackendHandle> {
+        let backend = Backend::new(config)?;
+        let (sender, receiver) = sync_channel(backend.config.channel_capacity);
+        let shared = Arc::new(Shared::default());
+        let thread_shared = Arc::clone(&shared);
+        let thread = std::thread::Builder::new()
+            .name("relfusion-backend".into())
+            .spawn(move || run(backend, receiver, &thread_shared))
+            .map_err(|e| Error::Backend(format!("cannot start the back-end thread: {e}")))?;
+        Ok(BackendHandle {
+            sender: Some(sender),
+            shared,
+            thread: Some(thread),
+        })
+    }
+}
+
+/// State published by the back-end thread.
+#[derive(Debug, Default)]
+struct Shared {
+    poses: RwLock<HashMap<KeyframeId, Sim3>>,
+    /// Commands handled so far.
+    handled: AtomicU64,
+    last_error: Mutex<Option<String>>,
+}
+
+/// The thread body: batches all queued commands, processes, publishes, repeats.
+fn run(mut backend: Backend, receiver: Receiver<BackendCommand>, shared: &Shared) -> Backend {
+    while let Ok(first) = receiver.recv() {
+        let (mut stop, mut force, mut handled) = (false, false, 0u64);
+        let mut next = Some(first);
+        while let Some(cmd) = next.take() {
+            handled += 1;
+            match cmd {
+                BackendCommand::AddKeyframe(k) => {
+                    if let Err(e) = backend.add_keyframe(*k) {
+                        record(shared, &e);
+                    }
+                }
+                BackendCommand::UpdateDepth { id, depth } => {
+                    if let Err(e) = backend.update_keyframe_depth(id, depth) {
+                        record(shared, &e);
+                    }
+                }
+                BackendCommand::Optimize => force = true,
+                BackendCommand::Shutdown => stop = true,
+            }
+            if !stop {
+                next = receiver.try_recv().ok();
+            }
+        }
+        let result = if force {
+            backend.optimize_full().map(|_| ())
+        } else {
+            backend.process().map(|_| ())
+        };
+        if let Err(e) = result {
+            record(shared, &e);
+        }
+        if let Ok(mut poses) = shared.poses.write() {
+            *poses = backend.poses();
+        }
+        shared.handled.fetch_add(handled, Ordering::SeqCst);
+        if stop {
+            break;
+        }
+    }
+    backend
+}
+
+fn record(shared: &Shared, e: &Error) {
+    tracing::error!(error = %e, "back end");
+    if let Ok(mut slot) = shared.last_error.lock() {
+        *slot = Some(e.to_string());
+    }
+}
+
+/// Handle on a spawned back end. Dropping it shuts the thread down (after it processed what
+/// was queued).
+#[derive(Debug)]
+pub struct BackendHandle {
+    sender: Option<SyncSender<BackendCommand>>,
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<Backend>>,
+}
+
+impl BackendHandle {
+    fn stopped() -> Error {
+        Error::Backend("the back-end thread has stopped".into())
+    }
+
+    /// Queues a command; waits only while the channel is full
+    /// ([`BackendConfig::channel_capacity`] commands behind).
+    pub fn send(&self, command: BackendCommand) -> Result<()> {
+        let sender = self.sender.as_ref().ok_or_else(Self::stopped)?;
+        sender.send(command).map_err(|_| Self::stopped())
+    }
+
+    /// Queues a command without ever waiting; gives it back when the channel is full.
+    pub fn try_send(&self, command: BackendCommand) -> Result<Option<BackendCommand>> {
+        let sender = self.sender.as_ref().ok_or_else(Self::stopped)?;
+        match sender.try_send(command) {
+            Ok(()) => Ok(None),
+            Err(TrySendError::Full(c)) => Ok(Some(c)),
+            Err(TrySendError::Disconnected(_)) => Err(Self::stopped()),
+        }
+    }
+
+    /// Convenience for `send(AddKeyframe(..))`.
+    pub fn add_keyframe(&self, keyframe: NewKeyframe) -> Result<()> {
+        self.send(BackendCommand::AddKeyframe(Box::new(keyframe)))
+    }
+
+    /// Snapshot of the latest optimised poses (never waits for an optimisation: the thread
+    /// swaps the map in after each batch).
+    pub fn poses(&self) -> HashMap<KeyframeId, Sim3> {
+        self.shared
+            .poses
+            .read()
+            .map(|p| p.clone())
+            .unwrap_or_default()
+    }
+
+    /// Number of commands fully handled (processed and published) so far.
+    pub fn handled_commands(&self) -> u64 {
+        self.shared.handled.load(Ordering::SeqCst)
+    }
+
+    /// The last error the thread met (e.g. a rejected keyframe), if any.
+    pub fn last_error(&self) -> Option<String> {
+        self.shared.last_error.lock().ok().and_then(|e| e.clone())
+    }
+
+    /// Processes what is queued, stops the thread and returns the back end for inspection.
+    pub fn shutdown(mut self) -> Result<Backend> {
+        self.stop()
+    }
+
+    /// Ends the session: processes what is queued, runs the final full optimisation, stops the
+    /// thread and returns the final poses (also what [`BackendHandle::poses`] returns from then
+    /// on). Later sends fail.
+    pub fn finish(&mut self) -> Result<HashMap<KeyframeId, Sim3>> {
+        self.send(BackendCommand::Optimize)?;
+        let backend = self.stop()?;
+        Ok(backend.poses())
+    }
+
+    fn stop(&mut self) -> Result<Backend> {
+        if let Some(sender) = self.sender.take() {
+            // A closed channel means the thread already ended; join reports how.
+            let _ = sender.send(BackendCommand::Shutdown);
+        }
+        let thread = self.thread.take().ok_or_else(Self::stopped)?;
+        thread
+            .join()
+            .map_err(|_| Error::Backend("the back-end thread panicked".into()))
+    }
+}
+
+impl Drop for BackendHandle {
+    fn drop(&mut self) {
+        if self.thread.is_some() {
+            let _ = self.stop();
+        }
+    }
+}

@@ -1,0 +1,184 @@
+//! Pose-graph residual Jacobians and optimisation.
+
+use nalgebra::Vector3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::geometry::testing::numeric_jacobian;
+use crate::geometry::{Matrix7, SO3, Sim3, Vector7};
+use crate::graph::pose_graph::{relative_residual, relative_residual_jacobians};
+use crate::graph::{Constraint, PoseGraph};
+
+fn random_sim3(rng: &mut ChaCha8Rng, rot: f64, trans: f64, log_scale: f64) -> Sim3 {
+    let mut v = || rng.random_range(-1.0..1.0);
+    Sim3::new(
+        SO3::exp(&(Vector3::new(v(), v(), v()) * rot)),
+        Vector3::new(v(), v(), v()) * trans,
+        (v() * log_scale).exp(),
+    )
+}
+
+#[test]
+fn pose_graph_residual_jacobians_match_numeric_differences() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    for case in 0..20 {
+        // Large poses, and measurements from close (small residual) to far (residual with a
+        // rotation near 2 rad and scale ratio e^±1), where J_r⁻¹ differs much from I.
+        let wi = random_sim3(&mut rng, 2.0, 5.0, 1.5);
+        let wj = random_sim3(&mut rng, 2.0, 5.0, 1.5);
+        let off = if case % 2 == 0 { 0.05 } else { 1.1 };
+        let measured = wi.inverse() * wj * random_sim3(&mut rng, off, off, off);
+        let (r, j_to, j_from) = relative_residual_jacobians(&measured, &wi, &wj);
+        assert!((r - relative_residual(&measured, &wi, &wj)).norm() < 1e-12);
+        let num_to = numeric_jacobian::<7, 7>(&|d: &Vector7| {
+            relative_residual(&measured, &(wi * Sim3::exp(d)), &wj)
+        });
+        let num_from = numeric_jacobian::<7, 7>(&|d: &Vector7| {
+            relative_residual(&measured, &wi, &(wj * Sim3::exp(d)))
+        });
+        for (name, analytic, numeric) in [("to", j_to, num_to), ("from", j_from, num_from)] {
+            let err = (analytic - numeric).norm() / numeric.norm();
+            assert!(
+                err < 1e-6,
+                "case {case} ∂r/∂δ_{name}: relative error {err:e}"
+            );
+        }
+    }
+}
+
+/// Ground truth: `n` keyframes around a circle of radius 3 with varying depth scales.
+fn circle(n: usize) -> Vec<Sim3> {
+    (0..n)
+        .map(|k| {
+            let a = std::f64::consts::TAU * k as f64 / n as f64;
+            Sim3::new(
+                SO3::exp(&Vector3::new(0.1 * a.sin(), 0.0, a)),
+                Vector3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.2 * (2.0 * a).sin()),
+                (0.3 * (3.0 * a).sin()).exp(),
+            )
+        })
+        .collect()
+}
+
+/// Mean `|log(T_gt⁻¹ · T)|` over the vertices.
+fn mean_error(graph: &PoseGraph, truth: &[Sim3]) -> f64 {
+    truth
+        .iter()
+        .enumerate()
+        .map(|(k, t)| (t.inverse() * graph.pose(k).expect("vertex")).log().norm())
+        .sum::<f64>()
+        / truth.len() as f64
+}
+
+/// A noisy odometry chain (with a systematic scale and rotation drift, as in monocular SLAM)
+/// initialised by dead reckoning, plus the loop-closure edges `loops`.
+fn drifting_chain(truth: &[Sim3], loops: &[(usize, usize)], huber: Option<f64>) -> PoseGraph {
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let sigma = 0.003;
+    let info = Matrix7::identity() / (sigma * sigma);
+    let mut bias = Vector7::zeros();
+    bias[5] = 0.02; // yaw drift, rad per edge
+    bias[6] = 0.03; // scale drift per edge
+    let mut graph = PoseGraph::new(huber);
+    graph.add_vertex(0, truth[0]);
+    for k in 1..truth.len() {
+        let noise = Vector7::from_fn(|_, _| rng.random_range(-1.0..1.0) * sigma);
+        // to = k − 1, from = k: measured (k−1)_from_k.
+        let measured = truth[k - 1].inverse() * truth[k] * Sim3::exp(&(bias + noise));
+        let initial = graph.pose(k - 1).expect("previous") * measured;
+        graph.add_vertex(k, initial);
+        graph
+            .add_edge(Constraint {
+                from: k,
+                to: k - 1,
+                to_from_from: measured,
+                information: info,
+            })
+            .expect("vertices exist");
+    }
+    for &(from, to) in loops {
+        let noise = Vector7::from_fn(|_, _| rng.random_range(-1.0..1.0) * sigma);
+        let measured = truth[to].inverse() * truth[from] * Sim3::exp(&noise);
+        graph
+            .add_edge(Constraint {
+                from,
+                to,
+                to_from_from: measured,
+                information: info,
+            })
+            .expect("vertices exist");
+    }
+    graph
+}
+
+#[test]
+fn pose_graph_loop_closure_removes_drift_and_keeps_the_first_vertex() {
+    let truth = circle(30);
+    let mut graph = drifting_chain(&truth, &[(29, 0), (15, 0)], None);
+    let before = mean_error(&graph, &truth);
+    let first = graph.pose(0).expect("first");
+    let report = graph.optimize(100).expect("optimise");
+    let after = mean_error(&graph, &truth);
+    eprintln!(
+        "pose graph: mean |log(T_gt⁻¹T)| {before:.4} → {after:.4}, cost {:.3e} → {:.3e} in {} \
+         iterations",
+        report.initial_cost, report.final_cost, report.iterations
+    );
+    assert_eq!(graph.pose(0), Some(first), "the fixed vertex moved");
+    assert!(graph.vertex(0).expect("v0").fixed && !graph.vertex(1).expect("v1").fixed);
+    assert!(after < 0.1 * before, "error {before} → {after}");
+    assert!(report.final_cost < 1e-2 * report.initial_cost, "{report:?}");
+    assert!((report.final_cost - graph.cost()).abs() <= 1e-9 * report.final_cost.max(1.0));
+    // A second run starts at the optimum and cannot improve it materially.
+    let again = graph.optimize(100).expect("optimise");
+    assert!(again.final_cost >= 0.99 * report.final_cost && again.final_cost <= report.final_cost);
+}
+
+#[test]
+fn pose_graph_huber_kernel_limits_a_false_loop_closure() {
+    // A wrong loop edge (between keyframes 10 and 25 claiming they coincide) with the same
+    // confidence as the others: least squares bends the whole loop towards it, the Huber
+    // kernel of LSD-SLAM's edges keeps the damage smaller.
+    let truth = circle(30);
+    let wrong = |graph: &mut PoseGraph| {
+        let info = Matrix7::identity() / (0.003f64 * 0.003);
+        graph
+            .add_edge(Constraint {
+                from: 25,
+                to: 10,
+                to_from_from: Sim3::identity(),
+                information: info,
+            })
+            .expect("vertices");
+    };
+    let mut plain = drifting_chain(&truth, &[(29, 0)], None);
+    wrong(&mut plain);
+    plain.optimize(100).expect("optimise");
+    // Huber width: √(rᵀΩr) of a correct edge is ≈ √7 ≈ 2.6; 10 keeps them all quadratic.
+    let mut robust = drifting_chain(&truth, &[(29, 0)], Some(10.0));
+    wrong(&mut robust);
+    robust.optimize(100).expect("optimise");
+    let (e_plain, e_robust) = (mean_error(&plain, &truth), mean_error(&robust, &truth));
+    eprintln!("false loop: least squares {e_plain:.4}, Huber {e_robust:.4}");
+    assert!(
+        e_robust < 0.5 * e_plain,
+        "Huber {e_robust} vs plain {e_plain}"
+    );
+}
+
+#[test]
+fn pose_graph_rejects_edges_to_unknown_vertices() {
+    let mut graph = PoseGraph::new(None);
+    graph.add_vertex(3, Sim3::identity());
+    let c = Constraint {
+        from: 3,
+        to: 4,
+        to_from_from: Sim3::identity(),
+        information: Matrix7::identity(),
+    };
+    assert!(graph.add_edge(c.clone()).is_err());
+    graph.add_vertex(4, Sim3::identity());
+    assert!(graph.add_edge(c).is_ok());
+    let report = graph.optimize(10).expect("optimise");
+    assert_eq!(report.final_cost, 0.0);
+}
