@@ -13,6 +13,8 @@ use super::gpu_info::{adapter_json, open_context};
 pub enum BenchCommand {
     /// GPU pyramid/gradient kernel vs its CPU reference.
     Pyramid(PyramidArgs),
+    /// SLAM pipeline wall time per frame (unpaced) and the ATE spread over runs.
+    Slam(super::bench_slam::SlamArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -37,6 +39,7 @@ pub struct PyramidArgs {
 pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Pyramid(args) => pyramid(&args),
+        BenchCommand::Slam(args) => super::bench_slam::slam(&args),
     }
 }
 

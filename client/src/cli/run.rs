@@ -52,47 +52,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.deterministic {
         config.pipeline.deterministic = true;
     }
-    let prior: Option<Box<dyn DepthPrior>> = match &args.model {
-        Some(model) => {
-            let model_config = args
-                .model_config
-                .as_deref()
-                .map(ModelConfig::from_file)
-                .transpose()?;
-            Some(Box::new(
-                OnnxDepthPrior::load(model, model_config)
-                    .with_context(|| format!("loading {}", model.display()))?,
-            ))
-        }
-        None => None,
-    };
+    let prior = load_prior(args.model.as_deref(), args.model_config.as_deref())?;
     let seq = TumSequence::open(&args.dataset, None)
         .with_context(|| format!("opening {}", args.dataset.display()))?;
     let n = args.frames.unwrap_or(seq.len()).min(seq.len());
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
 
-    let mut pipeline = Pipeline::new(config, seq.camera, prior)?;
-    let progress = (!args.quiet).then(|| progress_bar(n as u64));
-    let t0 = Instant::now();
-    let mut load_s = 0.0;
-    for i in 0..n {
-        let tl = Instant::now();
-        let rgb = seq.load_rgb(i)?;
-        load_s += tl.elapsed().as_secs_f64();
-        pipeline.push(FrameInput {
-            timestamp: seq.frames[i].timestamp,
-            rgb,
-        })?;
-        if let Some(bar) = &progress {
-            bar.inc(1);
-        }
-    }
-    pipeline.finish()?;
-    let wall_s = t0.elapsed().as_secs_f64();
-    if let Some(bar) = progress {
-        bar.finish_and_clear();
-    }
+    let outcome = run_sequence(&seq, n, config, prior, !args.quiet)?;
+    let (pipeline, wall_s, load_s) = (outcome.pipeline, outcome.wall_s, outcome.load_s);
 
     write_trajectory(&args.out.join("trajectory.txt"), &pipeline.trajectory())?;
     write_trajectory(
@@ -121,9 +89,67 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A finished run of the pipeline over a sequence.
+#[derive(Debug)]
+pub struct RunOutcome {
+    pub pipeline: Pipeline,
+    /// Wall time of the whole run, image loading included (seconds).
+    pub wall_s: f64,
+    /// Of which loading and decoding images (seconds).
+    pub load_s: f64,
+}
+
+/// Pushes the first `n` frames of `seq` through a new pipeline, unpaced, then finishes it
+/// (final pose-graph optimisation).
+pub fn run_sequence(
+    seq: &TumSequence,
+    n: usize,
+    config: Config,
+    prior: Option<Box<dyn DepthPrior>>,
+    progress: bool,
+) -> anyhow::Result<RunOutcome> {
+    let mut pipeline = Pipeline::new(config, seq.camera, prior)?;
+    let bar = progress.then(|| progress_bar(n as u64));
+    let t0 = Instant::now();
+    let mut load_s = 0.0;
+    for (i, frame) in seq.frames.iter().enumerate().take(n) {
+        let tl = Instant::now();
+        let rgb = seq.load_rgb(i)?;
+        load_s += tl.elapsed().as_secs_f64();
+        pipeline.push(FrameInput {
+            timestamp: frame.timestamp,
+            rgb,
+        })?;
+        if let Some(bar) = &bar {
+            bar.inc(1);
+        }
+    }
+    pipeline.finish()?;
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    Ok(RunOutcome {
+        pipeline,
+        wall_s: t0.elapsed().as_secs_f64(),
+        load_s,
+    })
+}
+
+/// Loads the depth prior of `--model` / `--model-config`, if given.
+pub fn load_prior(
+    model: Option<&Path>,
+    model_config: Option<&Path>,
+) -> anyhow::Result<Option<Box<dyn DepthPrior>>> {
+    let Some(model) = model else { return Ok(None) };
+    let model_config = model_config.map(ModelConfig::from_file).transpose()?;
+    let prior = OnnxDepthPrior::load(model, model_config)
+        .with_context(|| format!("loading {}", model.display()))?;
+    Ok(Some(Box::new(prior)))
+}
+
 /// TUM trajectory file of Sim(3) poses: the scale is dropped from the rotation (it lives in the
 /// map, not in the camera), positions keep the map's scale.
-fn write_trajectory(path: &Path, poses: &[(f64, Sim3)]) -> anyhow::Result<()> {
+pub fn write_trajectory(path: &Path, poses: &[(f64, Sim3)]) -> anyhow::Result<()> {
     let stamped: Vec<StampedPose> = poses
         .iter()
         .map(|(t, pose)| StampedPose {

@@ -72,6 +72,8 @@ pub struct DepthFilter {
     pub(super) max_grad: ImageF32,
     pub(super) pixels: Vec<Pixel>,
     pub(super) frames_observed: usize,
+    /// Reused buffers of [`Self::regularize`] (no per-frame allocation).
+    scratch: regularize::Planes,
 }
 
 impl DepthFilter {
@@ -95,6 +97,7 @@ impl DepthFilter {
             max_grad,
             pixels: vec![Pixel::default(); w * h],
             frames_observed: 0,
+            scratch: regularize::Planes::default(),
         })
     }
 
@@ -265,15 +268,15 @@ impl DepthFilter {
     pub fn regularize(&mut self) {
         let (w, h) = (self.width(), self.height());
         let threads = self.config.worker_threads();
-        regularize::fill_holes(
+        regularize::regularize(
             &mut self.pixels,
             &self.max_grad,
             w,
             h,
             &self.config,
             threads,
+            &mut self.scratch,
         );
-        regularize::smooth(&mut self.pixels, w, h, &self.config, false, threads);
     }
 
     /// Carries this map to `new_keyframe`, whose pose relative to this keyframe is
@@ -295,15 +298,15 @@ impl DepthFilter {
         let (w, h) = (next.width(), next.height());
         let threads = next.config.worker_threads();
         regularize::smooth(&mut next.pixels, w, h, &next.config, true, threads);
-        regularize::fill_holes(
+        regularize::regularize(
             &mut next.pixels,
             &next.max_grad,
             w,
             h,
             &next.config,
             threads,
+            &mut next.scratch,
         );
-        regularize::smooth(&mut next.pixels, w, h, &next.config, false, threads);
         Ok(next)
     }
 
@@ -361,6 +364,22 @@ impl DepthFilter {
             height: self.height(),
             pixels,
         }
+    }
+
+    /// [`DepthMap::mean_idepth`] of [`Self::depth_map`] (same value, same summation order)
+    /// without building the map: the keyframe criterion needs it for every tracked frame.
+    pub fn mean_idepth(&self) -> Option<f64> {
+        let (sum, n) = self
+            .pixels
+            .iter()
+            .filter_map(|p| p.estimate)
+            .filter(|e| {
+                e.idepth_smoothed > 0.0 && e.idepth_smoothed.is_finite() && e.var_smoothed > 0.0
+            })
+            .fold((0.0f64, 0usize), |(s, n), e| {
+                (s + f64::from(e.idepth_smoothed), n + 1)
+            });
+        (n > 0).then(|| sum / n as f64)
     }
 
     /// Raw (unsmoothed) estimate at (x, y): `(idepth, var)`. For diagnostics and tests.
@@ -549,25 +568,23 @@ impl ObserveContext<'_> {
     }
 }
 
-/// 3×3 maximum filter (clamped at the borders).
+/// 3×3 maximum filter (clamped at the borders), separably: rows, then columns.
 fn max3x3(img: &ImageF32) -> ImageF32 {
     let (w, h) = (img.width, img.height);
     let mut rows = ImageF32::filled(w, h, 0.0);
-    for y in 0..h {
-        for x in 0..w {
-            let a = img.at(x.saturating_sub(1), y);
-            let b = img.at(x, y);
-            let c = img.at((x + 1).min(w - 1), y);
-            *rows.at_mut(x, y) = a.max(b).max(c);
+    for (src, dst) in img.data.chunks_exact(w).zip(rows.data.chunks_exact_mut(w)) {
+        for (x, d) in dst.iter_mut().enumerate() {
+            let a = src[x.saturating_sub(1)];
+            let c = src[(x + 1).min(w - 1)];
+            *d = a.max(src[x]).max(c);
         }
     }
     let mut out = ImageF32::filled(w, h, 0.0);
-    for y in 0..h {
-        for x in 0..w {
-            let a = rows.at(x, y.saturating_sub(1));
-            let b = rows.at(x, y);
-            let c = rows.at(x, (y + 1).min(h - 1));
-            *out.at_mut(x, y) = a.max(b).max(c);
+    for (y, dst) in out.data.chunks_exact_mut(w).enumerate() {
+        let row = |y: usize| &rows.data[y * w..(y + 1) * w];
+        let (a, b, c) = (row(y.saturating_sub(1)), row(y), row((y + 1).min(h - 1)));
+        for (x, d) in dst.iter_mut().enumerate() {
+            *d = a[x].max(b[x]).max(c[x]);
         }
     }
     out

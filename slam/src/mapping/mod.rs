@@ -12,6 +12,8 @@
 //! factor to the new keyframe's Sim(3) pose.
 
 mod bands;
+#[cfg(test)]
+mod bench_tests;
 pub mod config;
 pub mod depth_map;
 pub mod filter;

@@ -398,13 +398,10 @@ impl<'a> StereoPair<'a> {
         let step = inc.norm();
         // Steps i with far + i·inc not past `close` (LSD's loop condition), at least one.
         let steps = (((close - far).norm() / step) + 1e-4).floor() as usize + 1;
-        let at = |k: f32| {
-            let p = far + inc * k;
-            interp(img, p.x, p.y)
-        };
+        let at = |k: f32| interp(img, far.x + inc.x * k, far.y + inc.y * k);
         // Sliding window of the 5 frame samples around the current position.
         let mut window = [at(-2.0), at(-1.0), at(0.0), at(1.0), 0.0];
-        let mut prev_res: Option<[f32; 5]> = None;
+        let mut prev_res = [0.0f32; 5];
         let mut prev_err = f32::NAN;
         let mut best = BestMatch::default();
         let mut second_err = f32::INFINITY;
@@ -413,15 +410,26 @@ impl<'a> StereoPair<'a> {
         for i in 0..steps {
             window[4] = at(i as f32 + 2.0);
             let res: [f32; 5] = std::array::from_fn(|k| window[k] - reference[k]);
-            let err: f32 = res.iter().map(|e| e * e).sum();
-            let cross = prev_res.map(|p| p.iter().zip(&res).map(|(a, b)| a * b).sum::<f32>());
+            // Same order as `iter().sum()`: left to right from −0.0, and −0.0 + a = a.
+            let err = res[0] * res[0]
+                + res[1] * res[1]
+                + res[2] * res[2]
+                + res[3] * res[3]
+                + res[4] * res[4];
+            let cross = (i > 0).then(|| {
+                prev_res[0] * res[0]
+                    + prev_res[1] * res[1]
+                    + prev_res[2] * res[2]
+                    + prev_res[3] * res[3]
+                    + prev_res[4] * res[4]
+            });
             if err < best.err {
                 second_err = best.err;
                 second_index = best.index;
                 best = BestMatch {
                     index: i,
                     err,
-                    err_pre: prev_res.map(|_| prev_err),
+                    err_pre: (i > 0).then_some(prev_err),
                     cross_pre: cross,
                     err_post: None,
                     cross_post: None,
@@ -439,8 +447,8 @@ impl<'a> StereoPair<'a> {
                 }
             }
             prev_err = err;
-            prev_res = Some(res);
-            window.rotate_left(1);
+            prev_res = res;
+            window = [window[1], window[2], window[3], window[4], 0.0];
         }
         if best.err > 4.0 * cfg.max_error_stereo {
             return Err(StereoFailure::NotFound);

@@ -2,8 +2,6 @@
 //! point cloud per pyramid level (LSD-SLAM's `TrackingReference::makePointCloud` over the depth
 //! pyramid of `Frame::buildIDepthAndIDepthVar`).
 
-use nalgebra::Vector2;
-
 use crate::frame::{Frame, PYRAMID_LEVELS};
 use crate::mapping::{DepthMap, InverseDepth};
 use crate::{Error, Result};
@@ -72,6 +70,20 @@ impl TrackingReference {
     /// the one-pixel image border is skipped (its gradients are one-sided). Fails with
     /// [`Error::Shape`] when the map and the keyframe differ in size.
     pub fn new(keyframe: &Frame, depth: &DepthMap) -> Result<Self> {
+        let mut reference = Self {
+            keyframe_id: keyframe.id,
+            levels: Vec::new(),
+            sizes: Vec::new(),
+        };
+        reference.rebuild(keyframe, depth)?;
+        Ok(reference)
+    }
+
+    /// [`Self::new`] in place: rebuilds the point clouds (of `keyframe`, possibly another one)
+    /// reusing this reference's buffers. The pipeline refreshes the current keyframe's
+    /// reference after every mapped frame (LSD-SLAM re-imports the keyframe whenever its depth
+    /// changed), so avoiding ~4 MB of fresh allocations per frame matters.
+    pub fn rebuild(&mut self, keyframe: &Frame, depth: &DepthMap) -> Result<()> {
         let (w0, h0) = (keyframe.level(0).width(), keyframe.level(0).height());
         if (depth.width, depth.height) != (w0, h0) || depth.pixels.len() != w0 * h0 {
             return Err(Error::Shape(format!(
@@ -79,55 +91,41 @@ impl TrackingReference {
                 depth.width, depth.height
             )));
         }
-        let mut current: Vec<IdepthVar> = depth
-            .pixels
-            .iter()
-            .map(|p| match *p {
-                InverseDepth::Estimate { idepth, var }
-                    if idepth > 0.0 && var > 0.0 && idepth.is_finite() && var.is_finite() =>
-                {
-                    IdepthVar { idepth, var }
-                }
-                _ => NONE,
-            })
-            .collect();
+        let full = |i: usize| match depth.pixels[i] {
+            InverseDepth::Estimate { idepth, var }
+                if idepth > 0.0 && var > 0.0 && idepth.is_finite() && var.is_finite() =>
+            {
+                IdepthVar { idepth, var }
+            }
+            _ => NONE,
+        };
         let levels_available = keyframe.pyramid.levels.len().min(PYRAMID_LEVELS);
-        let mut levels = Vec::with_capacity(levels_available);
-        let mut sizes = Vec::with_capacity(levels_available);
-        for level in 0..levels_available {
+        self.keyframe_id = keyframe.id;
+        self.levels
+            .resize_with(levels_available, ReferenceLevel::default);
+        self.sizes.clear();
+        // Coarser depth levels (level 0 is read from `depth` directly).
+        let (mut current, mut coarser) = (Vec::new(), Vec::new());
+        for (level, out) in self.levels.iter_mut().enumerate() {
             let image_level = keyframe.level(level);
             let (w, h) = (image_level.width(), image_level.height());
-            if level > 0 {
-                let (pw, ph) = sizes[level - 1];
-                current = downsample_idepth(&current, pw, ph, w, h);
-            }
             let camera = keyframe.camera_at(level);
-            let mut out = ReferenceLevel::default();
-            for y in 1..h.saturating_sub(1) {
-                for x in 1..w.saturating_sub(1) {
-                    let idx = y * w + x;
-                    let d = current[idx];
-                    if d.var <= 0.0 {
-                        continue;
-                    }
-                    let p = camera
-                        .unproject(&Vector2::new(x as f64, y as f64), 1.0 / f64::from(d.idepth));
-                    out.x.push(p.x as f32);
-                    out.y.push(p.y as f32);
-                    out.z.push(p.z as f32);
-                    out.intensity.push(image_level.image.data[idx]);
-                    out.idepth_var.push(d.var);
-                    out.pixel.push(idx as u32);
+            let image = &image_level.image.data;
+            if level == 0 {
+                level_points(full, image, &camera, w, h, out);
+            } else {
+                let (pw, _) = self.sizes[level - 1];
+                if level == 1 {
+                    downsample_idepth(full, pw, w, h, &mut coarser);
+                } else {
+                    downsample_idepth(|i| current[i], pw, w, h, &mut coarser);
                 }
+                std::mem::swap(&mut current, &mut coarser);
+                level_points(|i| current[i], image, &camera, w, h, out);
             }
-            levels.push(out);
-            sizes.push((w, h));
+            self.sizes.push((w, h));
         }
-        Ok(Self {
-            keyframe_id: keyframe.id,
-            levels,
-            sizes,
-        })
+        Ok(())
     }
 
     /// The points of pyramid level `level` (empty beyond the keyframe's pyramid).
@@ -161,18 +159,26 @@ impl TrackingReference {
 /// from the same stereo observations and are far from independent, so averaging them must
 /// not make the coarse point look n times more certain.
 fn downsample_idepth(
-    src: &[IdepthVar],
+    src: impl Fn(usize) -> IdepthVar,
     src_w: usize,
-    _src_h: usize,
     w: usize,
     h: usize,
-) -> Vec<IdepthVar> {
-    let mut out = vec![NONE; w * h];
-    for y in 0..h {
-        for x in 0..w {
+    out: &mut Vec<IdepthVar>,
+) {
+    out.clear();
+    out.resize(w * h, NONE);
+    for (y, out_row) in out.chunks_exact_mut(w.max(1)).enumerate().take(h) {
+        let (top, bottom) = (2 * y * src_w, (2 * y + 1) * src_w);
+        for (x, dest) in out_row.iter_mut().enumerate() {
             let (mut sum_d, mut sum_iv, mut n) = (0.0f32, 0.0f32, 0u32);
-            for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                let c = src[(2 * y + dy) * src_w + 2 * x + dx];
+            // Same order as LSD: (0,0), (1,0), (0,1), (1,1).
+            let children = [
+                src(top + 2 * x),
+                src(top + 2 * x + 1),
+                src(bottom + 2 * x),
+                src(bottom + 2 * x + 1),
+            ];
+            for c in children {
                 if c.var > 0.0 {
                     let iv = 1.0 / c.var;
                     sum_d += c.idepth * iv;
@@ -181,12 +187,55 @@ fn downsample_idepth(
                 }
             }
             if n > 0 && sum_iv.is_finite() && sum_iv > 0.0 {
-                out[y * w + x] = IdepthVar {
+                *dest = IdepthVar {
                     idepth: sum_d / sum_iv,
                     var: n as f32 / sum_iv,
                 };
             }
         }
     }
-    out
+}
+
+/// The points of one level: every pixel off the one-pixel border with an estimate, unprojected
+/// with the level's camera (the arithmetic of [`crate::geometry::PinholeCamera::unproject`],
+/// with the per-column and per-row factors computed once).
+fn level_points(
+    depth: impl Fn(usize) -> IdepthVar,
+    image: &[f32],
+    camera: &crate::geometry::PinholeCamera,
+    w: usize,
+    h: usize,
+    out: &mut ReferenceLevel,
+) {
+    for v in [
+        &mut out.x,
+        &mut out.y,
+        &mut out.z,
+        &mut out.intensity,
+        &mut out.idepth_var,
+    ] {
+        v.clear();
+    }
+    out.pixel.clear();
+    if w < 3 || h < 3 {
+        return;
+    }
+    let col: Vec<f64> = (0..w).map(|x| (x as f64 - camera.cx) / camera.fx).collect();
+    for y in 1..h - 1 {
+        let row_factor = (y as f64 - camera.cy) / camera.fy;
+        for (x, col_factor) in col.iter().enumerate().take(w - 1).skip(1) {
+            let idx = y * w + x;
+            let d = depth(idx);
+            if d.var <= 0.0 {
+                continue;
+            }
+            let z = 1.0 / f64::from(d.idepth);
+            out.x.push((col_factor * z) as f32);
+            out.y.push((row_factor * z) as f32);
+            out.z.push(z as f32);
+            out.intensity.push(image[idx]);
+            out.idepth_var.push(d.var);
+            out.pixel.push(idx as u32);
+        }
+    }
 }

@@ -1,0 +1,139 @@
+//! `relfusion bench slam`: wall time of the SLAM pipeline per frame, unpaced, over a whole
+//! sequence, with the tracking and mapping shares; and the spread of the threaded (default)
+//! mode's ATE over several runs.
+//!
+//! Frames are decoded into memory first, so the figure is the pipeline's own (image decoding
+//! is reported separately: a live stream pays it, but on the client's or ingest side).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context as _;
+use relfusion_slam::dataset::TumSequence;
+use relfusion_slam::dataset::trajectory::StampedPose;
+use relfusion_slam::eval::{AlignMode, ate};
+use relfusion_slam::geometry::Sim3;
+use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
+use serde_json::json;
+
+use super::run::load_prior;
+
+#[derive(Debug, clap::Args)]
+pub struct SlamArgs {
+    /// Sequence folder in TUM layout.
+    pub dataset: PathBuf,
+    /// Pipeline config (TOML/JSON).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// ONNX depth model (first-keyframe initialisation).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Runs of the sequence (the spread of ATE and time is reported over them).
+    #[arg(long, default_value_t = 1)]
+    pub runs: usize,
+    /// Run the back end in step with the frames instead of on its own thread.
+    #[arg(long)]
+    pub deterministic: bool,
+    /// Use only the first N frames.
+    #[arg(long)]
+    pub frames: Option<usize>,
+}
+
+pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(args.runs > 0, "--runs must be positive");
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    config.pipeline.deterministic |= args.deterministic;
+    let seq = TumSequence::open(&args.dataset, None)
+        .with_context(|| format!("opening {}", args.dataset.display()))?;
+    let n = args.frames.unwrap_or(seq.len()).min(seq.len());
+    let t_decode = Instant::now();
+    let frames: Vec<FrameInput> = (0..n)
+        .map(|i| {
+            Ok(FrameInput {
+                timestamp: seq.frames[i].timestamp,
+                rgb: seq.load_rgb(i)?,
+            })
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let decode_ms = 1e3 * t_decode.elapsed().as_secs_f64() / n.max(1) as f64;
+    let gt: Vec<StampedPose> = seq
+        .frames
+        .iter()
+        .filter_map(|f| {
+            f.world_from_camera.map(|p| StampedPose {
+                timestamp: f.timestamp,
+                world_from_camera: p,
+            })
+        })
+        .collect();
+
+    let mut runs = Vec::new();
+    for _ in 0..args.runs {
+        let prior = load_prior(args.model.as_deref(), None)?;
+        let mut pipeline = Pipeline::new(config.clone(), seq.camera, prior)?;
+        let t0 = Instant::now();
+        let mut per_frame = Vec::with_capacity(n);
+        for frame in &frames {
+            let tf = Instant::now();
+            pipeline.push(frame.clone())?;
+            per_frame.push(1e3 * tf.elapsed().as_secs_f64());
+        }
+        let frames_s = t0.elapsed().as_secs_f64();
+        pipeline.finish()?;
+        let wall_s = t0.elapsed().as_secs_f64();
+        let stats = pipeline.stats().clone();
+        per_frame.sort_by(f64::total_cmp);
+        let ate_of = |poses: &[(f64, Sim3)]| -> Option<f64> {
+            let est: Vec<StampedPose> = poses
+                .iter()
+                .map(|(t, p)| StampedPose {
+                    timestamp: *t,
+                    world_from_camera: p.to_se3_and_scale().0,
+                })
+                .collect();
+            ate(&gt, &est, AlignMode::Sim3).ok().map(|r| r.rmse)
+        };
+        runs.push(json!({
+            "ms_per_frame": 1e3 * frames_s / n as f64,
+            "ms_per_frame_p50": per_frame[n / 2],
+            "ms_per_frame_p99": per_frame[(n * 99 / 100).min(n - 1)],
+            "final_optimisation_s": wall_s - frames_s,
+            "tracking_ms_per_frame": 1e3 * stats.tracking_s / n as f64,
+            "mapping_ms_per_frame": 1e3 * stats.mapping_s / n as f64,
+            "keyframes": stats.keyframes,
+            "frames_lost": stats.frames_lost,
+            "ate_trajectory_m": ate_of(&pipeline.trajectory()),
+            "ate_keyframes_m": ate_of(&pipeline.keyframe_trajectory()),
+        }));
+    }
+    let spread = |key: &str| {
+        let v: Vec<f64> = runs.iter().filter_map(|r| r[key].as_f64()).collect();
+        let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+        let min = v.iter().copied().fold(f64::INFINITY, f64::min);
+        let max = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        json!({ "mean": mean, "min": min, "max": max })
+    };
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&json!({
+            "bench": "slam",
+            "dataset": args.dataset,
+            "frames": n,
+            "width": seq.camera.width,
+            "height": seq.camera.height,
+            "mode": if config.pipeline.deterministic { "deterministic" } else { "threaded" },
+            "build": if cfg!(debug_assertions) { "debug" } else { "release" },
+            "image_decode_ms_per_frame": decode_ms,
+            "runs": runs,
+            "spread": {
+                "ms_per_frame": spread("ms_per_frame"),
+                "ate_trajectory_m": spread("ate_trajectory_m"),
+                "ate_keyframes_m": spread("ate_keyframes_m"),
+            },
+        }))?
+    );
+    Ok(())
+}

@@ -1,0 +1,177 @@
+//! Pipeline tests on a synthetic sequence with exact ground truth: they fail when tracking,
+//! mapping or the pose graph regress (ATE bound), when the deterministic mode stops being
+//! deterministic, or when bad input is not refused cleanly.
+
+use std::sync::OnceLock;
+
+use super::*;
+use crate::dataset::synth::{Scene, SynthConfig, path_length, render_frame};
+use crate::dataset::trajectory::StampedPose;
+use crate::eval::{AlignMode, ate};
+
+/// 200 frames (6.7 s) of the default orbit at 320×240: translation and rotation together.
+fn sequence() -> &'static (PinholeCamera, Vec<FrameInput>, Vec<StampedPose>) {
+    static SEQ: OnceLock<(PinholeCamera, Vec<FrameInput>, Vec<StampedPose>)> = OnceLock::new();
+    SEQ.get_or_init(|| {
+        let config = SynthConfig {
+            frames: 200,
+            seed: 2,
+            width: 320,
+            height: 240,
+            ..Default::default()
+        };
+        let camera = config.camera().expect("camera");
+        let scene = Scene::generate(config.seed);
+        let poses = config.poses();
+        let mut frames = Vec::new();
+        let mut gt = Vec::new();
+        for (i, pose) in poses.iter().enumerate() {
+            let timestamp = i as f64 / config.fps;
+            let (rgb, _) = render_frame(&scene, &camera, pose);
+            frames.push(FrameInput { timestamp, rgb });
+            gt.push(StampedPose {
+                timestamp,
+                world_from_camera: *pose,
+            });
+        }
+        (camera, frames, gt)
+    })
+}
+
+fn run(config: Config) -> (Pipeline, Vec<Event>) {
+    let (camera, frames, _) = sequence();
+    let mut pipeline = Pipeline::new(config, *camera, None).expect("pipeline");
+    let mut events = Vec::new();
+    for frame in frames {
+        events.extend(pipeline.push(frame.clone()).expect("push"));
+    }
+    pipeline.finish().expect("finish");
+    (pipeline, events)
+}
+
+fn stamped(poses: &[(f64, Sim3)]) -> Vec<StampedPose> {
+    poses
+        .iter()
+        .map(|(t, p)| StampedPose {
+            timestamp: *t,
+            world_from_camera: p.to_se3_and_scale().0,
+        })
+        .collect()
+}
+
+fn deterministic() -> Config {
+    let mut config = Config::default();
+    config.pipeline.deterministic = true;
+    config.pipeline.init = DepthInit::Random;
+    config
+}
+
+#[test]
+fn pipeline_tracks_every_synthetic_frame_within_the_ate_bound() {
+    let (_, frames, gt) = sequence();
+    let (pipeline, events) = run(deterministic());
+    let path = path_length(&gt.iter().map(|p| p.world_from_camera).collect::<Vec<_>>());
+    let poses: Vec<&PoseEvent> = events
+        .iter()
+        .filter_map(|e| {
+            if let Event::Pose(p) = e {
+                Some(p)
+            } else {
+                None
+            }
+        })
+        .collect();
+    assert_eq!(poses.len(), frames.len(), "one pose event per frame");
+    assert!(
+        poses.iter().all(|p| p.state != TrackingState::Lost),
+        "no frame may be lost"
+    );
+    assert!(
+        pipeline.stats().keyframes >= 3,
+        "the orbit needs several keyframes"
+    );
+
+    let traj = ate(gt, &stamped(&pipeline.trajectory()), AlignMode::Sim3).expect("ate");
+    let kfs = ate(
+        gt,
+        &stamped(&pipeline.keyframe_trajectory()),
+        AlignMode::Sim3,
+    )
+    .expect("ate");
+    println!(
+        "synthetic: path {path:.3} m, {} keyframes, ATE frames {:.4} m, keyframes {:.4} m",
+        pipeline.stats().keyframes,
+        traj.rmse,
+        kfs.rmse
+    );
+    assert_eq!(traj.matched, frames.len());
+    // Regression bounds, not the goal: at 320×240 this sequence measures ~2.9% of the path
+    // (issue 3's goal of 0.5% is met at 640×480 on seed 1, 0.40%, but not on every seed yet).
+    assert!(
+        kfs.rmse <= 0.04 * path,
+        "keyframe ATE {} > 4% of {path} m",
+        kfs.rmse
+    );
+    assert!(
+        traj.rmse <= 0.04 * path,
+        "frame ATE {} > 4% of {path} m",
+        traj.rmse
+    );
+    assert!(!pipeline.semidense_points().is_empty());
+}
+
+#[test]
+fn deterministic_mode_gives_the_same_trajectory_twice() {
+    let (a, _) = run(deterministic());
+    let (b, _) = run(deterministic());
+    assert_eq!(a.trajectory(), b.trajectory());
+    assert_eq!(a.keyframe_trajectory(), b.keyframe_trajectory());
+}
+
+#[test]
+fn threaded_back_end_tracks_the_sequence_too() {
+    let (_, frames, gt) = sequence();
+    let mut config = deterministic();
+    config.pipeline.deterministic = false;
+    let (pipeline, _) = run(config);
+    assert_eq!(pipeline.stats().frames_lost, 0);
+    let traj = ate(gt, &stamped(&pipeline.trajectory()), AlignMode::Sim3).expect("ate");
+    assert_eq!(traj.matched, frames.len());
+    let path = path_length(&gt.iter().map(|p| p.world_from_camera).collect::<Vec<_>>());
+    assert!(
+        traj.rmse <= 0.05 * path,
+        "threaded ATE {} > 5% of {path} m",
+        traj.rmse
+    );
+}
+
+#[test]
+fn a_frame_of_the_wrong_size_is_refused_and_nothing_is_lost() {
+    let (camera, frames, _) = sequence();
+    let mut pipeline = Pipeline::new(deterministic(), *camera, None).expect("pipeline");
+    pipeline.push(frames[0].clone()).expect("first frame");
+    let wrong = FrameInput {
+        timestamp: 0.5,
+        rgb: ::image::RgbImage::new(100, 80),
+    };
+    assert!(matches!(pipeline.push(wrong), Err(Error::Shape(_))));
+    let events = pipeline.push(frames[1].clone()).expect("next frame");
+    assert!(
+        events
+            .iter()
+            .any(|e| matches!(e, Event::Pose(p) if p.state == TrackingState::Tracking))
+    );
+    assert_eq!(
+        pipeline.stats().frames,
+        2,
+        "the refused frame is not counted"
+    );
+}
+
+#[test]
+fn invalid_config_is_refused() {
+    let (camera, _, _) = sequence();
+    let mut config = Config::default();
+    config.pipeline.prior_init_var = -1.0;
+    assert!(Pipeline::new(config, *camera, None).is_err());
+}
