@@ -6,6 +6,9 @@ SHELL := /bin/bash
 # Real data (sequences, the PyDNet++ model) lives beside the checkout, never inside it.
 export RELFUSION_DATA ?= $(abspath $(CURDIR)/../shared/data)
 DEMO_OUT ?= out/demo
+# Mesa's device-select Vulkan layer only reorders adapters (relfusion ranks them itself) and
+# prints "XDG_RUNTIME_DIR is invalid" on headless machines: switch it off.
+export NODEVICE_SELECT ?= 1
 
 .PHONY: help setup test demo
 help:

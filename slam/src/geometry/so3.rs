@@ -243,8 +243,11 @@ impl SO3 {
 
 impl Mul for SO3 {
     type Output = SO3;
+    /// Composition. The product is re-normalised: quaternion products do not keep unit norm,
+    /// and poses compounded in a loop (a motion model fed back into itself every frame) would
+    /// otherwise grow a 1e-16 norm error geometrically until the rotation blows up.
     fn mul(self, rhs: SO3) -> SO3 {
-        SO3::from_quaternion(self.q * rhs.q)
+        SO3::from_quaternion(UnitQuaternion::new_normalize((self.q * rhs.q).into_inner()))
     }
 }
 

@@ -191,9 +191,7 @@ impl Pipeline {
             TrackingState::Tracking
         };
         let keyframe_from_frame = result.frame_from_keyframe.inverse();
-        self.velocity = Some(renormalised(
-            &(result.frame_from_keyframe * self.last_frame_from_keyframe.inverse()),
-        ));
+        self.velocity = Some(result.frame_from_keyframe * self.last_frame_from_keyframe.inverse());
         self.last_frame_from_keyframe = result.frame_from_keyframe;
 
         let kf_id = current.id;
@@ -647,15 +645,6 @@ fn track_with_motion_model(
         }
     }
     tracker.track(reference, frame, last_frame_from_keyframe)
-}
-
-/// `pose` with its rotation quaternion re-normalised. Quaternion products do not renormalise,
-/// and the velocity is fed back into itself frame after frame (`v ← T·exp(δ)·v·T⁻¹`, whose
-/// norm error multiplies each time): without this the norm error of 1e-16 grows
-/// geometrically and the poses blow up within ~40 frames (measured on the synthetic room).
-fn renormalised(pose: &SE3) -> SE3 {
-    let q = nalgebra::UnitQuaternion::new_normalize(pose.rotation.quaternion().into_inner());
-    SE3::new(SO3::from_quaternion(q), pose.translation)
 }
 
 /// Scales a relative inverse-depth map so that its mean over positive pixels is 1 (the

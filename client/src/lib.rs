@@ -1,1 +1,0 @@
-//! relfusion client library (being written).
