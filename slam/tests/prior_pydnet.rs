@@ -7,24 +7,19 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use relfusion_slam::dataset::TumSequence;
+use relfusion_slam::dataset::{TumSequence, shared_data_dir};
 use relfusion_slam::dense::align::fit_scale_shift_unconstrained;
 use relfusion_slam::dense::model_config::{Layout, ModelConfig, OutputKind, ResizeMode};
 use relfusion_slam::dense::{DepthPrior, OnnxDepthPrior, Recognition, runtime_library_path};
 use relfusion_slam::image::ImageF32;
 
-fn data_dir() -> PathBuf {
-    std::env::var_os("RELFUSION_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data")))
-}
-
 fn pydnet_path() -> PathBuf {
-    data_dir().join("models/pydnet_pp_matterport/pydnet_pp_matterport_448x640_nchw_fp32.onnx")
+    shared_data_dir()
+        .join("models/pydnet_pp_matterport/pydnet_pp_matterport_448x640_nchw_fp32.onnx")
 }
 
 fn sequence_dir() -> PathBuf {
-    data_dir().join("sequences/tum_fr1_rpy_f0000-0249")
+    shared_data_dir().join("sequences/tum_fr1_rpy_f0000-0249")
 }
 
 /// `true` when the runtime library and `paths` exist; otherwise prints why the test is skipped.

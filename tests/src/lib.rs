@@ -60,11 +60,7 @@ pub fn bin_path(name: &str) -> PathBuf {
 }
 
 /// The shared real data folder: `RELFUSION_DATA`, else `../shared/data` beside the checkout.
-pub fn data_dir() -> PathBuf {
-    std::env::var_os("RELFUSION_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data")))
-}
+pub use relfusion_slam::dataset::shared_data_dir as data_dir;
 
 /// A fresh, empty temporary directory unique to this test process and `tag`.
 pub fn temp_dir(tag: &str) -> PathBuf {

@@ -15,5 +15,27 @@ pub mod tum;
 pub use synth::{Motion, Scene, SynthConfig, SynthSummary, render_frame, render_sequence};
 pub use tum::{TumFrame, TumSequence, preset};
 
+/// The shared real-data folder (sequences, models): `$RELFUSION_DATA`, else `../shared/data`
+/// beside the checkout. Data are never copied into the repository.
+pub fn shared_data_dir() -> std::path::PathBuf {
+    std::env::var_os("RELFUSION_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| {
+            std::path::PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))
+        })
+}
+
+/// For tests on real data: the shared sequence `name` (e.g. `7scenes_redkitchen_f0000-0299`),
+/// or `None`, with the reason printed, when the data folder is absent.
+#[cfg(test)]
+pub(crate) fn shared_sequence(name: &str) -> Option<TumSequence> {
+    let dir = shared_data_dir().join("sequences").join(name);
+    if !dir.is_dir() {
+        eprintln!("skipping: {} not found (set RELFUSION_DATA)", dir.display());
+        return None;
+    }
+    Some(TumSequence::open(&dir, None).expect("shared sequence loads"))
+}
+
 /// TUM depth PNGs store metres × 5000 (TUM RGB-D file formats page).
 pub const DEPTH_SCALE: f64 = 5000.0;

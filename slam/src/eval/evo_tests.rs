@@ -18,12 +18,6 @@ fn fixture_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/evo")
 }
 
-fn data_dir() -> PathBuf {
-    std::env::var_os("RELFUSION_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"))
-}
-
 fn expected() -> Value {
     let path = fixture_dir().join("expected.json");
     let text = std::fs::read_to_string(&path).expect("tests/fixtures/evo/expected.json");
@@ -34,7 +28,7 @@ fn expected() -> Value {
 /// lives in the absent data folder.
 fn load(name: &str, entry: &Value) -> Option<Matched> {
     let gt_path = if let Some(rel) = entry["gt"]["data"].as_str() {
-        let p = data_dir().join(rel);
+        let p = crate::dataset::shared_data_dir().join(rel);
         if !p.is_file() {
             eprintln!(
                 "skipping evo fixture `{name}`: {} not found (set RELFUSION_DATA)",
@@ -151,7 +145,7 @@ fn eval_evo_fixture_ground_truth_is_the_recorded_file() {
         let Some(rel) = entry["gt"]["data"].as_str() else {
             continue;
         };
-        let path = data_dir().join(rel);
+        let path = crate::dataset::shared_data_dir().join(rel);
         let Ok(bytes) = std::fs::read(&path) else {
             eprintln!("skipping `{name}`: {} not found", path.display());
             continue;

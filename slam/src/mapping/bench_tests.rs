@@ -4,12 +4,10 @@
 //! assert); run with
 //! `cargo test -p relfusion-slam mapping_bench -- --ignored --nocapture`.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
 use super::{DepthFilter, DepthMap, InverseDepth, MappingConfig};
-use crate::dataset::TumSequence;
 use crate::frame::Frame;
 use crate::tracking::TrackingReference;
 
@@ -68,17 +66,9 @@ fn mean_ms(v: &[f64]) -> f64 {
 #[test]
 #[ignore = "benchmark: run explicitly with --ignored --nocapture"]
 fn mapping_bench_per_frame_path() {
-    let root = std::env::var_os("RELFUSION_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))
-        });
-    let dir = root.join("sequences").join("7scenes_redkitchen_f0000-0299");
-    if !dir.is_dir() {
-        eprintln!("skipping: {} not found", dir.display());
+    let Some(seq) = crate::dataset::shared_sequence("7scenes_redkitchen_f0000-0299") else {
         return;
-    }
-    let seq = TumSequence::open(&dir, None).expect("sequence");
+    };
     let n = 41;
     let frames: Vec<Arc<Frame>> = (0..n)
         .map(|i| {

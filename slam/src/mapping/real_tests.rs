@@ -3,7 +3,6 @@
 //! are not registered (a few pixels apart) and the poses are the depth camera's, so the
 //! reference is only good to a few percent at texture edges.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -14,17 +13,7 @@ use crate::frame::Frame;
 use crate::image::ImageF32;
 
 fn redkitchen() -> Option<TumSequence> {
-    let root = std::env::var_os("RELFUSION_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))
-        });
-    let dir = root.join("sequences").join("7scenes_redkitchen_f0000-0299");
-    if !dir.is_dir() {
-        eprintln!("skipping: {} not found (set RELFUSION_DATA)", dir.display());
-        return None;
-    }
-    Some(TumSequence::open(&dir, None).expect("sequence"))
+    crate::dataset::shared_sequence("7scenes_redkitchen_f0000-0299")
 }
 
 #[test]

@@ -1,8 +1,6 @@
 //! Tracking on the real 7-Scenes sequence (shared data, skipped when absent), with the
 //! sensor depth of the keyframe as its "semi-dense map".
 
-use std::path::PathBuf;
-
 use super::*;
 use crate::dataset::TumSequence;
 use crate::frame::Frame;
@@ -11,17 +9,7 @@ use crate::image::ImageF32;
 use crate::mapping::{DepthMap, InverseDepth};
 
 fn sequence(name: &str) -> Option<TumSequence> {
-    let root = std::env::var_os("RELFUSION_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))
-        });
-    let dir = root.join("sequences").join(name);
-    if !dir.is_dir() {
-        eprintln!("skipping: {} not found (set RELFUSION_DATA)", dir.display());
-        return None;
-    }
-    Some(TumSequence::open(&dir, None).expect("sequence"))
+    crate::dataset::shared_sequence(name)
 }
 
 fn frame(seq: &TumSequence, i: usize) -> Frame {

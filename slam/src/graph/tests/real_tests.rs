@@ -4,7 +4,6 @@
 //! are KinectFusion's, so the figures are bounded by that reference (≈ 1 % of depth), not by the
 //! alignment.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use crate::dataset::TumSequence;
@@ -14,17 +13,7 @@ use crate::graph::{BackendConfig, Keyframe, Sim3Tracker, reciprocal_test};
 use crate::mapping::{DepthMap, InverseDepth};
 
 fn redkitchen() -> Option<TumSequence> {
-    let root = std::env::var_os("RELFUSION_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))
-        });
-    let dir = root.join("sequences").join("7scenes_redkitchen_f0000-0299");
-    if !dir.is_dir() {
-        eprintln!("skipping: {} not found (set RELFUSION_DATA)", dir.display());
-        return None;
-    }
-    Some(TumSequence::open(&dir, None).expect("sequence"))
+    crate::dataset::shared_sequence("7scenes_redkitchen_f0000-0299")
 }
 
 /// Keyframe `i` with the sensor's inverse depth × 1/`scale` at pixels with gradient > 6.
