@@ -37,5 +37,14 @@ pub(crate) fn shared_sequence(name: &str) -> Option<TumSequence> {
     Some(TumSequence::open(&dir, None).expect("shared sequence loads"))
 }
 
+/// For tests on real data: frame `i` of `seq` as a [`crate::frame::Frame`] (id `i`). Only for
+/// sequences whose camera has no distortion (7-Scenes); distorted ones go through the pipeline.
+#[cfg(test)]
+pub(crate) fn shared_frame(seq: &TumSequence, i: usize) -> crate::frame::Frame {
+    let gray = seq.load_gray(i).expect("image");
+    crate::frame::Frame::new(i as u64, seq.frames[i].timestamp, seq.camera, &gray, None)
+        .expect("frame")
+}
+
 /// TUM depth PNGs store metres × 5000 (TUM RGB-D file formats page).
 pub const DEPTH_SCALE: f64 = 5000.0;

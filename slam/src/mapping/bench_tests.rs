@@ -71,13 +71,7 @@ fn mapping_bench_per_frame_path() {
     };
     let n = 41;
     let frames: Vec<Arc<Frame>> = (0..n)
-        .map(|i| {
-            let gray = seq.load_gray(i).expect("image");
-            Arc::new(
-                Frame::new(i as u64, seq.frames[i].timestamp, seq.camera, &gray, None)
-                    .expect("frame"),
-            )
-        })
+        .map(|i| Arc::new(crate::dataset::shared_frame(&seq, i)))
         .collect();
     let pose = |i: usize| seq.frames[i].world_from_camera.expect("ground truth");
     let threads: usize = std::env::var("RELFUSION_BENCH_THREADS")

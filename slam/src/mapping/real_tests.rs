@@ -20,13 +20,7 @@ fn redkitchen() -> Option<TumSequence> {
 fn mapping_real_redkitchen_converges_with_true_poses() {
     let Some(seq) = redkitchen() else { return };
     let frames: Vec<Arc<Frame>> = (0..=30)
-        .map(|i| {
-            let gray = seq.load_gray(i).expect("image");
-            Arc::new(
-                Frame::new(i as u64, seq.frames[i].timestamp, seq.camera, &gray, None)
-                    .expect("frame"),
-            )
-        })
+        .map(|i| Arc::new(crate::dataset::shared_frame(&seq, i)))
         .collect();
     let pose = |i: usize| seq.frames[i].world_from_camera.expect("ground truth");
     let depth = seq.load_depth(0).expect("depth").expect("depth image");

@@ -13,8 +13,7 @@ fn sequence(name: &str) -> Option<TumSequence> {
 }
 
 fn frame(seq: &TumSequence, i: usize) -> Frame {
-    let gray = seq.load_gray(i).expect("image");
-    Frame::new(i as u64, seq.frames[i].timestamp, seq.camera, &gray, None).expect("frame")
+    crate::dataset::shared_frame(seq, i)
 }
 
 /// Sensor depth at pixels with gradient above `min_grad` (LSD-SLAM `minUseGrad` = 5).

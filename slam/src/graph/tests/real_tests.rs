@@ -7,7 +7,6 @@
 use std::sync::Arc;
 
 use crate::dataset::TumSequence;
-use crate::frame::Frame;
 use crate::geometry::Sim3;
 use crate::graph::{BackendConfig, Keyframe, Sim3Tracker, reciprocal_test};
 use crate::mapping::{DepthMap, InverseDepth};
@@ -18,9 +17,7 @@ fn redkitchen() -> Option<TumSequence> {
 
 /// Keyframe `i` with the sensor's inverse depth × 1/`scale` at pixels with gradient > 6.
 fn keyframe(seq: &TumSequence, i: usize, scale: f64) -> (Keyframe, Sim3) {
-    let gray = seq.load_gray(i).expect("image");
-    let frame =
-        Frame::new(i as u64, seq.frames[i].timestamp, seq.camera, &gray, None).expect("frame");
+    let frame = crate::dataset::shared_frame(seq, i);
     let depth = seq.load_depth(i).expect("depth").expect("depth image");
     let grad = &frame.level(0).grad_mag;
     let mut map = DepthMap::unknown(depth.width, depth.height);
