@@ -4,6 +4,7 @@
 //! Zenoh arrive with the service issue. The shape is already the final one: a typed [`Config`],
 //! `fn app(state) -> Router` (testable without a socket) and `run(listener, shutdown)`.
 
+pub mod api_error;
 pub mod config;
 pub mod error;
 
@@ -13,6 +14,7 @@ use std::sync::Arc;
 use axum::{Json, Router, routing::get};
 use serde_json::json;
 
+pub use api_error::ApiError;
 pub use config::Config;
 pub use error::ServerError;
 

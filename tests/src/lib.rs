@@ -5,6 +5,9 @@ use std::path::PathBuf;
 use std::process::Command;
 use std::sync::{Mutex, OnceLock};
 
+pub mod server;
+pub use server::{Relfusiond, synth_sequence};
+
 /// Path of a workspace binary (`relfusion`, `relfusiond`), built fresh for this test run.
 ///
 /// `cargo test` builds binaries only for packages that have integration tests of their own, and

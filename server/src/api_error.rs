@@ -1,0 +1,100 @@
+//! The error of one request: an HTTP status, a stable machine-readable code and a message that
+//! says what to fix. The HTTP layer renders it as `{"error":{"code","message"}}`; Zenoh replies
+//! carry the same code and message in the protobuf `Error`.
+
+/// A request failed; the server itself is fine.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{code} ({status}): {message}")]
+pub struct ApiError {
+    /// HTTP status code.
+    pub status: u16,
+    /// Stable code for programs (`invalid_argument`, `not_found`, ...).
+    pub code: &'static str,
+    /// For people: what was wrong and what to do.
+    pub message: String,
+}
+
+impl ApiError {
+    fn new(status: u16, code: &'static str, message: impl Into<String>) -> Self {
+        Self {
+            status,
+            code,
+            message: message.into(),
+        }
+    }
+
+    /// 400: malformed input (bad image, bad intrinsics, unknown config key, ...).
+    pub fn bad_request(message: impl Into<String>) -> Self {
+        Self::new(400, "invalid_argument", message)
+    }
+
+    /// 401: no or unknown bearer token.
+    pub fn unauthorized(message: impl Into<String>) -> Self {
+        Self::new(401, "unauthorized", message)
+    }
+
+    /// 403: the token is known but may not do this.
+    pub fn forbidden(message: impl Into<String>) -> Self {
+        Self::new(403, "forbidden", message)
+    }
+
+    /// 404: no such session (or it belongs to another token), no such result.
+    pub fn not_found(message: impl Into<String>) -> Self {
+        Self::new(404, "not_found", message)
+    }
+
+    /// 409: the request does not fit the resource's state (frames after end of stream, ...).
+    pub fn conflict(message: impl Into<String>) -> Self {
+        Self::new(409, "conflict", message)
+    }
+
+    /// 413: a body over the configured limit.
+    pub fn payload_too_large(message: impl Into<String>) -> Self {
+        Self::new(413, "payload_too_large", message)
+    }
+
+    /// 415: a body in a format the endpoint does not take.
+    pub fn unsupported_media(message: impl Into<String>) -> Self {
+        Self::new(415, "unsupported_media_type", message)
+    }
+
+    /// 503: at capacity (sessions, queues) or shutting down; retry later.
+    pub fn unavailable(message: impl Into<String>) -> Self {
+        Self::new(503, "resource_exhausted", message)
+    }
+
+    /// 500: the server failed; the message says where.
+    pub fn internal(message: impl Into<String>) -> Self {
+        Self::new(500, "internal", message)
+    }
+
+    /// The protobuf error code for the same failure (Zenoh replies, WebSocket errors).
+    pub fn proto_code(&self) -> relfusion_proto::v1::ErrorCode {
+        use relfusion_proto::v1::ErrorCode;
+        match self.status {
+            404 => ErrorCode::NotFound,
+            503 => ErrorCode::ResourceExhausted,
+            500..=599 => ErrorCode::Internal,
+            _ => ErrorCode::InvalidArgument,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn codes_map_to_statuses_and_proto() {
+        assert_eq!(ApiError::bad_request("x").status, 400);
+        assert_eq!(ApiError::unavailable("x").code, "resource_exhausted");
+        assert_eq!(
+            ApiError::not_found("x").proto_code(),
+            relfusion_proto::v1::ErrorCode::NotFound
+        );
+        assert_eq!(
+            ApiError::payload_too_large("x").proto_code(),
+            relfusion_proto::v1::ErrorCode::InvalidArgument
+        );
+    }
+}

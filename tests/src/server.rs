@@ -1,0 +1,142 @@
+//! A real `relfusiond` process for end-to-end tests: started on 127.0.0.1 port 0, its bound
+//! address read from the one stdout line it prints, killed when dropped.
+
+use std::ffi::OsStr;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use crate::bin_path;
+
+/// A running `relfusiond`.
+#[derive(Debug)]
+pub struct Relfusiond {
+    child: Option<Child>,
+    addr: String,
+    data_dir: PathBuf,
+}
+
+impl Relfusiond {
+    /// Starts `relfusiond --listen 127.0.0.1:0 --data-dir DATA_DIR ARGS...` with the extra
+    /// environment `envs`, and waits until it listens. Its stderr (logs) goes to
+    /// `DATA_DIR/../relfusiond-<pid>.log` so a failing test can show it.
+    pub fn spawn<I, S>(data_dir: &Path, args: I, envs: &[(&str, &str)]) -> Self
+    where
+        I: IntoIterator<Item = S>,
+        S: AsRef<OsStr>,
+    {
+        std::fs::create_dir_all(data_dir).expect("create data dir");
+        let log_path = data_dir.with_extension("log");
+        let log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&log_path)
+            .expect("open server log");
+        let mut command = Command::new(bin_path("relfusiond"));
+        command
+            .args(["--listen", "127.0.0.1:0", "--data-dir"])
+            .arg(data_dir)
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::from(log));
+        for (key, value) in envs {
+            command.env(key, value);
+        }
+        let mut child = command.spawn().expect("start relfusiond");
+        let stdout = child.stdout.take().expect("stdout");
+        let mut line = String::new();
+        BufReader::new(stdout)
+            .read_line(&mut line)
+            .expect("read the listening line");
+        let Some(addr) = line.trim().strip_prefix("listening on ") else {
+            let _ = child.kill();
+            let log = std::fs::read_to_string(&log_path).unwrap_or_default();
+            panic!("relfusiond did not start: {line:?}\n{log}");
+        };
+        Self {
+            addr: addr.to_string(),
+            child: Some(child),
+            data_dir: data_dir.to_path_buf(),
+        }
+    }
+
+    /// `127.0.0.1:PORT`.
+    pub fn addr(&self) -> &str {
+        &self.addr
+    }
+
+    /// `http://127.0.0.1:PORT`.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// The data directory it was started with.
+    pub fn data_dir(&self) -> &Path {
+        &self.data_dir
+    }
+
+    /// The server's log so far (its stderr).
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(self.data_dir.with_extension("log")).unwrap_or_default()
+    }
+
+    /// The process id (for RSS measurements).
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().map_or(0, Child::id)
+    }
+
+    /// SIGKILL, no chance to clean up (the durability tests' crash).
+    pub fn kill9(mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+
+    /// SIGTERM and wait for a graceful exit; returns whether it exited successfully.
+    pub fn terminate(mut self) -> bool {
+        let Some(mut child) = self.child.take() else {
+            return false;
+        };
+        let _ = Command::new("kill")
+            .args(["-TERM", &child.id().to_string()])
+            .status();
+        child.wait().map(|s| s.success()).unwrap_or(false)
+    }
+}
+
+impl Drop for Relfusiond {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
+/// A 320×240 synthetic TUM-layout sequence rendered once per test process by the real
+/// `relfusion synth` (orbit motion, exact ground truth).
+pub fn synth_sequence(tag: &str, frames: usize, seed: u64) -> PathBuf {
+    // Tests of one binary run in parallel threads: render each sequence once.
+    static RENDERING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _guard = RENDERING.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = std::env::temp_dir().join(format!(
+        "relfusion-test-synth-{tag}-{frames}-{seed}-{}",
+        std::process::id()
+    ));
+    if dir.join("rgb.txt").exists() {
+        return dir;
+    }
+    let status = Command::new(bin_path("relfusion"))
+        .args(["synth", "--width", "320", "--height", "240", "--frames"])
+        .arg(frames.to_string())
+        .arg("--seed")
+        .arg(seed.to_string())
+        .arg("--out")
+        .arg(&dir)
+        .stdout(Stdio::null())
+        .status()
+        .expect("run relfusion synth");
+    assert!(status.success(), "relfusion synth failed");
+    dir
+}
