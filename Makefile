@@ -12,7 +12,7 @@ export NODEVICE_SELECT ?= 1
 
 .PHONY: help setup test demo
 help:
-	@echo "make demo   # set up, build, synthesise a sequence and evaluate it into $(DEMO_OUT)"
+	@echo "make demo   # set up, build, stream a sequence through relfusiond, fetch the results into $(DEMO_OUT)"
 	@echo "make test   # set up and run the whole test suite"
 
 setup:
@@ -24,5 +24,5 @@ test:
 
 demo:
 	@env_lines=$$(bash scripts/setup.sh); eval "$$env_lines"; \
-	 cargo build --release -p relfusion-client; \
+	 cargo build --release -p relfusion-client -p relfusion-server; \
 	 DEMO_OUT=$(DEMO_OUT) bash scripts/demo.sh

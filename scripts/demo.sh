@@ -1,30 +1,55 @@
 #!/usr/bin/env bash
-# The demo job behind `make demo`: everything it produces lands in $DEMO_OUT.
-# Today it synthesises a textured-room sequence with exact ground truth, reports the GPU the
-# pipeline would use, runs the SLAM pipeline on the sequence (poses + semi-dense map), scores
-# the trajectory against the ground truth and, when the shared PyDNet++ model is present,
-# measures the depth prior on the synthetic frames. It grows with the pipeline (dense layer,
-# mesh, the service).
+# The demo job behind `make demo`: the service's own demo. Everything lands in $DEMO_OUT.
+#
+# 1. starts `relfusiond` (release build) on a free loopback port, with the PyDNet++ stand-in
+#    depth model when the shared data is present;
+# 2. streams a sequence through it with the client (`relfusion stream`): the shared 7-Scenes
+#    redkitchen frames when ../shared/data is present, else a freshly synthesised room;
+# 3. fetches the trajectory, the keyframes, the point cloud (and the mesh once fusion lands)
+#    into $DEMO_OUT/result/;
+# 4. prints what was produced and its ATE against the ground truth, then stops the server
+#    gracefully.
 set -euo pipefail
 out="${DEMO_OUT:-out/demo}"
-bin="${CARGO_TARGET_DIR:-target}/release/relfusion"
-model="${RELFUSION_DATA:-../shared/data}/models/pydnet_pp_matterport/pydnet_pp_matterport_448x640_nchw_fp32.onnx"
+bindir="${CARGO_TARGET_DIR:-target}/release"
+data="${RELFUSION_DATA:-../shared/data}"
+model="$data/models/pydnet_pp_matterport/pydnet_pp_matterport_448x640_nchw_fp32.onnx"
+sequence="$data/sequences/7scenes_redkitchen_f0000-0299"
 mkdir -p "$out"
 
 echo "== gpu" >&2
-"$bin" gpu-info | tee "$out/gpu.json"
-echo "== synthesising a 300-frame sequence into $out/synth" >&2
-"$bin" synth --out "$out/synth" --frames 300 --seed 1 | tee "$out/synth.json"
-echo "== SLAM on the synthetic sequence" >&2
-"$bin" run "$out/synth" --out "$out/run" | tee "$out/run.json"
-echo "== trajectory accuracy (ATE, Sim(3)-aligned) of every frame and of the keyframes" >&2
-"$bin" eval traj --gt "$out/synth/groundtruth.txt" --est "$out/run/trajectory.txt" | tee "$out/ate_trajectory.json"
-"$bin" eval traj --gt "$out/synth/groundtruth.txt" --est "$out/run/keyframes.txt" | tee "$out/ate_keyframes.json"
-if [ -f "$model" ]; then
-  echo "== depth prior (PyDNet++) on the synthetic frames, eq. (3) alignment to ground truth" >&2
-  "$bin" prior --model "$model" "$out/synth" --frames 60 | tee "$out/prior.json"
-else
-  echo "== no model at $model: skipping the depth-prior evaluation" >&2
+"$bindir/relfusion" gpu-info | tee "$out/gpu.json"
+
+if [ ! -f "$sequence/rgb.txt" ]; then
+  sequence="$out/synth"
+  echo "== no shared data: synthesising a 300-frame sequence into $sequence" >&2
+  "$bindir/relfusion" synth --out "$sequence" --frames 300 --seed 1 | tee "$out/synth.json"
 fi
+
+# The server's default depth model comes from its config / environment (RELFUSIOND_MODEL).
+if [ -f "$model" ]; then export RELFUSIOND_MODEL="$model"; else unset RELFUSIOND_MODEL; fi
+echo "== starting relfusiond (model: ${RELFUSIOND_MODEL:-none})" >&2
+coproc SERVER { exec "$bindir/relfusiond" --listen 127.0.0.1:0 --data-dir "$out/server-data" 2>"$out/relfusiond.log"; }
+server_pid=$SERVER_PID
+trap 'kill -TERM $server_pid 2>/dev/null || true' EXIT
+read -r line <&"${SERVER[0]}"
+url="http://${line#listening on }"
+echo "== relfusiond is listening at $url" >&2
+
+echo "== streaming $sequence through the service" >&2
+"$bindir/relfusion" stream "$sequence" --server "$url" --wait >"$out/stream.jsonl"
+session=$(head -n1 "$out/stream.jsonl" | sed -E 's/.*"session": *"([^"]+)".*/\1/')
+tail -n1 "$out/stream.jsonl" >&2
+
+echo "== fetching session $session into $out/result" >&2
+"$bindir/relfusion" fetch "$session" --server "$url" --out "$out/result"
+
+echo "== trajectory accuracy (ATE, Sim(3)-aligned) of every frame and of the keyframes" >&2
+"$bindir/relfusion" eval traj --gt "$sequence/groundtruth.txt" --est "$out/result/trajectory.txt" | tee "$out/ate_trajectory.json"
+"$bindir/relfusion" eval traj --gt "$sequence/groundtruth.txt" --est "$out/result/keyframes.txt" | tee "$out/ate_keyframes.json"
+
+kill -TERM "$server_pid"
+wait "$server_pid" || true
+trap - EXIT
 echo "== demo output in $out" >&2
-ls -l "$out" >&2
+ls -l "$out" "$out/result" >&2

@@ -31,6 +31,12 @@ enum Command {
     /// Benchmarks that print figures (GPU kernels vs their CPU references, ...).
     #[command(subcommand)]
     Bench(cli::bench::BenchCommand),
+    /// Stream a TUM-layout sequence live to relfusiond; prints poses as JSON lines.
+    Stream(cli::stream::Args),
+    /// Upload a TUM-layout sequence to relfusiond and follow its processing.
+    Upload(cli::upload::Args),
+    /// Download a session's trajectory, keyframes, point cloud and mesh from relfusiond.
+    Fetch(cli::fetch::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -48,5 +54,8 @@ fn main() -> anyhow::Result<()> {
         Command::GpuInfo(args) => cli::gpu_info::run(args),
         Command::Prior(args) => cli::prior::run(args),
         Command::Bench(cmd) => cli::bench::run(cmd),
+        Command::Stream(args) => cli::stream::run(args),
+        Command::Upload(args) => cli::upload::run(args),
+        Command::Fetch(args) => cli::fetch::run(args),
     }
 }

@@ -15,6 +15,8 @@ pub mod v1 {
 
 pub use prost::Message;
 
+pub mod zenoh_keys;
+
 /// The schema sources as `(path relative to the proto root, contents)`, in dependency order.
 pub const PROTO_FILES: &[(&str, &str)] = &[
     (

@@ -3,9 +3,10 @@
 
 use relfusion_proto::Message;
 use relfusion_proto::v1::{
-    BlockIndex, Camera, ClientMessage, Distortion, EndOfStream, Error, ErrorCode, Frame,
-    ImageEncoding, KeyframeDepth, KeyframeUpdate, MeshBlock, MeshUpdate, PoseUpdate, Quaternion,
-    ServerMessage, SessionConfig, Sim3Pose, TrackingState, Vector3, client_message, server_message,
+    BlockIndex, Camera, ClientMessage, CreateSessionReply, Distortion, EndOfStream, Error,
+    ErrorCode, Frame, FramePolicy, ImageEncoding, KeyframeDepth, KeyframeUpdate, MapSnapshot,
+    MeshBlock, MeshUpdate, PoseUpdate, Quaternion, ServerMessage, SessionConfig, SessionFinished,
+    Sim3Pose, StampedPose, TrackingState, Vector3, client_message, server_message,
 };
 
 fn roundtrip<M: Message + Default + PartialEq + std::fmt::Debug>(message: &M) {
@@ -161,6 +162,62 @@ fn session_config_roundtrips() {
         camera: Some(camera()),
         config_json: r#"{"tracking":{"max_iterations":20}}"#.into(),
         model_name: "midas_v21_small_256".into(),
+        policy: FramePolicy::Wait as i32,
+    });
+    // A config written before `policy` existed decodes to the server default.
+    let old = SessionConfig {
+        camera: Some(camera()),
+        ..Default::default()
+    };
+    let decoded = SessionConfig::decode(old.encode_to_vec().as_slice()).expect("decode");
+    assert_eq!(decoded.policy(), FramePolicy::Unspecified);
+}
+
+#[test]
+fn zenoh_messages_roundtrip() {
+    roundtrip(&CreateSessionReply {
+        session_id: "s-0123456789ab".into(),
+        error: None,
+    });
+    let refused = CreateSessionReply {
+        session_id: String::new(),
+        error: Some(Error {
+            code: ErrorCode::Unauthenticated as i32,
+            message: "this server needs a bearer token".into(),
+        }),
+    };
+    roundtrip(&refused);
+    let decoded = CreateSessionReply::decode(refused.encode_to_vec().as_slice()).expect("decode");
+    assert_eq!(
+        decoded.error.expect("error kept").code(),
+        ErrorCode::Unauthenticated
+    );
+    let stamped = |t: f64| StampedPose {
+        timestamp: t,
+        world_from_camera: Some(pose()),
+    };
+    let mesh = mesh_update();
+    roundtrip(&MapSnapshot {
+        session_id: "s-42".into(),
+        state: "finished".into(),
+        frames_processed: 3,
+        trajectory: vec![stamped(0.0), stamped(0.033), stamped(0.066)],
+        keyframes: vec![stamped(0.0)],
+        mesh_blocks: mesh.changed_blocks,
+        block_size: mesh.block_size,
+        mesh_revision: mesh.revision,
+        frames_received: 4,
+        frames_dropped: 1,
+    });
+    roundtrip(&MapSnapshot::default());
+    roundtrip(&SessionFinished {
+        session_id: "s-42".into(),
+        state: "failed".into(),
+        error: "the pipeline failed".into(),
+        frames_received: 10,
+        frames_processed: 9,
+        frames_dropped: 1,
+        keyframes: 2,
     });
 }
 
@@ -249,6 +306,8 @@ fn proto_sources_are_exported() {
     for name in [
         "message ServerMessage",
         "message ClientMessage",
+        "message MapSnapshot",
+        "message CreateSessionReply",
         "world_from_camera",
     ] {
         assert!(

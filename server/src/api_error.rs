@@ -72,6 +72,7 @@ impl ApiError {
     pub fn proto_code(&self) -> relfusion_proto::v1::ErrorCode {
         use relfusion_proto::v1::ErrorCode;
         match self.status {
+            401 => ErrorCode::Unauthenticated,
             404 => ErrorCode::NotFound,
             503 => ErrorCode::ResourceExhausted,
             500..=599 => ErrorCode::Internal,
@@ -91,6 +92,10 @@ mod tests {
         assert_eq!(
             ApiError::not_found("x").proto_code(),
             relfusion_proto::v1::ErrorCode::NotFound
+        );
+        assert_eq!(
+            ApiError::unauthorized("x").proto_code(),
+            relfusion_proto::v1::ErrorCode::Unauthenticated
         );
         assert_eq!(
             ApiError::payload_too_large("x").proto_code(),

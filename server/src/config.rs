@@ -1,4 +1,9 @@
-//! relfusiond configuration: one TOML file; every field has a working default.
+//! relfusiond configuration: one TOML file plus environment overrides; every field has a
+//! working default.
+//!
+//! Precedence, highest first: command-line flag > environment variable > file > default
+//! ([`Config::resolve`]). The environment variables exist for containers, where editing a file
+//! is awkward; the flags for scripts and tests.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -15,6 +20,16 @@ pub struct Config {
     pub listen: SocketAddr,
     /// Where uploads, session metadata and results are stored.
     pub data_dir: PathBuf,
+    /// Admission control and the bound of every queue.
+    pub limits: Limits,
+    /// The GPU worker pool.
+    pub pool: PoolConfig,
+    /// The default depth model of sessions.
+    pub model: ModelSettings,
+    /// Bearer tokens.
+    pub auth: AuthConfig,
+    /// The Zenoh endpoints.
+    pub zenoh: ZenohConfig,
 }
 
 impl Default for Config {
@@ -22,9 +37,213 @@ impl Default for Config {
         Self {
             listen: SocketAddr::from(([127, 0, 0, 1], 8780)),
             data_dir: PathBuf::from("relfusion-data"),
+            limits: Limits::default(),
+            pool: PoolConfig::default(),
+            model: ModelSettings::default(),
+            auth: AuthConfig::default(),
+            zenoh: ZenohConfig::default(),
         }
     }
 }
+
+/// Every limit of the service. Memory use is bounded by these: per live session at most
+/// `frame_queue` decoded frames wait, per session at most `pool_job_queue` GPU jobs, per
+/// subscriber at most `event_buffer` events.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Limits {
+    /// Sessions processing at the same time (live and uploads); a new live session beyond it
+    /// gets 503, an upload beyond it waits in the queue (state `queued`).
+    pub max_sessions: usize,
+    /// Acknowledged uploads waiting for a free session slot; more get 503.
+    pub max_queued_uploads: usize,
+    /// Decoded frames waiting per live session. Small on purpose: a live stream wants the
+    /// newest frames, and a frame that waited long is stale.
+    pub frame_queue: usize,
+    /// Events buffered per subscriber (SSE, WebSocket, Zenoh); a slower subscriber loses the
+    /// oldest ones (it is told), the pipeline never waits for it.
+    pub event_buffer: usize,
+    /// Largest upload archive in bytes (4 GiB).
+    pub max_upload_bytes: u64,
+    /// Largest total size of the files extracted from one upload (zip bombs), in bytes.
+    pub max_extracted_bytes: u64,
+    /// Most entries (files and folders) in one upload archive.
+    pub max_upload_entries: usize,
+    /// Largest single frame (encoded image) in bytes (32 MiB).
+    pub max_frame_bytes: u64,
+    /// GPU jobs queued per session in the worker pool; a session that has this many waiting
+    /// blocks until the pool serves one (backpressure onto its pipeline thread).
+    pub pool_job_queue: usize,
+    /// A live session that receives no frame for this long (seconds) is finished as if the
+    /// client had sent end-of-stream, so a vanished client does not hold a slot forever.
+    pub idle_timeout_s: u64,
+    /// Results (trajectory, keyframes, point cloud) are written to the store every this many
+    /// keyframes while a session runs, so a crash loses little of a live session.
+    pub checkpoint_keyframes: usize,
+    /// On shutdown, how long (seconds) live sessions get to finish their queued frames and
+    /// persist their results before the process exits anyway.
+    pub shutdown_grace_s: u64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_sessions: 4,
+            max_queued_uploads: 16,
+            frame_queue: 8,
+            event_buffer: 1024,
+            max_upload_bytes: 4 << 30,
+            max_extracted_bytes: 8 << 30,
+            max_upload_entries: 100_000,
+            max_frame_bytes: 32 << 20,
+            pool_job_queue: 4,
+            idle_timeout_s: 300,
+            checkpoint_keyframes: 10,
+            shutdown_grace_s: 30,
+        }
+    }
+}
+
+/// The GPU worker pool.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PoolConfig {
+    /// Worker threads; 0 = one per GPU adapter (a CPU adapter such as lavapipe counts as one
+    /// when there is no real GPU).
+    pub workers: usize,
+}
+
+/// The default depth model (the DeepRelativeFusion prior) of new sessions.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelSettings {
+    /// ONNX model file; empty = no model (SLAM runs without the prior: random
+    /// initialisation). Loaded once at start and shared by every session.
+    pub path: PathBuf,
+    /// Model description for models relfusion does not recognise; empty = recognise the
+    /// model from the file.
+    pub config: PathBuf,
+}
+
+impl ModelSettings {
+    /// Whether a model is configured.
+    pub fn is_set(&self) -> bool {
+        !self.path.as_os_str().is_empty()
+    }
+
+    /// The name sessions know the model by: its file stem (`"none"` when unset).
+    pub fn name(&self) -> String {
+        if !self.is_set() {
+            return "none".into();
+        }
+        self.path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "default".into())
+    }
+}
+
+/// One bearer token and the name its sessions are owned by.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TokenEntry {
+    pub name: String,
+    pub token: String,
+}
+
+/// Bearer-token authentication. No tokens = auth off (everyone is the same anonymous owner).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AuthConfig {
+    pub tokens: Vec<TokenEntry>,
+}
+
+impl AuthConfig {
+    /// Whether requests must carry a token.
+    pub fn enabled(&self) -> bool {
+        !self.tokens.is_empty()
+    }
+
+    /// The owner name of `token`, if it is one of ours. Compares every entry in constant time
+    /// per byte so the answer time does not reveal how much of a token matched.
+    pub fn name_for(&self, token: &str) -> Option<&str> {
+        let mut found = None;
+        for entry in &self.tokens {
+            if constant_time_eq(entry.token.as_bytes(), token.as_bytes()) {
+                found = Some(entry.name.as_str());
+            }
+        }
+        found
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    if a.len() != b.len() {
+        return false;
+    }
+    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// Zenoh endpoints (see the key space in ARCHITECTURE.md).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ZenohConfig {
+    /// Start the Zenoh endpoints (also set by `--zenoh-listen` and the Zenoh environment
+    /// variables).
+    pub enabled: bool,
+    /// `"peer"` or `"client"` (client mode needs a router in `connect`).
+    pub mode: String,
+    /// Endpoints to listen on, e.g. `tcp/127.0.0.1:7447`.
+    pub listen: Vec<String>,
+    /// Endpoints (routers or peers) to connect to.
+    pub connect: Vec<String>,
+    /// Multicast and gossip scouting (off by default: explicit endpoints are predictable).
+    pub scouting: bool,
+    /// This node's name in `relfusion/nodes/<node>/status`; defaults to the host name.
+    pub node: String,
+}
+
+impl Default for ZenohConfig {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            mode: "peer".into(),
+            listen: Vec::new(),
+            connect: Vec::new(),
+            scouting: false,
+            node: host_name(),
+        }
+    }
+}
+
+/// The machine's host name (Linux), else `relfusiond`.
+fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .map(|s| s.trim().to_string())
+        .filter(|s| !s.is_empty() && s.chars().all(|c| c.is_ascii_alphanumeric() || c == '-'))
+        .unwrap_or_else(|| "relfusiond".into())
+}
+
+/// The command-line flags that override the file and the environment.
+#[derive(Clone, Debug, Default)]
+pub struct FlagOverrides {
+    pub listen: Option<SocketAddr>,
+    pub data_dir: Option<PathBuf>,
+    /// `--zenoh-listen` (repeatable); non-empty also enables Zenoh.
+    pub zenoh_listen: Vec<String>,
+}
+
+/// Environment variables read by [`Config::apply_env`].
+pub const ENV_VARS: &[&str] = &[
+    "RELFUSIOND_LISTEN",
+    "RELFUSIOND_DATA_DIR",
+    "RELFUSIOND_MAX_SESSIONS",
+    "RELFUSIOND_MODEL",
+    "RELFUSIOND_ZENOH_LISTEN",
+    "RELFUSIOND_ZENOH_CONNECT",
+    "RELFUSIOND_TOKENS",
+];
 
 impl Config {
     /// Reads a TOML file; missing keys take their defaults.
@@ -34,7 +253,145 @@ impl Config {
             message,
         };
         let text = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
-        toml::from_str(&text).map_err(|e| err(e.to_string()))
+        let config: Config = toml::from_str(&text).map_err(|e| err(e.to_string()))?;
+        config.validate().map_err(err)?;
+        Ok(config)
+    }
+
+    /// The configuration in force: default, then `file`, then the environment (`env` looks a
+    /// variable up; `std::env::var` in the binary), then `flags`.
+    pub fn resolve(
+        file: Option<&Path>,
+        env: impl Fn(&str) -> Option<String>,
+        flags: &FlagOverrides,
+    ) -> Result<Self, ServerError> {
+        let mut config = match file {
+            Some(path) => Config::load(path)?,
+            None => Config::default(),
+        };
+        config.apply_env(env)?;
+        config.apply_flags(flags);
+        config.validate().map_err(|message| ServerError::Config {
+            path: "(environment and flags)".into(),
+            message,
+        })?;
+        Ok(config)
+    }
+
+    /// Applies the `RELFUSIOND_*` variables ([`ENV_VARS`]). Lists are comma-separated;
+    /// Zenoh endpoints also enable Zenoh; tokens are `name:token,name:token`.
+    pub fn apply_env(&mut self, env: impl Fn(&str) -> Option<String>) -> Result<(), ServerError> {
+        let bad = |var: &str, message: String| ServerError::Config {
+            path: format!("${var}"),
+            message,
+        };
+        let list = |value: &str| -> Vec<String> {
+            value
+                .split(',')
+                .map(str::trim)
+                .filter(|s| !s.is_empty())
+                .map(String::from)
+                .collect()
+        };
+        if let Some(v) = env("RELFUSIOND_LISTEN") {
+            self.listen = v
+                .trim()
+                .parse()
+                .map_err(|e| bad("RELFUSIOND_LISTEN", format!("{v:?}: {e}")))?;
+        }
+        if let Some(v) = env("RELFUSIOND_DATA_DIR") {
+            self.data_dir = PathBuf::from(v);
+        }
+        if let Some(v) = env("RELFUSIOND_MAX_SESSIONS") {
+            self.limits.max_sessions = v
+                .trim()
+                .parse()
+                .map_err(|e| bad("RELFUSIOND_MAX_SESSIONS", format!("{v:?}: {e}")))?;
+        }
+        if let Some(v) = env("RELFUSIOND_MODEL") {
+            self.model.path = PathBuf::from(v);
+        }
+        if let Some(v) = env("RELFUSIOND_ZENOH_LISTEN") {
+            self.zenoh.listen = list(&v);
+            self.zenoh.enabled = true;
+        }
+        if let Some(v) = env("RELFUSIOND_ZENOH_CONNECT") {
+            self.zenoh.connect = list(&v);
+            self.zenoh.enabled = true;
+        }
+        if let Some(v) = env("RELFUSIOND_TOKENS") {
+            self.auth.tokens = list(&v)
+                .into_iter()
+                .map(|pair| match pair.split_once(':') {
+                    Some((name, token)) if !name.is_empty() && !token.is_empty() => {
+                        Ok(TokenEntry {
+                            name: name.to_string(),
+                            token: token.to_string(),
+                        })
+                    }
+                    _ => Err(bad(
+                        "RELFUSIOND_TOKENS",
+                        "expected name:token[,name:token...]".into(),
+                    )),
+                })
+                .collect::<Result<_, _>>()?;
+        }
+        Ok(())
+    }
+
+    /// Applies command-line flags (highest precedence).
+    pub fn apply_flags(&mut self, flags: &FlagOverrides) {
+        if let Some(listen) = flags.listen {
+            self.listen = listen;
+        }
+        if let Some(dir) = &flags.data_dir {
+            self.data_dir = dir.clone();
+        }
+        if !flags.zenoh_listen.is_empty() {
+            self.zenoh.listen = flags.zenoh_listen.clone();
+            self.zenoh.enabled = true;
+        }
+    }
+
+    /// Checks values serde cannot: positive limits, a known Zenoh mode, unique tokens.
+    pub fn validate(&self) -> Result<(), String> {
+        let l = &self.limits;
+        for (name, v) in [
+            ("limits.max_sessions", l.max_sessions as u64),
+            ("limits.frame_queue", l.frame_queue as u64),
+            ("limits.event_buffer", l.event_buffer as u64),
+            ("limits.max_upload_bytes", l.max_upload_bytes),
+            ("limits.max_extracted_bytes", l.max_extracted_bytes),
+            ("limits.max_upload_entries", l.max_upload_entries as u64),
+            ("limits.max_frame_bytes", l.max_frame_bytes),
+            ("limits.pool_job_queue", l.pool_job_queue as u64),
+            ("limits.idle_timeout_s", l.idle_timeout_s),
+            ("limits.checkpoint_keyframes", l.checkpoint_keyframes as u64),
+        ] {
+            if v == 0 {
+                return Err(format!("{name} must be > 0"));
+            }
+        }
+        if !matches!(self.zenoh.mode.as_str(), "peer" | "client") {
+            return Err(format!(
+                "zenoh.mode must be \"peer\" or \"client\", got {:?}",
+                self.zenoh.mode
+            ));
+        }
+        let mut tokens: Vec<&str> = self.auth.tokens.iter().map(|t| t.token.as_str()).collect();
+        tokens.sort_unstable();
+        if tokens.windows(2).any(|w| w[0] == w[1]) {
+            return Err("auth.tokens: the same token is listed twice".into());
+        }
+        if self
+            .auth
+            .tokens
+            .iter()
+            .any(|t| t.token.is_empty() || t.name.is_empty())
+        {
+            return Err("auth.tokens: name and token must be non-empty".into());
+        }
+        Ok(())
     }
 
     /// The default configuration as TOML, for `--print-default-config`.
@@ -46,15 +403,90 @@ impl Config {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::HashMap;
 
     #[test]
     fn default_config_round_trips_through_toml() {
         let parsed: Config = toml::from_str(&Config::default_toml()).expect("parse default");
         assert_eq!(parsed, Config::default());
+        assert!(Config::default().validate().is_ok());
     }
 
     #[test]
     fn unknown_keys_are_rejected() {
         assert!(toml::from_str::<Config>("lisen = \"127.0.0.1:1\"").is_err());
+        assert!(toml::from_str::<Config>("[limits]\nmax_sesions = 3\n").is_err());
+    }
+
+    #[test]
+    fn precedence_is_flag_then_env_then_file_then_default() {
+        let dir = std::env::temp_dir().join(format!("relfusiond-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let file = dir.join("c.toml");
+        std::fs::write(
+            &file,
+            "listen = \"127.0.0.1:1111\"\ndata_dir = \"from-file\"\n[limits]\nmax_sessions = 7\nframe_queue = 3\n",
+        )
+        .expect("write");
+        let env: HashMap<&str, &str> = [
+            ("RELFUSIOND_LISTEN", "127.0.0.1:2222"),
+            ("RELFUSIOND_DATA_DIR", "from-env"),
+            ("RELFUSIOND_TOKENS", "alice:a1,bob:b2"),
+            (
+                "RELFUSIOND_ZENOH_CONNECT",
+                "tcp/127.0.0.1:7447, tcp/127.0.0.1:7448",
+            ),
+        ]
+        .into_iter()
+        .collect();
+        let lookup = |k: &str| env.get(k).map(|v| v.to_string());
+        let flags = FlagOverrides {
+            listen: Some("127.0.0.1:3333".parse().expect("addr")),
+            ..Default::default()
+        };
+        let c = Config::resolve(Some(&file), lookup, &flags).expect("resolve");
+        assert_eq!(c.listen.port(), 3333, "flag beats env and file");
+        assert_eq!(c.data_dir, PathBuf::from("from-env"), "env beats file");
+        assert_eq!(c.limits.max_sessions, 7, "file beats default");
+        assert_eq!(c.limits.frame_queue, 3);
+        assert_eq!(
+            c.limits.event_buffer,
+            Limits::default().event_buffer,
+            "default"
+        );
+        assert_eq!(c.auth.name_for("b2"), Some("bob"));
+        assert_eq!(c.auth.name_for("b3"), None);
+        assert_eq!(c.zenoh.connect.len(), 2);
+        assert!(c.zenoh.enabled, "endpoints enable zenoh");
+
+        let none = Config::resolve(None, |_| None, &FlagOverrides::default()).expect("defaults");
+        assert_eq!(none, Config::default());
+        let bad = Config::resolve(
+            None,
+            |k| (k == "RELFUSIOND_MAX_SESSIONS").then(|| "many".to_string()),
+            &FlagOverrides::default(),
+        );
+        assert!(bad.is_err());
+        let zero = Config::resolve(
+            None,
+            |k| (k == "RELFUSIOND_MAX_SESSIONS").then(|| "0".to_string()),
+            &FlagOverrides::default(),
+        );
+        assert!(zero.is_err(), "max_sessions = 0 is refused");
+        let flags = FlagOverrides {
+            zenoh_listen: vec!["tcp/127.0.0.1:0".into()],
+            ..Default::default()
+        };
+        let z = Config::resolve(None, |_| None, &flags).expect("zenoh flag");
+        assert!(z.zenoh.enabled);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn the_deployment_config_is_valid() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/relfusiond.toml");
+        let config = Config::load(&path).expect("deploy/relfusiond.toml loads");
+        assert!(config.zenoh.enabled && config.zenoh.mode == "client");
+        assert_eq!(config.data_dir, PathBuf::from("/data"));
     }
 }

@@ -7,4 +7,10 @@ pub enum ServerError {
     Config { path: String, message: String },
     #[error("serving HTTP: {0}")]
     Serve(#[source] std::io::Error),
+    #[error("data directory: {0}")]
+    Store(#[from] crate::storage::StoreError),
+    #[error("depth model {path}: {message}")]
+    Model { path: String, message: String },
+    #[error("starting the service: {0}")]
+    Startup(String),
 }

@@ -1,18 +1,24 @@
 //! relfusiond: the relfusion service.
 //!
-//! At this stage it serves health and version only; sessions, the GPU worker pool, uploads and
-//! Zenoh arrive with the service issue. The shape is already the final one: a typed [`Config`],
-//! `fn app(state) -> Router` (testable without a socket) and `run(listener, shutdown)`.
+//! Sessions ([`session::SessionManager`]) run one `slam::Pipeline` each on their own thread,
+//! share the GPU through [`gpu_pool::GpuPool`], keep uploads and results in the store
+//! ([`storage`]) and report through [`metrics`]. `fn app(state) -> Router` is the HTTP API
+//! (testable without a socket); [`run`] serves it until shutdown, then shuts the sessions down
+//! gracefully.
 
 pub mod api_error;
 pub mod config;
+pub mod convert;
 pub mod error;
+pub mod gpu_pool;
+pub mod http;
+pub mod metrics;
+pub mod session;
+pub mod storage;
+pub mod zenoh_api;
 
 use std::future::Future;
 use std::sync::Arc;
-
-use axum::{Json, Router, routing::get};
-use serde_json::json;
 
 pub use api_error::ApiError;
 pub use config::Config;
@@ -22,29 +28,77 @@ pub use error::ServerError;
 #[derive(Debug)]
 pub struct AppState {
     pub config: Config,
+    pub sessions: Arc<session::SessionManager>,
+    pub metrics: Arc<metrics::Metrics>,
+}
+
+impl AppState {
+    /// Opens the session manager (store, model, GPU pool, recovery) for `config`.
+    pub fn open(config: Config) -> Result<Self, ServerError> {
+        let metrics = Arc::new(metrics::Metrics::new());
+        let sessions = session::SessionManager::open(&config, metrics.clone())?;
+        Ok(Self {
+            config,
+            sessions,
+            metrics,
+        })
+    }
 }
 
 /// The HTTP application: every route, no socket (tests call it with `oneshot`).
-pub fn app(state: Arc<AppState>) -> Router {
-    Router::new()
-        .route("/healthz", get(|| async { "ok" }))
-        .route("/readyz", get(|| async { "ready" }))
-        .route("/v1/version", get(version))
-        .with_state(state)
+pub fn app(state: Arc<AppState>) -> axum::Router {
+    http::router(state)
 }
 
-async fn version() -> Json<serde_json::Value> {
-    Json(json!({ "name": "relfusiond", "version": env!("CARGO_PKG_VERSION"), "api": "v1" }))
-}
-
-/// Serves `app` on `listener` until `shutdown` resolves, then drains in-flight requests.
+/// Serves `app` on `listener` until `shutdown` resolves; then stops accepting connections,
+/// shuts the sessions down gracefully (live sessions finish their queued frames and persist
+/// their results, uploads stop and re-run on restart) and gives open requests (event streams
+/// end with their sessions) `limits.shutdown_grace_s` to complete.
 pub async fn run(
     listener: tokio::net::TcpListener,
     state: Arc<AppState>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
-    axum::serve(listener, app(state))
-        .with_graceful_shutdown(shutdown)
-        .await
-        .map_err(ServerError::Serve)
+    // Zenoh (when enabled) serves the same sessions; it closes after them so that their last
+    // updates still go out.
+    let zenoh = match state.config.zenoh.enabled {
+        true => Some(zenoh_api::start(&state.config.zenoh, state.sessions.clone()).await?),
+        false => None,
+    };
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let server = axum::serve(listener, app(state.clone()))
+        .with_graceful_shutdown(async move {
+            let _ = stop_rx.await;
+        })
+        .into_future();
+    let mut server = tokio::spawn(server);
+    tokio::select! {
+        () = shutdown => {}
+        result = &mut server => {
+            state.sessions.shutdown().await;
+            if let Some(zenoh) = zenoh {
+                zenoh.close().await;
+            }
+            return result
+                .map_err(|e| ServerError::Serve(std::io::Error::other(e)))?
+                .map_err(ServerError::Serve);
+        }
+    }
+    tracing::info!("shutting down: no new connections; finishing sessions");
+    let _ = stop_tx.send(());
+    state.sessions.shutdown().await;
+    if let Some(zenoh) = zenoh {
+        zenoh.close().await;
+    }
+    let grace = std::time::Duration::from_secs(state.config.limits.shutdown_grace_s);
+    match tokio::time::timeout(grace, &mut server).await {
+        Ok(result) => result
+            .map_err(|e| ServerError::Serve(std::io::Error::other(e)))?
+            .map_err(ServerError::Serve),
+        Err(_) => {
+            tracing::warn!("open connections did not close within {grace:?}; closing them");
+            server.abort();
+            Ok(())
+        }
+    }
 }

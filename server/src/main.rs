@@ -1,4 +1,8 @@
 //! `relfusiond`: starts the relfusion service.
+//!
+//! Configuration precedence: flag > environment (`RELFUSIOND_*`) > `--config` file > default.
+//! SIGTERM and Ctrl-C shut down gracefully: no new connections, live sessions finish their
+//! queued frames and persist results, uploads stop and re-run on the next start.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -6,6 +10,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use clap::Parser;
+use relfusion_server::config::FlagOverrides;
 use relfusion_server::{AppState, Config};
 
 #[derive(Debug, Parser)]
@@ -17,12 +22,40 @@ struct Args {
     /// Print the default configuration as TOML and exit.
     #[arg(long)]
     print_default_config: bool,
-    /// Listen address (overrides the file), e.g. 127.0.0.1:0.
+    /// Listen address (overrides the file and RELFUSIOND_LISTEN), e.g. 127.0.0.1:0.
     #[arg(long)]
     listen: Option<SocketAddr>,
-    /// Data directory (overrides the file).
+    /// Data directory (overrides the file and RELFUSIOND_DATA_DIR).
     #[arg(long)]
     data_dir: Option<PathBuf>,
+    /// Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable; enables Zenoh).
+    #[arg(long)]
+    zenoh_listen: Vec<String>,
+}
+
+/// Resolves on SIGTERM (container stop, `kill`) or Ctrl-C.
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::warn!("cannot listen for SIGTERM: {e}");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => tracing::info!("Ctrl-C received"),
+        () = term => tracing::info!("SIGTERM received"),
+    }
 }
 
 #[tokio::main]
@@ -39,25 +72,24 @@ async fn main() -> anyhow::Result<()> {
         print!("{}", Config::default_toml());
         return Ok(());
     }
-    let mut config = match &args.config {
-        Some(path) => Config::load(path)?,
-        None => Config::default(),
+    let flags = FlagOverrides {
+        listen: args.listen,
+        data_dir: args.data_dir,
+        zenoh_listen: args.zenoh_listen,
     };
-    if let Some(listen) = args.listen {
-        config.listen = listen;
-    }
-    if let Some(dir) = args.data_dir {
-        config.data_dir = dir;
-    }
+    let config = Config::resolve(args.config.as_deref(), |k| std::env::var(k).ok(), &flags)?;
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("binding {}", config.listen))?;
+    let addr = listener.local_addr()?;
+    // Opening recovers the previous run's sessions (uploads resume) before we announce.
+    let state = tokio::task::spawn_blocking(move || AppState::open(config))
+        .await
+        .context("starting the session manager")??;
     // The one stdout line: scripts and tests read the bound address from it (port 0).
-    println!("listening on {}", listener.local_addr()?);
-    let state = Arc::new(AppState { config });
-    let shutdown = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
-    relfusion_server::run(listener, state, shutdown).await?;
+    println!("listening on {addr}");
+    tracing::info!(%addr, data_dir = %state.config.data_dir.display(), "relfusiond ready");
+    relfusion_server::run(listener, Arc::new(state), shutdown_signal()).await?;
+    tracing::info!("stopped");
     Ok(())
 }

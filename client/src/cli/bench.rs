@@ -15,6 +15,8 @@ pub enum BenchCommand {
     Pyramid(PyramidArgs),
     /// SLAM pipeline wall time per frame (unpaced) and the ATE spread over runs.
     Slam(super::bench_slam::SlamArgs),
+    /// A running relfusiond: HTTP/Zenoh ingest rate, frame-to-pose latency, sessions at 30 fps.
+    Serve(super::bench_serve::ServeArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -40,6 +42,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Pyramid(args) => pyramid(&args),
         BenchCommand::Slam(args) => super::bench_slam::slam(&args),
+        BenchCommand::Serve(args) => super::bench_serve::serve(&args),
     }
 }
 

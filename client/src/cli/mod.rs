@@ -1,9 +1,14 @@
 //! One module per subcommand: each exposes its clap `Args` (or subcommand enum) and `run`.
 
 pub mod bench;
+pub mod bench_serve;
 pub mod bench_slam;
+pub mod connect;
 pub mod eval;
+pub mod fetch;
 pub mod gpu_info;
 pub mod prior;
 pub mod run;
+pub mod stream;
 pub mod synth;
+pub mod upload;

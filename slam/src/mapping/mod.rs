@@ -21,6 +21,7 @@ pub mod filter;
 mod filter_tests;
 mod hypothesis;
 pub mod keyframe;
+mod prior_fill;
 mod propagate;
 #[cfg(test)]
 mod real_tests;
@@ -33,3 +34,4 @@ pub use config::MappingConfig;
 pub use depth_map::{DepthMap, InverseDepth};
 pub use filter::{DepthFilter, ObserveStats};
 pub use keyframe::{keyframe_score, keyframe_threshold, needs_new_keyframe};
+pub use prior_fill::{PriorFill, PriorFillParams};

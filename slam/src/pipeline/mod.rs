@@ -26,7 +26,7 @@ use crate::frame::Frame;
 use crate::geometry::{PinholeCamera, SE3, SO3, Sim3, UndistortMap};
 use crate::graph::{Backend, BackendHandle, KeyframeId, NewKeyframe, ParentEdge};
 use crate::image::ImageF32;
-use crate::mapping::{DepthFilter, DepthMap, needs_new_keyframe};
+use crate::mapping::{DepthFilter, DepthMap, PriorFillParams, needs_new_keyframe};
 use crate::tracking::{SE3Tracker, TrackingReference};
 use crate::{Error, Result};
 
@@ -432,6 +432,7 @@ impl Pipeline {
         state: TrackingState,
     ) -> Result<Vec<Event>> {
         let t0 = std::time::Instant::now();
+        self.fill_from_prior(&mut filter)?;
         // New inverse depths are multiplied by `factor`, so new-keyframe coordinates shrink by
         // it: source_from_new = [R t] · diag(factor).
         let factor = filter.normalize_scale();
@@ -460,6 +461,33 @@ impl Pipeline {
         )?;
         self.stats.mapping_s += t0.elapsed().as_secs_f64();
         Ok(events)
+    }
+
+    /// Fills the holes of a new keyframe's propagated depth from the depth prior
+    /// (`pipeline.prior_fill`; nothing without a prior or an RGB image).
+    fn fill_from_prior(&mut self, filter: &mut DepthFilter) -> Result<()> {
+        let cfg = &self.config.pipeline;
+        let (true, Some(prior), Some(rgb)) = (
+            cfg.prior_fill,
+            self.prior.as_mut(),
+            filter.keyframe().rgb.clone(),
+        ) else {
+            return Ok(());
+        };
+        // The network runs only for keyframes the prior will fill.
+        if filter.coverage() > cfg.prior_fill_max_coverage {
+            return Ok(());
+        }
+        let prior_inv = prior.predict(&rgb)?.into_image();
+        let params = PriorFillParams {
+            var: cfg.prior_fill_var,
+            validity: cfg.prior_fill_validity,
+            min_fit_pixels: cfg.prior_fill_min_pixels,
+            max_coverage: cfg.prior_fill_max_coverage,
+        };
+        // `None`: no trustworthy alignment; the keyframe keeps its propagated depth only.
+        filter.fill_from_prior(&prior_inv, &params)?;
+        Ok(())
     }
 
     /// Registers `frame` as the current keyframe and reports it.

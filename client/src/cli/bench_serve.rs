@@ -1,0 +1,492 @@
+//! `relfusion bench serve --server URL`: what a running relfusiond sustains, as one JSON object.
+//!
+//! 1. **Ingest over HTTP**: one drop-oldest session, `POST /v1/sessions/{id}/frames` as fast as
+//!    `--concurrency` requests in flight allow; figure: accepted (202) frames per second. The
+//!    server decodes and validates every frame before answering, so this is the ingest path's
+//!    throughput, not the pipeline's (the pipeline drops what it cannot keep up with).
+//! 2. **Ingest over Zenoh** (with `--zenoh`): the same frames published on the session's key;
+//!    figure: frames the server counted as received per second of publishing.
+//! 3. **Frame-to-pose latency at `--fps`**: one live session over the WebSocket, frames paced
+//!    like a camera; each pose is matched to its frame by id, latency = pose received − frame
+//!    sent, p50/p99 over the frames that got a pose; frames without one count as dropped.
+//! 4. **Sessions sustained at `--fps`**: k = 1, 2, … concurrent live sessions as in 3 until the
+//!    p99 latency over all of them exceeds 1 s, more than 5 % of the frames are dropped, or the
+//!    server refuses a session (503); the figure is the largest k that passed.
+//!
+//! The frames come from `--dataset`, or a synthetic sequence rendered at `--width`×`--height`.
+//! Nothing is spawned: the server is whatever `--server` points at.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::Context as _;
+use bytes::Bytes;
+use relfusion_client::link::{end_of_stream, frame_message, open_session};
+use relfusion_client::{Client, CreateSessionRequest, FramePolicy, Transport};
+use relfusion_proto::v1::server_message;
+use relfusion_slam::dataset::TumSequence;
+use relfusion_slam::dataset::synth::{SynthConfig, render_sequence};
+use serde_json::{Value, json};
+
+use super::connect::{ConnectArgs, runtime};
+
+/// p99 frame-to-pose latency above which a number of sessions is not "sustained".
+const MAX_P99_MS: f64 = 1000.0;
+/// Fraction of dropped frames above which a number of sessions is not "sustained".
+const MAX_DROP_FRACTION: f64 = 0.05;
+/// How long to wait after the last frame for the session to finish and close its stream.
+const DRAIN_TIMEOUT: Duration = Duration::from_secs(30);
+
+#[derive(Debug, clap::Args)]
+pub struct ServeArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// Also measure ingest over Zenoh through this endpoint (e.g. tcp/127.0.0.1:7447).
+    #[arg(long)]
+    pub zenoh: Option<String>,
+    /// TUM-layout sequence to send (default: a synthetic one rendered at --width×--height).
+    #[arg(long)]
+    pub dataset: Option<PathBuf>,
+    /// Width of the synthetic sequence.
+    #[arg(long, default_value_t = 320)]
+    pub width: u32,
+    /// Height of the synthetic sequence.
+    #[arg(long, default_value_t = 240)]
+    pub height: u32,
+    /// Frames per live run (latency, each step of the sessions ramp).
+    #[arg(long, default_value_t = 150)]
+    pub frames: usize,
+    /// Frames per ingest run (the sequence repeats; short runs measure mostly start-up).
+    #[arg(long, default_value_t = 600)]
+    pub ingest_frames: usize,
+    /// Most concurrent sessions to try.
+    #[arg(long, default_value_t = 4)]
+    pub sessions_max: usize,
+    /// Camera rate of the latency and sessions runs.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// HTTP requests in flight during the ingest run.
+    #[arg(long, default_value_t = 4)]
+    pub concurrency: usize,
+    /// Depth model for the sessions ("none", "default", a configured name).
+    #[arg(long)]
+    pub model: Option<String>,
+}
+
+/// The frames of a run, encoded, in memory.
+struct Frames {
+    camera: relfusion_client::CameraJson,
+    items: Vec<(f64, Bytes)>,
+    width: u32,
+    height: u32,
+    bytes_mean: f64,
+}
+
+pub fn serve(args: &ServeArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(args.frames > 0, "--frames must be positive");
+    anyhow::ensure!(args.ingest_frames > 0, "--ingest-frames must be positive");
+    anyhow::ensure!(
+        args.fps.is_finite() && args.fps > 0.0,
+        "--fps must be positive"
+    );
+    anyhow::ensure!(args.concurrency > 0, "--concurrency must be positive");
+    let frames = Arc::new(load_frames(args)?);
+    let client = args.connect.client()?;
+    let report = runtime()?.block_on(async {
+        client
+            .health()
+            .await
+            .with_context(|| format!("{} is not answering /healthz", args.connect.server()))?;
+        let version = client.version().await.unwrap_or(Value::Null);
+        let http_ingest = http_ingest(&client, &frames, args).await?;
+        let zenoh_ingest = match &args.zenoh {
+            Some(endpoint) => zenoh_ingest(&client, &frames, endpoint, args)
+                .await
+                .unwrap_or_else(|e| json!({ "error": format!("{e:#}") })),
+            None => Value::Null,
+        };
+        let (latency, sessions) = sessions_ramp(&client, &frames, args).await;
+        anyhow::Ok(json!({
+            "bench": "serve",
+            "server": args.connect.server(),
+            "server_version": version,
+            "width": frames.width,
+            "height": frames.height,
+            "frames": frames.items.len(),
+            "frame_bytes_mean": frames.bytes_mean,
+            "http_ingest": http_ingest,
+            "zenoh_ingest": zenoh_ingest,
+            "latency": latency,
+            "sessions": sessions,
+            "notes": "ingest: accepted frames/s (decoded and validated by the server, drop-oldest \
+                      queue behind); latency: pose received - frame sent, at `fps`, WebSocket; \
+                      sessions: largest k concurrent sessions at `fps` with p99 <= 1 s and \
+                      <= 5 % frames without a pose",
+        }))
+    })?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
+
+fn load_frames(args: &ServeArgs) -> anyhow::Result<Frames> {
+    let mut rendered = None;
+    let dir = match &args.dataset {
+        Some(d) => d.clone(),
+        None => {
+            let dir = std::env::temp_dir().join(format!(
+                "relfusion-bench-serve-{}x{}-{}",
+                args.width,
+                args.height,
+                std::process::id()
+            ));
+            let config = SynthConfig {
+                frames: args.frames,
+                width: args.width,
+                height: args.height,
+                seed: 1,
+                ..SynthConfig::default()
+            };
+            render_sequence(&config, &dir).context("rendering the synthetic sequence")?;
+            rendered = Some(dir.clone());
+            dir
+        }
+    };
+    let seq =
+        TumSequence::open(&dir, None).with_context(|| format!("opening {}", dir.display()))?;
+    // Longer runs than the sequence cycle through it (timestamps keep increasing).
+    let items = (0..args.frames)
+        .map(|i| {
+            let path = &seq.frames[i % seq.len()].rgb;
+            let bytes =
+                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            Ok((i as f64 / args.fps, Bytes::from(bytes)))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    if let Some(dir) = rendered {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+    let bytes_mean = items.iter().map(|(_, b)| b.len() as f64).sum::<f64>() / items.len() as f64;
+    Ok(Frames {
+        camera: (&seq.camera).into(),
+        width: seq.camera.width,
+        height: seq.camera.height,
+        items,
+        bytes_mean,
+    })
+}
+
+fn request(frames: &Frames, policy: FramePolicy, args: &ServeArgs) -> CreateSessionRequest {
+    CreateSessionRequest {
+        camera: frames.camera,
+        config: Value::Null,
+        model: args.model.clone(),
+        policy,
+    }
+}
+
+async fn http_ingest(
+    client: &Client,
+    frames: &Arc<Frames>,
+    args: &ServeArgs,
+) -> anyhow::Result<Value> {
+    let info = client
+        .create_session(&request(frames, FramePolicy::DropOldest, args))
+        .await
+        .context("creating the ingest session")?;
+    let id = Arc::new(info.id);
+    let next = Arc::new(AtomicUsize::new(0));
+    let (total, fps) = (args.ingest_frames, args.fps);
+    let t0 = Instant::now();
+    let workers: Vec<_> = (0..args.concurrency)
+        .map(|_| {
+            let (client, frames, id, next) =
+                (client.clone(), frames.clone(), id.clone(), next.clone());
+            tokio::spawn(async move {
+                let (mut accepted, mut errors, mut first_error) = (0u64, 0u64, None);
+                loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    if i >= total {
+                        break;
+                    }
+                    let (_, bytes) = &frames.items[i % frames.items.len()];
+                    let ts = i as f64 / fps;
+                    match client.push_frame(&id, None, ts, bytes.clone()).await {
+                        Ok(_) => accepted += 1,
+                        Err(e) => {
+                            errors += 1;
+                            first_error.get_or_insert_with(|| e.report());
+                        }
+                    }
+                }
+                (accepted, errors, first_error)
+            })
+        })
+        .collect();
+    let (mut accepted, mut errors, mut first_error) = (0, 0, None);
+    for w in workers {
+        let (a, e, f) = w.await?;
+        accepted += a;
+        errors += e;
+        first_error = first_error.or(f);
+    }
+    let wall_s = t0.elapsed().as_secs_f64();
+    let info = client.session(&id).await.ok();
+    let _ = client.delete(&id).await;
+    Ok(json!({
+        "frames_posted": total,
+        "accepted_202": accepted,
+        "errors": errors,
+        "first_error": first_error,
+        "wall_s": wall_s,
+        "frames_per_s": accepted as f64 / wall_s,
+        "mb_per_s": accepted as f64 * frames.bytes_mean / wall_s / 1e6,
+        "concurrency": args.concurrency,
+        "pipeline_processed": info.as_ref().map(|i| i.frames_processed),
+        "pipeline_dropped": info.as_ref().map(|i| i.frames_dropped),
+    }))
+}
+
+/// Ingest over Zenoh, measured by the Zenoh transport itself (publishing is fire-and-forget,
+/// so it counts what the server accepted, through the session's map queryable).
+async fn zenoh_ingest(
+    client: &Client,
+    frames: &Arc<Frames>,
+    endpoint: &str,
+    args: &ServeArgs,
+) -> anyhow::Result<Value> {
+    // The same cycled sequence as the HTTP ingest run (`Bytes` clones share the images).
+    let items: Vec<(f64, Bytes)> = (0..args.ingest_frames)
+        .map(|i| {
+            let (_, bytes) = &frames.items[i % frames.items.len()];
+            (i as f64 / args.fps, bytes.clone())
+        })
+        .collect();
+    let req = CreateSessionRequest {
+        camera: frames.camera,
+        config: Value::Null,
+        model: None,
+        policy: FramePolicy::DropOldest,
+    };
+    let rate =
+        relfusion_client::zenoh_transport::ingest_rate(endpoint, client.token(), &req, &items)
+            .await?;
+    Ok(serde_json::to_value(rate)?)
+}
+
+/// One paced live session's outcome.
+#[derive(Debug, Default)]
+struct LiveRun {
+    sent: u64,
+    latencies_ms: Vec<f64>,
+    server_dropped: u64,
+    error: Option<String>,
+}
+
+/// Streams every frame at `fps` to a new live session and matches poses to frames.
+async fn live_session(
+    client: Client,
+    frames: Arc<Frames>,
+    fps: f64,
+    req: CreateSessionRequest,
+) -> LiveRun {
+    let mut run = LiveRun::default();
+    let mut link = match open_session(&client, &Transport::Http, &req).await {
+        Ok(link) => link,
+        Err(e) => {
+            run.error = Some(e.report());
+            return run;
+        }
+    };
+    let id = link.session_id.clone();
+    let n = frames.items.len();
+    let sent_at: Arc<std::sync::Mutex<Vec<Option<Instant>>>> =
+        Arc::new(std::sync::Mutex::new(vec![None; n]));
+    let tx = link.frames.clone();
+    let (sent_w, frames_w) = (sent_at.clone(), frames.clone());
+    let sender = tokio::spawn(async move {
+        let start = tokio::time::Instant::now();
+        let mut sent = 0u64;
+        for (i, (ts, bytes)) in frames_w.items.iter().enumerate() {
+            tokio::time::sleep_until(start + Duration::from_secs_f64(i as f64 / fps)).await;
+            if let Ok(mut s) = sent_w.lock() {
+                s[i] = Some(Instant::now());
+            }
+            if tx
+                .send(frame_message(i as u64, *ts, bytes.to_vec()))
+                .await
+                .is_err()
+            {
+                break;
+            }
+            sent += 1;
+        }
+        let _ = tx.send(end_of_stream()).await;
+        sent
+    });
+    // Dropping our own sender lets the stream close once the sender task is done.
+    drop(std::mem::replace(
+        &mut link.frames,
+        tokio::sync::mpsc::channel(1).0,
+    ));
+    let deadline =
+        tokio::time::Instant::now() + Duration::from_secs_f64(n as f64 / fps) + DRAIN_TIMEOUT;
+    loop {
+        match tokio::time::timeout_at(deadline, link.updates.recv()).await {
+            Ok(Some(Ok(msg))) => {
+                if let Some(server_message::Message::Pose(p)) = msg.message {
+                    let now = Instant::now();
+                    let sent = sent_at
+                        .lock()
+                        .ok()
+                        .and_then(|s| s.get(p.frame_id as usize).copied().flatten());
+                    if let Some(t) = sent {
+                        run.latencies_ms
+                            .push(1e3 * now.duration_since(t).as_secs_f64());
+                    }
+                }
+            }
+            Ok(Some(Err(e))) => {
+                run.error = Some(e.report());
+                break;
+            }
+            Ok(None) => break,
+            Err(_) => {
+                run.error = Some("the session did not finish in time".into());
+                break;
+            }
+        }
+    }
+    sender.abort();
+    run.sent = sent_at
+        .lock()
+        .map(|s| s.iter().flatten().count() as u64)
+        .unwrap_or(0);
+    if let Ok(info) = client.session(&id).await {
+        run.server_dropped = info.frames_dropped;
+    }
+    let _ = client.delete(&id).await;
+    run
+}
+
+/// Runs k = 1..=sessions_max concurrent live sessions; returns the single-session latency
+/// figures and the ramp.
+async fn sessions_ramp(client: &Client, frames: &Arc<Frames>, args: &ServeArgs) -> (Value, Value) {
+    let mut steps = Vec::new();
+    let mut sustained = 0;
+    let mut latency = Value::Null;
+    for k in 1..=args.sessions_max.max(1) {
+        let runs: Vec<_> = (0..k)
+            .map(|_| {
+                tokio::spawn(live_session(
+                    client.clone(),
+                    frames.clone(),
+                    args.fps,
+                    request(frames, FramePolicy::DropOldest, args),
+                ))
+            })
+            .collect();
+        let mut all = LiveRun::default();
+        for r in runs {
+            let run = r.await.unwrap_or_else(|e| LiveRun {
+                error: Some(e.to_string()),
+                ..LiveRun::default()
+            });
+            all.sent += run.sent;
+            all.latencies_ms.extend(run.latencies_ms);
+            all.server_dropped += run.server_dropped;
+            all.error = all.error.or(run.error);
+        }
+        let step = step_json(k, &mut all, args.fps);
+        if k == 1 {
+            latency = step.clone();
+        }
+        let ok = step["ok"].as_bool().unwrap_or(false);
+        steps.push(step);
+        if !ok {
+            break;
+        }
+        sustained = k;
+    }
+    let sessions = json!({
+        "sustained": sustained,
+        "fps": args.fps,
+        "criterion": format!("p99 <= {MAX_P99_MS} ms and drops <= {}%", 100.0 * MAX_DROP_FRACTION),
+        "steps": steps,
+    });
+    (latency, sessions)
+}
+
+fn step_json(k: usize, run: &mut LiveRun, fps: f64) -> Value {
+    run.latencies_ms.sort_by(f64::total_cmp);
+    let poses = run.latencies_ms.len() as u64;
+    let drop_fraction = if run.sent == 0 {
+        1.0
+    } else {
+        1.0 - poses as f64 / run.sent as f64
+    };
+    let p50 = percentile(&run.latencies_ms, 0.50);
+    let p99 = percentile(&run.latencies_ms, 0.99);
+    let ok = run.error.is_none()
+        && p99.is_some_and(|p| p <= MAX_P99_MS)
+        && drop_fraction <= MAX_DROP_FRACTION;
+    json!({
+        "sessions": k,
+        "fps": fps,
+        "frames_sent": run.sent,
+        "poses": poses,
+        "drop_fraction": drop_fraction,
+        "server_frames_dropped": run.server_dropped,
+        "p50_ms": p50,
+        "p99_ms": p99,
+        "max_ms": run.latencies_ms.last(),
+        "ok": ok,
+        "error": run.error,
+    })
+}
+
+/// Nearest-rank percentile of sorted `v`.
+fn percentile(v: &[f64], q: f64) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    let rank = (q * v.len() as f64).ceil() as usize;
+    Some(v[rank.clamp(1, v.len()) - 1])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nearest_rank_percentiles() {
+        let v: Vec<f64> = (1..=100).map(f64::from).collect();
+        assert_eq!(percentile(&v, 0.5), Some(50.0));
+        assert_eq!(percentile(&v, 0.99), Some(99.0));
+        assert_eq!(percentile(&[3.0], 0.99), Some(3.0));
+        assert_eq!(percentile(&[], 0.5), None);
+    }
+
+    #[test]
+    fn a_step_fails_on_drops_or_latency() {
+        let mut good = LiveRun {
+            sent: 100,
+            latencies_ms: vec![50.0; 100],
+            ..LiveRun::default()
+        };
+        assert_eq!(step_json(1, &mut good, 30.0)["ok"], true);
+        let mut dropping = LiveRun {
+            sent: 100,
+            latencies_ms: vec![50.0; 90],
+            ..LiveRun::default()
+        };
+        assert_eq!(step_json(1, &mut dropping, 30.0)["ok"], false);
+        let mut slow = LiveRun {
+            sent: 100,
+            latencies_ms: vec![1500.0; 100],
+            ..LiveRun::default()
+        };
+        assert_eq!(step_json(1, &mut slow, 30.0)["ok"], false);
+    }
+}

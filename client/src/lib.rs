@@ -1,0 +1,26 @@
+//! The relfusion client library: everything `relfusion stream`, `upload`, `fetch` and
+//! `bench serve` do, as Rust functions against a running `relfusiond`.
+//!
+//! - [`Client`] ([`api`]): one method per HTTP route (`/v1/sessions`, frames, downloads, ...);
+//!   failures are [`ClientError`]s with the server's `{"error":{code,message}}` parsed.
+//! - [`link`]: a live session as two channels (protobuf frames in, protobuf updates out)
+//!   whatever the transport: WebSocket ([`ws`]) or Zenoh.
+//! - [`dataset_stream::stream_dataset`]: a TUM-layout sequence streamed like a camera.
+//! - [`upload::upload_dataset`]: a dataset as a tar archive built on the fly.
+//! - [`fetch::fetch`]: a session's results into a folder.
+
+pub mod api;
+pub mod dataset_stream;
+pub mod error;
+pub mod fetch;
+pub mod link;
+pub mod upload;
+pub mod ws;
+pub mod zenoh_transport;
+
+pub use api::{CameraJson, Client, CreateSessionRequest, FramePolicy, SessionInfo};
+pub use dataset_stream::{StreamEvent, StreamOptions, StreamSummary, stream_dataset};
+pub use error::ClientError;
+pub use fetch::{Fetched, fetch};
+pub use link::{SessionLink, Transport};
+pub use upload::{UploadOptions, upload_dataset};

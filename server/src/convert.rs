@@ -1,0 +1,226 @@
+//! Conversions between the pipeline's types (`relfusion_slam`), the wire schema
+//! (`relfusion_proto::v1`) and the JSON of the HTTP API, plus the byte formats of results.
+//! No math happens here: only re-packing.
+
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use relfusion_proto::v1;
+use relfusion_slam::dataset::trajectory::{StampedPose, format_tum_trajectory};
+use relfusion_slam::export::ColoredPoint;
+use relfusion_slam::geometry::{Distortion, PinholeCamera, SO3, Sim3};
+use relfusion_slam::pipeline::TrackingState;
+
+use crate::ApiError;
+use crate::session::{CameraJson, PoseJson};
+
+/// `Sim3` → protobuf `Sim3Pose`.
+pub fn sim3_to_proto(pose: &Sim3) -> v1::Sim3Pose {
+    let q = pose.rotation.quaternion();
+    v1::Sim3Pose {
+        translation: Some(v1::Vector3 {
+            x: pose.translation.x,
+            y: pose.translation.y,
+            z: pose.translation.z,
+        }),
+        rotation: Some(v1::Quaternion {
+            x: q.i,
+            y: q.j,
+            z: q.k,
+            w: q.w,
+        }),
+        scale: pose.scale,
+    }
+}
+
+/// Protobuf `Sim3Pose` → `Sim3`; rejects a missing or zero quaternion, non-finite values and
+/// a scale ≤ 0 (the unset field).
+pub fn sim3_from_proto(pose: &v1::Sim3Pose) -> Result<Sim3, ApiError> {
+    let t = pose.translation.unwrap_or_default();
+    let q = pose
+        .rotation
+        .ok_or_else(|| ApiError::bad_request("pose: rotation is missing"))?;
+    let values = [t.x, t.y, t.z, q.x, q.y, q.z, q.w, pose.scale];
+    if values.iter().any(|v| !v.is_finite()) {
+        return Err(ApiError::bad_request("pose: values must be finite"));
+    }
+    if pose.scale <= 0.0 {
+        return Err(ApiError::bad_request("pose: scale must be > 0"));
+    }
+    let raw = Quaternion::new(q.w, q.x, q.y, q.z);
+    if raw.norm() < 1e-12 {
+        return Err(ApiError::bad_request(
+            "pose: the zero quaternion is invalid",
+        ));
+    }
+    Ok(Sim3::new(
+        SO3::from_quaternion(UnitQuaternion::from_quaternion(raw)),
+        Vector3::new(t.x, t.y, t.z),
+        pose.scale,
+    ))
+}
+
+/// `Sim3` → the JSON pose of events.
+pub fn pose_json(pose: &Sim3) -> PoseJson {
+    let q = pose.rotation.quaternion();
+    PoseJson {
+        t: [pose.translation.x, pose.translation.y, pose.translation.z],
+        q: [q.i, q.j, q.k, q.w],
+        s: pose.scale,
+    }
+}
+
+/// The pose of a JSON event as protobuf.
+pub fn pose_json_to_proto(pose: &PoseJson) -> v1::Sim3Pose {
+    v1::Sim3Pose {
+        translation: Some(v1::Vector3 {
+            x: pose.t[0],
+            y: pose.t[1],
+            z: pose.t[2],
+        }),
+        rotation: Some(v1::Quaternion {
+            x: pose.q[0],
+            y: pose.q[1],
+            z: pose.q[2],
+            w: pose.q[3],
+        }),
+        scale: pose.s,
+    }
+}
+
+/// `PinholeCamera` → protobuf `Camera`.
+pub fn camera_to_proto(camera: &PinholeCamera) -> v1::Camera {
+    v1::Camera {
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        width: camera.width,
+        height: camera.height,
+        distortion: camera.distortion.map(|d| v1::Distortion {
+            k1: d.k1,
+            k2: d.k2,
+            p1: d.p1,
+            p2: d.p2,
+            k3: d.k3,
+        }),
+    }
+}
+
+/// Protobuf `Camera` → the API's camera JSON (validate it with [`CameraJson::to_camera`]).
+pub fn camera_json_from_proto(camera: &v1::Camera) -> CameraJson {
+    CameraJson {
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        width: camera.width,
+        height: camera.height,
+        distortion: camera
+            .distortion
+            .as_ref()
+            .map(|d| [d.k1, d.k2, d.p1, d.p2, d.k3]),
+    }
+}
+
+/// Protobuf `Camera` → validated `PinholeCamera` (400 on invalid intrinsics).
+pub fn camera_from_proto(camera: &v1::Camera) -> Result<PinholeCamera, ApiError> {
+    camera_json_from_proto(camera).to_camera()
+}
+
+/// A distortion as the proto's five coefficients.
+pub fn distortion_from_array(k: [f64; 5]) -> Distortion {
+    Distortion::new(k[0], k[1], k[2], k[3], k[4])
+}
+
+/// Tracking state → protobuf (the wire has no "relocalized": such a frame is tracked).
+pub fn tracking_state_to_proto(state: TrackingState) -> v1::TrackingState {
+    match state {
+        TrackingState::Initializing => v1::TrackingState::Initializing,
+        TrackingState::Tracking | TrackingState::Relocalized => v1::TrackingState::Tracking,
+        TrackingState::Lost => v1::TrackingState::Lost,
+    }
+}
+
+/// A TUM trajectory text of Sim(3) poses, exactly as `relfusion run` writes it: the scale is
+/// dropped (it acts on the map, not on the camera centre), values at full precision.
+pub fn tum_text(poses: &[(f64, Sim3)]) -> String {
+    let stamped: Vec<StampedPose> = poses
+        .iter()
+        .map(|(t, pose)| StampedPose {
+            timestamp: *t,
+            world_from_camera: pose.to_se3_and_scale().0,
+        })
+        .collect();
+    format_tum_trajectory(&stamped)
+}
+
+/// The bytes of a binary little-endian PLY point cloud, the layout of
+/// `relfusion_slam::export::write_points_ply` (`x y z` float, `red green blue` uchar).
+pub fn points_ply(points: &[ColoredPoint]) -> Vec<u8> {
+    let header = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment relfusion semi-dense map\nelement vertex {}\n\
+         property float x\nproperty float y\nproperty float z\n\
+         property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
+        points.len()
+    );
+    let mut bytes = Vec::with_capacity(header.len() + points.len() * 15);
+    bytes.extend_from_slice(header.as_bytes());
+    for p in points {
+        for v in p.position {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        bytes.extend_from_slice(&p.color);
+    }
+    bytes
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sim3_round_trips_through_proto() {
+        let pose = Sim3::new(
+            SO3::exp(&Vector3::new(0.1, -0.2, 0.3)),
+            Vector3::new(1.0, 2.0, -3.0),
+            0.7,
+        );
+        let back = sim3_from_proto(&sim3_to_proto(&pose)).expect("valid");
+        assert!((back.matrix() - pose.matrix()).norm() < 1e-12);
+        let j = pose_json(&pose);
+        assert_eq!(pose_json_to_proto(&j), sim3_to_proto(&pose));
+        let mut bad = sim3_to_proto(&pose);
+        bad.scale = 0.0;
+        assert!(sim3_from_proto(&bad).is_err());
+        bad.scale = 1.0;
+        bad.rotation = Some(v1::Quaternion::default());
+        assert!(sim3_from_proto(&bad).is_err());
+    }
+
+    #[test]
+    fn camera_round_trips_through_proto() {
+        let cam = PinholeCamera::tum_freiburg1();
+        let back = camera_from_proto(&camera_to_proto(&cam)).expect("valid");
+        assert_eq!(back, cam);
+        let mut bad = camera_to_proto(&cam);
+        bad.fx = f64::NAN;
+        assert_eq!(camera_from_proto(&bad).expect_err("nan").status, 400);
+    }
+
+    #[test]
+    fn ply_bytes_match_the_library_writer() {
+        let points = [
+            ColoredPoint {
+                position: [1.0, 2.0, 3.0],
+                color: [1, 2, 3],
+            },
+            ColoredPoint {
+                position: [-1.0, 0.5, 9.0],
+                color: [255, 0, 7],
+            },
+        ];
+        let path = std::env::temp_dir().join(format!("relfusion-ply-{}.ply", std::process::id()));
+        relfusion_slam::export::write_points_ply(&path, &points).expect("write");
+        assert_eq!(std::fs::read(&path).expect("read"), points_ply(&points));
+        let _ = std::fs::remove_file(path);
+    }
+}

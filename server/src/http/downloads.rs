@@ -1,0 +1,159 @@
+//! Results of a session: trajectory and keyframes (TUM text), point cloud and mesh files.
+//! They are the current state while a session runs and the final one once it has finished
+//! (finished sessions are read back from the store, so they survive restarts).
+
+use std::sync::Arc;
+
+use axum::extract::{Path, State};
+use axum::http::header;
+use axum::response::{IntoResponse, Response};
+
+use super::auth::Auth;
+use super::error::ErrorBody;
+use super::openapi::Binary;
+use crate::session::Session;
+use crate::{ApiError, AppState};
+
+const TEXT: &str = "text/plain; charset=utf-8";
+const BINARY: &str = "application/octet-stream";
+const GLB: &str = "model/gltf-binary";
+
+/// Runs `produce` on a blocking thread: results may be read from disk or be large to build.
+async fn produce<T: Send + 'static>(
+    session: Arc<Session>,
+    produce: impl FnOnce(&Session) -> T + Send + 'static,
+) -> Result<T, ApiError> {
+    tokio::task::spawn_blocking(move || produce(&session))
+        .await
+        .map_err(|e| ApiError::internal(format!("building the result failed: {e}")))
+}
+
+fn file(content_type: &'static str, name: String, body: impl IntoResponse) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, content_type.to_string()),
+            (
+                header::CONTENT_DISPOSITION,
+                format!("attachment; filename=\"{name}\""),
+            ),
+        ],
+        body,
+    )
+        .into_response()
+}
+
+fn no_mesh(id: &str) -> ApiError {
+    ApiError::not_found(format!(
+        "no mesh yet: session {id} has no fused surface (this server's pipeline does not fuse \
+         meshes yet); the trajectory, keyframes and point cloud are available"
+    ))
+}
+
+/// Camera trajectory, one TUM line per tracked frame: `timestamp tx ty tz qx qy qz qw`.
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}/trajectory", tag = "results",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 200, description = "TUM trajectory (world_from_camera)", body = String, content_type = "text/plain"),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn trajectory(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let session = state.sessions.get(&id, &owner)?;
+    let text = produce(session, Session::trajectory_tum).await?;
+    Ok(file(TEXT, format!("{id}-trajectory.txt"), text))
+}
+
+/// Keyframe poses after pose-graph optimisation, TUM lines.
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}/keyframes", tag = "results",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 200, description = "TUM keyframe trajectory", body = String, content_type = "text/plain"),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn keyframes(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let session = state.sessions.get(&id, &owner)?;
+    let text = produce(session, Session::keyframes_tum).await?;
+    Ok(file(TEXT, format!("{id}-keyframes.txt"), text))
+}
+
+/// Semi-dense point cloud of the keyframes' depth maps (binary PLY).
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}/pointcloud.ply", tag = "results",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 200, description = "PLY point cloud", body = Binary, content_type = "application/octet-stream"),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn pointcloud_ply(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let session = state.sessions.get(&id, &owner)?;
+    let bytes = produce(session, Session::pointcloud_ply).await?;
+    Ok(file(BINARY, format!("{id}-pointcloud.ply"), bytes))
+}
+
+/// The fused surface as PLY (404 until the session has a mesh).
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}/mesh.ply", tag = "results",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 200, description = "PLY mesh", body = Binary, content_type = "application/octet-stream"),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session, or no mesh yet", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn mesh_ply(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let session = state.sessions.get(&id, &owner)?;
+    let bytes = produce(session, Session::mesh_ply)
+        .await?
+        .ok_or_else(|| no_mesh(&id))?;
+    Ok(file(BINARY, format!("{id}-mesh.ply"), bytes))
+}
+
+/// The fused surface as binary glTF (404 until the session has a mesh).
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}/mesh.glb", tag = "results",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 200, description = "glTF binary mesh", body = Binary, content_type = "model/gltf-binary"),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session, or no mesh yet", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn mesh_glb(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let session = state.sessions.get(&id, &owner)?;
+    let bytes = produce(session, Session::mesh_glb)
+        .await?
+        .ok_or_else(|| no_mesh(&id))?;
+    Ok(file(GLB, format!("{id}-mesh.glb"), bytes))
+}

@@ -1,0 +1,146 @@
+//! Session lifecycle: create, list, inspect, finish, delete.
+
+use std::sync::Arc;
+
+use axum::Json;
+use axum::extract::{Path, State};
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::Serialize;
+use utoipa::ToSchema;
+
+use super::auth::Auth;
+use super::error::{ApiJson, ErrorBody};
+use crate::session::{CreateSession, SessionInfo};
+use crate::{ApiError, AppState};
+
+/// Answer to a successful create (live session or upload).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CreatedSession {
+    /// The new session's id (unguessable; use it in every `/v1/sessions/{id}` path).
+    pub id: String,
+    pub session: SessionInfo,
+}
+
+/// Every session the caller owns.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct SessionList {
+    pub sessions: Vec<SessionInfo>,
+}
+
+/// `201 Created` with a `Location` header pointing at the session.
+pub(super) fn created(info: SessionInfo) -> Response {
+    let location = format!("/v1/sessions/{}", info.id);
+    let mut response = (
+        StatusCode::CREATED,
+        Json(CreatedSession {
+            id: info.id.clone(),
+            session: info,
+        }),
+    )
+        .into_response();
+    if let Ok(value) = HeaderValue::from_str(&location) {
+        response.headers_mut().insert(header::LOCATION, value);
+    }
+    response
+}
+
+/// Opens a live session: frames then arrive over `/frames`, `/stream` (WebSocket) or Zenoh.
+#[utoipa::path(
+    post, path = "/v1/sessions", tag = "sessions",
+    request_body = CreateSession,
+    responses(
+        (status = 201, description = "Session created", body = CreatedSession),
+        (status = 400, description = "Invalid camera, config or model", body = ErrorBody),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 503, description = "At capacity (max_sessions)", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn create_session(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    ApiJson(request): ApiJson<CreateSession>,
+) -> Result<Response, ApiError> {
+    let session = state.sessions.create(request, &owner)?;
+    Ok(created(session.info()))
+}
+
+/// Lists the caller's sessions (live, uploads, finished).
+#[utoipa::path(
+    get, path = "/v1/sessions", tag = "sessions",
+    responses(
+        (status = 200, description = "The caller's sessions", body = SessionList),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn list_sessions(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+) -> Json<SessionList> {
+    Json(SessionList {
+        sessions: state.sessions.list(&owner),
+    })
+}
+
+/// State and progress of one session.
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}", tag = "sessions",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 200, description = "The session", body = SessionInfo),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn get_session(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+) -> Result<Json<SessionInfo>, ApiError> {
+    Ok(Json(state.sessions.get(&id, &owner)?.info()))
+}
+
+/// Stops a session and removes its data and results.
+#[utoipa::path(
+    delete, path = "/v1/sessions/{id}", tag = "sessions",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 204, description = "Deleted"),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn delete_session(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    state.sessions.delete(&id, &owner)?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+/// End of stream: the session processes its queued frames, finishes the map and persists the
+/// results; `/events` and `/stream` report `finished` when done.
+#[utoipa::path(
+    post, path = "/v1/sessions/{id}/finish", tag = "sessions",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 202, description = "Finishing; the body is the session as of now", body = SessionInfo),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn finish_session(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+) -> Result<(StatusCode, Json<SessionInfo>), ApiError> {
+    let session = state.sessions.get(&id, &owner)?;
+    session.end_of_stream();
+    Ok((StatusCode::ACCEPTED, Json(session.info())))
+}

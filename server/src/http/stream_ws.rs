@@ -1,0 +1,283 @@
+//! `GET /v1/sessions/{id}/stream`: the session as a WebSocket, protobuf both ways.
+//!
+//! The client sends binary `ClientMessage`s (`Frame`, `EndOfStream`; `config` is ignored: the
+//! session exists already); the server sends binary `ServerMessage`s (`PoseUpdate`,
+//! `KeyframeUpdate`, `MeshUpdate`, `Error`). A bad message (undecodable, corrupt image, wrong
+//! size, ...) is answered with an `Error` and the socket stays open: one bad frame must not
+//! cost a live stream. After `EndOfStream` the server keeps sending updates until the session
+//! has finished its map, then closes the socket normally.
+//!
+//! Receiving and sending run as two tasks so that a frame waiting for queue room (the `wait`
+//! policy) never holds back the updates of earlier frames.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::body::Bytes;
+use axum::extract::ws::rejection::WebSocketUpgradeRejection;
+use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade, close_code};
+use axum::extract::{Path, State};
+use axum::response::Response;
+use futures_util::stream::{SplitSink, SplitStream};
+use futures_util::{SinkExt, StreamExt};
+use relfusion_proto::Message as _;
+use relfusion_proto::v1::{
+    self, ClientMessage, ErrorCode, ServerMessage, client_message, server_message,
+};
+use tokio::sync::broadcast::{self, error::RecvError};
+use tokio::sync::mpsc;
+
+use super::auth::Auth;
+use super::error::ErrorBody;
+use crate::session::{FrameData, Session, SessionEvent};
+use crate::{ApiError, AppState};
+
+/// Room for protobuf framing around the largest allowed image.
+const MESSAGE_OVERHEAD: usize = 64 * 1024;
+
+/// How long a closed-by-us socket waits for the client's close reply before it is dropped.
+const CLOSE_GRACE: Duration = Duration::from_secs(5);
+
+/// Error replies queued between the receiving and the sending task (bounded: a client that
+/// floods bad messages waits for its errors to be written).
+const REPLY_QUEUE: usize = 16;
+
+/// Opens the session's protobuf WebSocket.
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}/stream", tag = "streams",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 101, description = "WebSocket: binary protobuf relfusion.v1.ClientMessage in, relfusion.v1.ServerMessage out"),
+        (status = 400, description = "Not a WebSocket upgrade request", body = ErrorBody),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn stream(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+    upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
+) -> Result<Response, ApiError> {
+    let session = state.sessions.get(&id, &owner)?;
+    let upgrade = upgrade.map_err(|rejection| ApiError {
+        status: rejection.status().as_u16(),
+        code: "invalid_argument",
+        message: format!(
+            "{}: this endpoint is a WebSocket (ws://.../v1/sessions/{id}/stream)",
+            rejection.body_text()
+        ),
+    })?;
+    let limit = usize::try_from(state.config.limits.max_frame_bytes)
+        .unwrap_or(usize::MAX)
+        .saturating_add(MESSAGE_OVERHEAD);
+    Ok(upgrade
+        .max_message_size(limit)
+        .max_frame_size(limit)
+        .on_upgrade(move |socket| serve(socket, session)))
+}
+
+async fn serve(socket: WebSocket, session: Arc<Session>) {
+    // Subscribe before anything is received, so no update of a frame sent here is missed.
+    let events = session.subscribe();
+    let already_ended = session.info().state.is_terminal();
+    let (sink, stream) = socket.split();
+    let (reply_tx, reply_rx) = mpsc::channel(REPLY_QUEUE);
+    let mut send_task = tokio::spawn(send_loop(
+        sink,
+        events,
+        reply_rx,
+        session.id().to_string(),
+        already_ended,
+    ));
+    let mut receive_task = tokio::spawn(receive_loop(stream, session.clone(), reply_tx));
+    tokio::select! {
+        _ = &mut send_task => {
+            // We closed (session finished): give the client a moment to answer the close.
+            if tokio::time::timeout(CLOSE_GRACE, &mut receive_task).await.is_err() {
+                receive_task.abort();
+            }
+        }
+        _ = &mut receive_task => send_task.abort(),
+    }
+    tracing::debug!(session = session.id(), "websocket closed");
+}
+
+fn error_message(code: ErrorCode, message: impl Into<String>) -> ServerMessage {
+    ServerMessage {
+        message: Some(server_message::Message::Error(v1::Error {
+            code: code as i32,
+            message: message.into(),
+        })),
+    }
+}
+
+fn binary(message: &ServerMessage) -> Message {
+    Message::Binary(Bytes::from(message.encode_to_vec()))
+}
+
+/// Forwards session updates and error replies to the client; closes after the session's end.
+async fn send_loop(
+    mut sink: SplitSink<WebSocket, Message>,
+    mut events: broadcast::Receiver<SessionEvent>,
+    mut replies: mpsc::Receiver<ServerMessage>,
+    session_id: String,
+    already_ended: bool,
+) {
+    let close = |reason: &'static str| {
+        Message::Close(Some(CloseFrame {
+            code: close_code::NORMAL,
+            reason: reason.into(),
+        }))
+    };
+    if already_ended {
+        let _ = sink.send(close("session already finished")).await;
+        return;
+    }
+    let mut replies_open = true;
+    loop {
+        tokio::select! {
+            reply = replies.recv(), if replies_open => match reply {
+                Some(message) => {
+                    if sink.send(binary(&message)).await.is_err() {
+                        return;
+                    }
+                }
+                None => replies_open = false,
+            },
+            event = events.recv() => match event {
+                Ok(event) => {
+                    if let Some(message) = event.to_proto(&session_id)
+                        && sink.send(binary(&message)).await.is_err()
+                    {
+                        return;
+                    }
+                    if event.is_last() {
+                        // Error replies already queued still go out before the close.
+                        while let Ok(message) = replies.try_recv() {
+                            let _ = sink.send(binary(&message)).await;
+                        }
+                        let _ = sink.send(close("session finished")).await;
+                        return;
+                    }
+                }
+                Err(RecvError::Lagged(skipped)) => {
+                    let message = error_message(
+                        ErrorCode::ResourceExhausted,
+                        format!("{skipped} updates skipped: this client reads too slowly; the trajectory endpoint has them all"),
+                    );
+                    if sink.send(binary(&message)).await.is_err() {
+                        return;
+                    }
+                }
+                Err(RecvError::Closed) => {
+                    let _ = sink.send(close("session closed")).await;
+                    return;
+                }
+            },
+        }
+    }
+}
+
+/// Reads client messages until the client closes; every failure becomes an `Error` reply.
+async fn receive_loop(
+    mut stream: SplitStream<WebSocket>,
+    session: Arc<Session>,
+    replies: mpsc::Sender<ServerMessage>,
+) {
+    while let Some(Ok(message)) = stream.next().await {
+        let outcome = match message {
+            Message::Binary(data) => handle(&session, data).await,
+            Message::Text(_) => Err(ApiError::bad_request(
+                "text messages are not understood: send binary protobuf relfusion.v1.ClientMessage",
+            )),
+            Message::Close(_) => break,
+            // Pings are answered by the WebSocket layer itself.
+            Message::Ping(_) | Message::Pong(_) => Ok(()),
+        };
+        if let Err(error) = outcome
+            && replies
+                .send(error_message(error.proto_code(), error.message))
+                .await
+                .is_err()
+        {
+            break;
+        }
+    }
+}
+
+async fn handle(session: &Session, data: Bytes) -> Result<(), ApiError> {
+    let message = ClientMessage::decode(data).map_err(|e| {
+        ApiError::bad_request(format!(
+            "malformed message: not a protobuf relfusion.v1.ClientMessage ({e})"
+        ))
+    })?;
+    match message.message {
+        Some(client_message::Message::Frame(frame)) => {
+            if let Some(camera) = &frame.camera {
+                check_same_camera(session, camera)?;
+            }
+            if !frame.timestamp.is_finite() {
+                return Err(ApiError::bad_request(format!(
+                    "frame {}: timestamp must be finite, got {}",
+                    frame.frame_id, frame.timestamp
+                )));
+            }
+            let frame_id = frame.frame_id;
+            session
+                .push_frame(FrameData {
+                    frame_id: Some(frame_id),
+                    timestamp: frame.timestamp,
+                    bytes: frame.image.into(),
+                })
+                .await
+                .map_err(|e| ApiError {
+                    message: format!("frame {frame_id}: {}", e.message),
+                    ..e
+                })?;
+            Ok(())
+        }
+        Some(client_message::Message::EndOfStream(_)) => {
+            session.end_of_stream();
+            Ok(())
+        }
+        // The session was configured when it was created; a repeated config changes nothing.
+        Some(client_message::Message::Config(_)) => Ok(()),
+        None => Err(ApiError::bad_request(
+            "empty ClientMessage: set one of frame, end_of_stream",
+        )),
+    }
+}
+
+/// Frames may repeat the session camera but not change it: the pipeline has one camera.
+fn check_same_camera(session: &Session, camera: &v1::Camera) -> Result<(), ApiError> {
+    let own = session.camera();
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(1.0);
+    let same = camera.width == own.width
+        && camera.height == own.height
+        && close(camera.fx, own.fx)
+        && close(camera.fy, own.fy)
+        && close(camera.cx, own.cx)
+        && close(camera.cy, own.cy);
+    if same {
+        Ok(())
+    } else {
+        Err(ApiError::bad_request(format!(
+            "the frame's camera ({}x{}, fx {} fy {} cx {} cy {}) differs from the session's \
+             ({}x{}, fx {} fy {} cx {} cy {}); open a new session for another camera",
+            camera.width,
+            camera.height,
+            camera.fx,
+            camera.fy,
+            camera.cx,
+            camera.cy,
+            own.width,
+            own.height,
+            own.fx,
+            own.fy,
+            own.cx,
+            own.cy
+        )))
+    }
+}

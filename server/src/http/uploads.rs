@@ -1,0 +1,242 @@
+//! `POST /v1/uploads`: a whole TUM-layout dataset as one `.tar` or `.zip` stream.
+//!
+//! The body is streamed to a temporary file inside the data directory (never held in memory,
+//! counted against `limits.max_upload_bytes` as it arrives), then handed to the session
+//! manager, which extracts it safely, stores it durably and only then returns: the 201 is the
+//! promise that the upload survives a crash. Processing follows on the worker pool; progress
+//! is in `GET /v1/sessions/{id}`.
+
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::extract::State;
+use axum::http::{HeaderMap, header};
+use axum::response::Response;
+use futures_util::StreamExt;
+use serde::Deserialize;
+use tokio::io::AsyncWriteExt;
+use utoipa::IntoParams;
+
+use super::auth::Auth;
+use super::error::{ApiQuery, ErrorBody};
+use super::openapi::Binary;
+use super::sessions::{CreatedSession, created};
+use crate::session::{ArchiveKind, CameraJson};
+use crate::{ApiError, AppState};
+
+/// Query parameters of an upload. Intrinsics are all-or-nothing; without them the camera comes
+/// from the dataset's `calibration.txt`, else from a TUM / 7-Scenes preset recognised by the
+/// folder name.
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct UploadParams {
+    /// `tar` or `zip`; omitted: from the Content-Type, else sniffed from the first bytes.
+    pub format: Option<String>,
+    pub fx: Option<f64>,
+    pub fy: Option<f64>,
+    pub cx: Option<f64>,
+    pub cy: Option<f64>,
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    /// Partial pipeline configuration as a JSON object (URL-encoded); unknown keys are refused.
+    pub config: Option<String>,
+}
+
+impl UploadParams {
+    fn camera(&self) -> Result<Option<CameraJson>, ApiError> {
+        match (self.fx, self.fy, self.cx, self.cy, self.width, self.height) {
+            (None, None, None, None, None, None) => Ok(None),
+            (Some(fx), Some(fy), Some(cx), Some(cy), Some(width), Some(height)) => {
+                Ok(Some(CameraJson {
+                    fx,
+                    fy,
+                    cx,
+                    cy,
+                    width,
+                    height,
+                    distortion: None,
+                }))
+            }
+            _ => Err(ApiError::bad_request(
+                "give all of fx, fy, cx, cy, width, height, or none of them",
+            )),
+        }
+    }
+
+    fn config(&self) -> Result<serde_json::Value, ApiError> {
+        let Some(text) = &self.config else {
+            return Ok(serde_json::Value::Null);
+        };
+        match serde_json::from_str(text) {
+            Ok(value @ serde_json::Value::Object(_)) => Ok(value),
+            Ok(_) => Err(ApiError::bad_request("config must be a JSON object")),
+            Err(e) => Err(ApiError::bad_request(format!("config is not JSON: {e}"))),
+        }
+    }
+}
+
+/// The archive format a Content-Type names, if any.
+fn kind_from_content_type(content_type: &str) -> Option<ArchiveKind> {
+    match content_type.to_ascii_lowercase().as_str() {
+        "application/x-tar" => Some(ArchiveKind::Tar),
+        "application/zip" | "application/x-zip-compressed" => Some(ArchiveKind::Zip),
+        _ => None,
+    }
+}
+
+/// The archive format from its first bytes: zip local header / end record, or the ustar magic.
+fn sniff(head: &[u8]) -> Option<ArchiveKind> {
+    if head.starts_with(b"PK\x03\x04") || head.starts_with(b"PK\x05\x06") {
+        Some(ArchiveKind::Zip)
+    } else if head.len() >= 262 && &head[257..262] == b"ustar" {
+        Some(ArchiveKind::Tar)
+    } else {
+        None
+    }
+}
+
+fn disk_error(e: std::io::Error) -> ApiError {
+    ApiError::internal(format!("storing the upload failed: {e}"))
+}
+
+/// Uploads a TUM-layout dataset (`rgb.txt` + `rgb/`, optional `groundtruth.txt` and
+/// `calibration.txt`, at the archive root or one folder down) to be processed as a session.
+#[utoipa::path(
+    post, path = "/v1/uploads", tag = "uploads",
+    params(UploadParams),
+    request_body(content = Binary, content_type = "application/x-tar",
+        description = "The archive (tar or zip), streamed"),
+    responses(
+        (status = 201, description = "Stored durably; processing is queued", body = CreatedSession),
+        (status = 400, description = "Unknown format, truncated or invalid archive, unsafe paths (../, absolute, links), not a TUM layout, no camera", body = ErrorBody),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 413, description = "Larger than limits.max_upload_bytes", body = ErrorBody),
+        (status = 503, description = "At capacity (max_sessions)", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn upload(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    ApiQuery(params): ApiQuery<UploadParams>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Response, ApiError> {
+    let limit = state.config.limits.max_upload_bytes;
+    let too_large = || {
+        ApiError::payload_too_large(format!(
+            "upload larger than limits.max_upload_bytes = {limit} bytes"
+        ))
+    };
+    // Refuse a declared oversize before reading anything.
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > limit) {
+        return Err(too_large());
+    }
+    let camera = params.camera()?;
+    let config = params.config()?;
+    let mut kind = match &params.format {
+        Some(name) => Some(name.parse::<ArchiveKind>()?),
+        None => headers
+            .get(header::CONTENT_TYPE)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| kind_from_content_type(v.split(';').next().unwrap_or_default().trim())),
+    };
+
+    // The manager's temp folder is inside the data directory and emptied at every start, so
+    // a crash mid-upload leaves nothing behind for long.
+    let tmp_dir = state.sessions.temp_dir();
+    tokio::fs::create_dir_all(tmp_dir)
+        .await
+        .map_err(disk_error)?;
+    // Deleted when dropped: on every error path below, and after the manager has copied it.
+    let temp = tempfile::Builder::new()
+        .prefix("upload-")
+        .suffix(".part")
+        .tempfile_in(tmp_dir)
+        .map_err(disk_error)?;
+    let mut file = tokio::fs::File::from_std(temp.reopen().map_err(disk_error)?);
+    let mut head = Vec::with_capacity(512);
+    let mut received: u64 = 0;
+    let mut chunks = body.into_data_stream();
+    while let Some(chunk) = chunks.next().await {
+        let chunk = chunk.map_err(|e| {
+            ApiError::bad_request(format!(
+                "the upload was interrupted after {received} bytes: {e}"
+            ))
+        })?;
+        received += chunk.len() as u64;
+        if received > limit {
+            return Err(too_large());
+        }
+        if head.len() < 512 {
+            let take = (512 - head.len()).min(chunk.len());
+            head.extend_from_slice(&chunk[..take]);
+        }
+        file.write_all(&chunk).await.map_err(disk_error)?;
+    }
+    file.flush().await.map_err(disk_error)?;
+    drop(file);
+    if received == 0 {
+        return Err(ApiError::bad_request(
+            "empty upload: send a .tar or .zip of a TUM-layout dataset",
+        ));
+    }
+    if kind.is_none() {
+        kind = sniff(&head);
+    }
+    let kind = kind.ok_or_else(|| {
+        ApiError::bad_request(
+            "unknown archive format: pass ?format=tar or ?format=zip (or a tar/zip Content-Type)",
+        )
+    })?;
+    let session = state
+        .sessions
+        .create_upload(temp.path(), kind, camera, config, &owner)
+        .await?;
+    tracing::info!(session = session.id(), bytes = received, "upload stored");
+    Ok(created(session.info()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn archives_are_recognised_by_their_magic() {
+        assert!(matches!(sniff(b"PK\x03\x04rest"), Some(ArchiveKind::Zip)));
+        let mut tar = vec![0u8; 512];
+        tar[257..263].copy_from_slice(b"ustar\0");
+        assert!(matches!(sniff(&tar), Some(ArchiveKind::Tar)));
+        assert!(sniff(b"\x89PNG").is_none());
+    }
+
+    #[test]
+    fn intrinsics_are_all_or_nothing() {
+        let params = |fx: Option<f64>, width: Option<u32>| UploadParams {
+            format: None,
+            fx,
+            fy: fx,
+            cx: fx,
+            cy: fx,
+            width,
+            height: width,
+            config: None,
+        };
+        assert!(matches!(params(None, None).camera(), Ok(None)));
+        assert!(matches!(
+            params(Some(500.0), Some(320)).camera(),
+            Ok(Some(_))
+        ));
+        assert_eq!(
+            params(Some(500.0), None)
+                .camera()
+                .map_err(|e| e.status)
+                .err(),
+            Some(400)
+        );
+    }
+}

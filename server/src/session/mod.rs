@@ -1,0 +1,39 @@
+//! Sessions: one `slam::Pipeline` each, fed by a bounded frame queue (live) or an uploaded
+//! dataset, on its own thread; events broadcast to subscribers; results in the store.
+//!
+//! - [`types`]: the JSON of sessions (create request, info, camera, policy).
+//! - [`handle`]: [`Session`], the shared handle request handlers use.
+//! - [`manager`]: [`SessionManager`]: admission, uploads, recovery, shutdown.
+//! - [`overrides`]: the per-session pipeline config (JSON merged over defaults).
+//! - [`worker`]: the per-session pipeline thread.
+//! - [`queue`]: the bounded frame queue (drop-oldest or wait).
+//! - [`events`]: [`SessionEvent`] and its protobuf form.
+//! - [`upload`]: safe archive extraction.
+//! - [`persist`]: what is stored, under which keys.
+//! - [`prior`]: the shared depth model, run on the GPU pool.
+//! - [`decode`]: JPEG/PNG frame decoding and checks.
+
+pub mod decode;
+pub mod events;
+pub mod handle;
+pub mod manager;
+#[cfg(test)]
+mod manager_tests;
+pub mod overrides;
+pub mod persist;
+pub mod prior;
+pub mod queue;
+pub mod types;
+pub mod upload;
+mod worker;
+
+pub use events::SessionEvent;
+pub use handle::Session;
+pub use manager::SessionManager;
+pub use overrides::merge_config;
+pub use prior::{PooledPrior, SharedModel};
+pub use types::{
+    CameraJson, CreateSession, FrameData, FramePolicy, Owner, PoseJson, Progress, SessionId,
+    SessionInfo, SessionKind, SessionState,
+};
+pub use upload::ArchiveKind;

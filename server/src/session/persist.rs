@@ -1,0 +1,140 @@
+//! What a session keeps in the store, and under which keys.
+//!
+//! `sessions/<id>/meta.json` ([`SessionMeta`]) is written when a session is acknowledged and
+//! on every state change, atomically; its presence is what makes a session exist after a
+//! restart (a folder without it is an unacknowledged upload and is removed).
+//! `sessions/<id>/results/` holds the trajectory, keyframes, point cloud and a summary,
+//! written on finish and every few keyframes while running.
+
+use relfusion_slam::pipeline::Config as SlamConfig;
+use serde::{Deserialize, Serialize};
+
+use super::types::{
+    CameraJson, FramePolicy, Owner, Progress, SessionInfo, SessionKind, SessionState,
+};
+use crate::storage::{ObjectStore, StoreError};
+
+/// Format version of `meta.json`.
+pub const META_VERSION: u32 = 1;
+
+/// Key of a session's folder (with the trailing `/`).
+pub fn session_prefix(id: &str) -> String {
+    format!("sessions/{id}/")
+}
+
+/// Key of a session's metadata.
+pub fn meta_key(id: &str) -> String {
+    format!("sessions/{id}/meta.json")
+}
+
+/// Key of one result file (`trajectory.txt`, `keyframes.txt`, `pointcloud.ply`,
+/// `summary.json`).
+pub fn result_key(id: &str, name: &str) -> String {
+    format!("sessions/{id}/results/{name}")
+}
+
+/// Key of an upload's extracted archive.
+pub fn upload_key(id: &str) -> String {
+    format!("sessions/{id}/upload")
+}
+
+/// Running counters of a session (part of its info and of its metadata).
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CounterSnapshot {
+    pub received: u64,
+    pub processed: u64,
+    pub dropped: u64,
+    pub lost: u64,
+    pub keyframes: u64,
+}
+
+/// Everything needed to show a session after a restart, and to re-run an upload exactly.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SessionMeta {
+    pub version: u32,
+    pub id: String,
+    pub owner: Owner,
+    pub kind: SessionKind,
+    pub state: SessionState,
+    /// The resolved camera (for uploads: from the request, calibration.txt or a preset).
+    pub camera: CameraJson,
+    /// The resolved pipeline configuration; a re-run uses exactly this.
+    pub config: SlamConfig,
+    pub model: String,
+    pub policy: FramePolicy,
+    pub created_unix: u64,
+    #[serde(default)]
+    pub error: Option<String>,
+    /// Uploads: the dataset folder's key below the session (`upload` or `upload/<folder>`).
+    #[serde(default)]
+    pub dataset: Option<String>,
+    /// Uploads: frames in the dataset.
+    #[serde(default)]
+    pub total_frames: Option<u64>,
+    #[serde(default)]
+    pub counters: CounterSnapshot,
+}
+
+impl SessionMeta {
+    /// Writes it (atomically, durably).
+    pub fn save(&self, store: &dyn ObjectStore) -> Result<(), StoreError> {
+        let bytes = serde_json::to_vec_pretty(self).unwrap_or_default();
+        store.put(&meta_key(&self.id), &bytes)
+    }
+
+    /// Reads the metadata of session `id`; `Ok(None)` when absent, an error text when
+    /// unreadable.
+    pub fn load(store: &dyn ObjectStore, id: &str) -> Result<Option<Self>, String> {
+        let Some(bytes) = store.get(&meta_key(id)).map_err(|e| e.to_string())? else {
+            return Ok(None);
+        };
+        serde_json::from_slice(&bytes)
+            .map(Some)
+            .map_err(|e| format!("{}: {e}", meta_key(id)))
+    }
+
+    /// The info of a session known only from its metadata.
+    pub fn info(&self) -> SessionInfo {
+        SessionInfo {
+            id: self.id.clone(),
+            kind: self.kind,
+            state: self.state,
+            frames_received: self.counters.received,
+            frames_processed: self.counters.processed,
+            frames_dropped: self.counters.dropped,
+            frames_lost: self.counters.lost,
+            keyframes: self.counters.keyframes,
+            progress: Progress {
+                processed: self.counters.processed,
+                total: self.total_frames,
+            },
+            created_unix: self.created_unix,
+            camera: self.camera.clone(),
+            model: self.model.clone(),
+            error: self.error.clone(),
+        }
+    }
+}
+
+/// The result files of a session, as bytes.
+#[derive(Clone, Debug, Default)]
+pub struct Results {
+    pub trajectory: String,
+    pub keyframes: String,
+    pub pointcloud: Vec<u8>,
+    pub summary: serde_json::Value,
+}
+
+impl Results {
+    /// Writes every result file (each atomically).
+    pub fn save(&self, store: &dyn ObjectStore, id: &str) -> Result<(), StoreError> {
+        store.put(
+            &result_key(id, "trajectory.txt"),
+            self.trajectory.as_bytes(),
+        )?;
+        store.put(&result_key(id, "keyframes.txt"), self.keyframes.as_bytes())?;
+        store.put(&result_key(id, "pointcloud.ply"), &self.pointcloud)?;
+        let summary = serde_json::to_vec_pretty(&self.summary).unwrap_or_default();
+        store.put(&result_key(id, "summary.json"), &summary)
+    }
+}

@@ -1,0 +1,307 @@
+//! The worker thread of a session: owns its `slam::Pipeline`, feeds it from the frame queue
+//! (live) or the uploaded dataset, turns pipeline events into session events, checkpoints
+//! results every few keyframes and persists the final ones.
+//!
+//! Tracking is CPU work, so each session gets a plain thread (not a tokio task: a 50 ms
+//! tracking step would stall the async runtime that serves `/healthz`). Accelerator work goes
+//! through the GPU pool ([`super::prior::PooledPrior`]).
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use relfusion_slam::dataset::TumSequence;
+use relfusion_slam::dense::DepthPrior;
+use relfusion_slam::pipeline::{Event, FrameInput, Pipeline, Stats, TrackingState};
+use serde_json::json;
+
+use super::events::SessionEvent;
+use super::handle::{QueuedFrame, Session};
+use super::persist::Results;
+use super::prior::SharedModel;
+use super::queue::Pop;
+use super::types::{SessionKind, SessionState};
+use crate::convert::{points_ply, pose_json, tum_text};
+use crate::gpu_pool::PoolClient;
+use crate::metrics::{Metrics, Stage};
+
+/// What a worker needs besides its session.
+#[derive(Debug)]
+pub(crate) struct WorkerEnv {
+    pub model: Option<SharedModel>,
+    pub pool: Arc<PoolClient>,
+    pub metrics: Arc<Metrics>,
+    pub checkpoint_keyframes: usize,
+    pub idle_timeout: Duration,
+}
+
+/// How a worker ended.
+#[derive(Debug, PartialEq, Eq)]
+pub(crate) enum Outcome {
+    Finished,
+    /// Deleted: nothing persisted.
+    Cancelled,
+    /// Server shutdown during an upload: left as is, it re-runs on restart.
+    Stopped,
+    Failed,
+}
+
+/// Runs the session to its end (called on the session's own thread).
+pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
+    session.set_state(SessionState::Running, None);
+    let ended_before_start = session.has_ended();
+    if ended_before_start && session.kind() == SessionKind::Live {
+        session.set_state(SessionState::Finishing, None);
+    }
+    let prior: Option<Box<dyn DepthPrior>> = env
+        .model
+        .as_ref()
+        .map(|m| Box::new(m.pooled(env.pool.clone(), env.metrics.clone())) as Box<dyn DepthPrior>);
+    let pipeline = match Pipeline::new(session.config.clone(), *session.camera(), prior) {
+        Ok(p) => p,
+        Err(e) => return fail(session, None, format!("starting the pipeline: {e}")),
+    };
+    let mut runner = Runner {
+        session,
+        env: &env,
+        pipeline,
+        last_stats: Stats::default(),
+        since_checkpoint: 0,
+    };
+    let fed = match session.kind() {
+        SessionKind::Live => runner.feed_live(),
+        SessionKind::Upload => runner.feed_upload(),
+    };
+    match fed {
+        Ok(Outcome::Finished) => runner.finish(),
+        Ok(other) => other,
+        Err(message) => fail(session, Some(&runner), message),
+    }
+}
+
+/// Marks the session failed, saving what results there are.
+fn fail(session: &Session, runner: Option<&Runner<'_>>, message: String) -> Outcome {
+    tracing::warn!(session = %session.id(), "session failed: {message}");
+    if let Some(runner) = runner {
+        runner.save_results(false);
+    }
+    session.conclude(SessionState::Failed, Some(message));
+    Outcome::Failed
+}
+
+struct Runner<'a> {
+    session: &'a Arc<Session>,
+    env: &'a WorkerEnv,
+    pipeline: Pipeline,
+    last_stats: Stats,
+    since_checkpoint: usize,
+}
+
+impl Runner<'_> {
+    fn feed_live(&mut self) -> Result<Outcome, String> {
+        let Some(queue) = &self.session.queue else {
+            return Err("live session without a frame queue".into());
+        };
+        loop {
+            if self.session.cancelled.load(Ordering::SeqCst) {
+                return Ok(Outcome::Cancelled);
+            }
+            match queue.pop_timeout(self.env.idle_timeout) {
+                Pop::Item(frame) => {
+                    self.env.metrics.frame_queue_depth.dec();
+                    self.process(frame)?;
+                }
+                Pop::TimedOut => {
+                    tracing::info!(
+                        session = %self.session.id(),
+                        "no frame for {:?}: finishing (limits.idle_timeout_s)",
+                        self.env.idle_timeout
+                    );
+                    self.session.end_of_stream();
+                }
+                Pop::Closed => {
+                    return Ok(if self.session.cancelled.load(Ordering::SeqCst) {
+                        Outcome::Cancelled
+                    } else {
+                        Outcome::Finished
+                    });
+                }
+            }
+        }
+    }
+
+    fn feed_upload(&mut self) -> Result<Outcome, String> {
+        let dataset = self
+            .session
+            .dataset
+            .as_deref()
+            .ok_or("upload without a dataset")?;
+        let key = format!("sessions/{}/{dataset}", self.session.id());
+        let dir = self
+            .session
+            .store
+            .local_path(&key)
+            .ok_or("uploads need a filesystem store")?;
+        let camera = *self.session.camera();
+        let mut seq = TumSequence::open(&dir, Some(camera))
+            .map_err(|e| format!("reading the uploaded dataset: {e}"))?;
+        seq.camera = camera;
+        for i in 0..seq.len() {
+            if self.session.cancelled.load(Ordering::SeqCst) {
+                return Ok(Outcome::Cancelled);
+            }
+            if self.session.stop.load(Ordering::SeqCst) {
+                return Ok(Outcome::Stopped);
+            }
+            let rgb = seq.load_rgb(i).map_err(|e| format!("frame {i}: {e}"))?;
+            self.session
+                .counters
+                .received
+                .fetch_add(1, Ordering::Relaxed);
+            self.process(QueuedFrame {
+                frame_id: i as u64,
+                timestamp: seq.frames[i].timestamp,
+                rgb,
+                received: std::time::Instant::now(),
+            })?;
+        }
+        self.session.set_state(SessionState::Finishing, None);
+        Ok(Outcome::Finished)
+    }
+
+    /// One frame through the pipeline; its events go to the subscribers.
+    fn process(&mut self, frame: QueuedFrame) -> Result<(), String> {
+        let events = self
+            .pipeline
+            .push(FrameInput {
+                timestamp: frame.timestamp,
+                rgb: frame.rgb,
+            })
+            .map_err(|e| format!("pipeline, frame {}: {e}", frame.frame_id))?;
+        let stats = self.pipeline.stats().clone();
+        let metrics = &self.env.metrics;
+        metrics.observe_stage(
+            Stage::Tracking,
+            stats.tracking_s - self.last_stats.tracking_s,
+        );
+        metrics.observe_stage(Stage::Mapping, stats.mapping_s - self.last_stats.mapping_s);
+        self.last_stats = stats;
+        let s = self.session;
+        s.counters.processed.fetch_add(1, Ordering::Relaxed);
+        metrics.frames_processed.inc();
+        for event in events {
+            match event {
+                Event::Pose(p) => {
+                    let lost = p.state == TrackingState::Lost;
+                    if lost {
+                        s.counters.lost.fetch_add(1, Ordering::Relaxed);
+                    }
+                    s.record_pose(p.timestamp, p.world_from_camera, lost);
+                    metrics
+                        .observe_stage(Stage::FrameToPose, frame.received.elapsed().as_secs_f64());
+                    s.emit(SessionEvent::Pose {
+                        frame_id: frame.frame_id,
+                        timestamp: p.timestamp,
+                        pose: pose_json(&p.world_from_camera),
+                        state: p.state,
+                        is_keyframe: p.is_keyframe,
+                        keyframe_id: p.keyframe_id as u64,
+                    });
+                }
+                Event::Keyframe(k) => {
+                    s.counters.keyframes.fetch_add(1, Ordering::Relaxed);
+                    s.record_keyframe(k.keyframe_id as u64, k.timestamp, k.world_from_keyframe);
+                    s.emit(SessionEvent::Keyframe {
+                        keyframe_id: k.keyframe_id as u64,
+                        frame_id: frame.frame_id,
+                        timestamp: k.timestamp,
+                        pose: pose_json(&k.world_from_keyframe),
+                    });
+                    self.since_checkpoint += 1;
+                }
+                Event::KeyframePoses { poses } => {
+                    s.update_keyframe_poses(&poses);
+                    s.emit(SessionEvent::KeyframePoses {
+                        poses: poses
+                            .iter()
+                            .map(|(id, p)| (*id as u64, pose_json(p)))
+                            .collect(),
+                    });
+                }
+            }
+        }
+        if self.since_checkpoint >= self.env.checkpoint_keyframes {
+            self.since_checkpoint = 0;
+            self.save_results(false);
+            s.persist_meta();
+        }
+        Ok(())
+    }
+
+    /// Writes the current results (best effort while running: a failed checkpoint is logged,
+    /// the session goes on).
+    fn save_results(&self, final_: bool) -> bool {
+        let s = self.session;
+        if s.cancelled.load(Ordering::SeqCst) {
+            return false;
+        }
+        let stats = self.pipeline.stats();
+        let results = Results {
+            trajectory: tum_text(&self.pipeline.trajectory()),
+            keyframes: tum_text(&self.pipeline.keyframe_trajectory()),
+            pointcloud: points_ply(&self.pipeline.semidense_points()),
+            summary: json!({
+                "final": final_,
+                "info": s.info(),
+                "frames": stats.frames,
+                "keyframes": stats.keyframes,
+                "frames_lost": stats.frames_lost,
+                "tracking_s": stats.tracking_s,
+                "mapping_s": stats.mapping_s,
+            }),
+        };
+        match results.save(s.store.as_ref(), s.id()) {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::error!(session = %s.id(), "saving results: {e}");
+                false
+            }
+        }
+    }
+
+    /// End of the frames: final optimisation, final results, `Finished`.
+    fn finish(mut self) -> Outcome {
+        let s = self.session;
+        if s.kind() == SessionKind::Live {
+            s.set_state(SessionState::Finishing, None);
+        }
+        let t0 = std::time::Instant::now();
+        let poses = match self.pipeline.finish() {
+            Ok(poses) => poses,
+            Err(e) => return fail(s, Some(&self), format!("final optimisation: {e}")),
+        };
+        s.update_keyframe_poses(&poses);
+        s.emit(SessionEvent::KeyframePoses {
+            poses: poses
+                .iter()
+                .map(|(id, p)| (*id as u64, pose_json(p)))
+                .collect(),
+        });
+        if s.cancelled.load(Ordering::SeqCst) {
+            return Outcome::Cancelled;
+        }
+        let optimise_s = t0.elapsed().as_secs_f64();
+        if !self.save_results(true) {
+            return fail(s, None, "could not store the results".into());
+        }
+        tracing::info!(
+            session = %s.id(),
+            optimise_s,
+            save_s = t0.elapsed().as_secs_f64() - optimise_s,
+            "finished"
+        );
+        self.since_checkpoint = 0;
+        s.conclude(SessionState::Finished, None);
+        Outcome::Finished
+    }
+}

@@ -1,0 +1,182 @@
+//! The `relfusion/sessions/create` queryable: a query whose payload is a protobuf
+//! `SessionConfig` (and whose attachment is the bearer token) creates a live session and puts
+//! it on Zenoh before the reply goes out, so the creator can publish frames at once.
+//!
+//! The reply is a protobuf `CreateSessionReply`: a normal reply with `session_id` on success,
+//! an error reply with `error` set otherwise (invalid camera or config: INVALID_ARGUMENT,
+//! missing or unknown token: UNAUTHENTICATED, at capacity: RESOURCE_EXHAUSTED). The queryable
+//! is declared complete, so a client's default query target asks exactly one node.
+//! Queries on wildcard keys (`relfusion/**`) are ignored: creating needs the exact key.
+
+use std::sync::Arc;
+
+use relfusion_proto::Message as _;
+use relfusion_proto::v1::{self, CreateSessionReply, SessionConfig};
+use relfusion_proto::zenoh_keys::CREATE;
+use tokio::task::JoinHandle;
+use zenoh::query::Query;
+
+use super::{Shared, bump, proto_error};
+use crate::convert::camera_json_from_proto;
+use crate::session::{CreateSession, FramePolicy};
+use crate::{ApiError, ServerError};
+
+/// Declares the queryable and serves it until shutdown.
+pub(crate) async fn serve(shared: Arc<Shared>) -> Result<JoinHandle<()>, ServerError> {
+    let queryable = shared
+        .zenoh
+        .declare_queryable(CREATE)
+        .complete(true)
+        .await
+        .map_err(|e| ServerError::Startup(format!("declaring {CREATE}: {e}")))?;
+    let mut shutdown = shared.shutdown.clone();
+    Ok(tokio::spawn(async move {
+        loop {
+            let query = tokio::select! {
+                query = queryable.recv_async() => match query {
+                    Ok(query) => query,
+                    Err(_) => break,
+                },
+                _ = shutdown.wait_for(|stop| *stop) => break,
+            };
+            if query.key_expr().as_str() != CREATE {
+                continue;
+            }
+            answer(&shared, &query).await;
+        }
+    }))
+}
+
+async fn answer(shared: &Arc<Shared>, query: &Query) {
+    match create(shared, query).await {
+        Ok(session_id) => {
+            let reply = CreateSessionReply {
+                session_id,
+                error: None,
+            };
+            if let Err(e) = query.reply(CREATE, reply.encode_to_vec()).await {
+                tracing::warn!("replying to {CREATE}: {e}");
+            }
+        }
+        Err(error) => {
+            bump(&shared.stats.queries_refused);
+            tracing::info!(
+                status = error.status,
+                "Zenoh create refused: {}",
+                error.message
+            );
+            let reply = CreateSessionReply {
+                session_id: String::new(),
+                error: Some(proto_error(&error)),
+            };
+            if let Err(e) = query.reply_err(reply.encode_to_vec()).await {
+                tracing::warn!("replying to {CREATE}: {e}");
+            }
+        }
+    }
+}
+
+async fn create(shared: &Arc<Shared>, query: &Query) -> Result<String, ApiError> {
+    let owner = shared.owner(query.attachment())?;
+    let payload = query.payload().map(|p| p.to_bytes()).unwrap_or_default();
+    let config = SessionConfig::decode(payload.as_ref()).map_err(|e| {
+        bump(&shared.stats.malformed_messages);
+        ApiError::bad_request(format!(
+            "malformed query payload: not a protobuf relfusion.v1.SessionConfig ({e})"
+        ))
+    })?;
+    let request = create_request(&config)?;
+    let session = shared.sessions.create(request, &owner)?;
+    if let Err(e) = shared.attach(session.clone()).await {
+        // A session nobody can stream to would only hold a slot until its idle timeout.
+        let _ = shared.sessions.delete(session.id(), &owner);
+        return Err(e);
+    }
+    bump(&shared.stats.sessions_created);
+    tracing::info!(session = %session.id(), "session created over Zenoh");
+    Ok(session.id().to_string())
+}
+
+/// The HTTP API's create request for a protobuf `SessionConfig`.
+pub fn create_request(config: &SessionConfig) -> Result<CreateSession, ApiError> {
+    let camera = config
+        .camera
+        .as_ref()
+        .ok_or_else(|| ApiError::bad_request("SessionConfig.camera is required"))?;
+    let overrides = match config.config_json.trim() {
+        "" => serde_json::Value::Null,
+        text => serde_json::from_str(text)
+            .map_err(|e| ApiError::bad_request(format!("SessionConfig.config_json: {e}")))?,
+    };
+    let model = Some(config.model_name.trim())
+        .filter(|m| !m.is_empty())
+        .map(String::from);
+    let policy = match config.policy() {
+        v1::FramePolicy::Wait => FramePolicy::Wait,
+        v1::FramePolicy::DropOldest | v1::FramePolicy::Unspecified => FramePolicy::DropOldest,
+    };
+    Ok(CreateSession {
+        camera: camera_json_from_proto(camera),
+        config: overrides,
+        model,
+        policy,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera() -> v1::Camera {
+        v1::Camera {
+            fx: 300.0,
+            fy: 300.0,
+            cx: 160.0,
+            cy: 120.0,
+            width: 320,
+            height: 240,
+            distortion: None,
+        }
+    }
+
+    #[test]
+    fn session_config_becomes_the_http_create_request() {
+        let req = create_request(&SessionConfig {
+            camera: Some(camera()),
+            config_json: r#"{"pipeline":{"deterministic":true}}"#.into(),
+            model_name: " none ".into(),
+            policy: v1::FramePolicy::Wait as i32,
+        })
+        .expect("valid");
+        assert_eq!(req.camera.width, 320);
+        assert_eq!(req.config["pipeline"]["deterministic"], true);
+        assert_eq!(req.model.as_deref(), Some("none"));
+        assert_eq!(req.policy, FramePolicy::Wait);
+
+        let defaults = create_request(&SessionConfig {
+            camera: Some(camera()),
+            ..Default::default()
+        })
+        .expect("valid");
+        assert!(defaults.config.is_null() && defaults.model.is_none());
+        assert_eq!(defaults.policy, FramePolicy::DropOldest);
+    }
+
+    #[test]
+    fn missing_camera_and_bad_json_are_invalid_arguments() {
+        let e = create_request(&SessionConfig::default()).expect_err("no camera");
+        assert_eq!(e.status, 400);
+        let e = create_request(&SessionConfig {
+            camera: Some(camera()),
+            config_json: "{not json".into(),
+            ..Default::default()
+        })
+        .expect_err("bad json");
+        assert_eq!(e.status, 400);
+        assert_eq!(proto_error(&e).code(), v1::ErrorCode::InvalidArgument);
+        assert_eq!(
+            proto_error(&ApiError::unauthorized("x")).code(),
+            v1::ErrorCode::Unauthenticated
+        );
+    }
+}

@@ -1,0 +1,263 @@
+//! One session on Zenoh: its frames come in on `relfusion/sessions/<id>/frames` (then `end`),
+//! its updates go out on `poses` and, at the end, `finished`.
+//!
+//! Frames and the end marker are received by ONE subscriber of `relfusion/sessions/<id>/*`
+//! (remote publications only, so the server's own updates are not looped back): Zenoh keeps
+//! the order of one publisher's messages, so an `end` can never overtake the last frames.
+//! The subscriber's channel holds `limits.frame_queue` messages; when it is full, Zenoh's
+//! receive path waits, which pushes back on the publisher (with congestion control `block`).
+//! That is how the `wait` policy reaches a Zenoh client; with `drop_oldest` the session's own
+//! queue drops (and counts) the oldest frames, so the channel rarely fills.
+//!
+//! Updates are published by a second task from the session's event broadcast, so a frame that
+//! waits for queue room never holds back the poses of earlier frames. Poses are published
+//! with congestion control `block` (reliable: a subscriber sees every pose); a publisher that
+//! falls behind the broadcast (`limits.event_buffer`) skips the events it missed.
+//!
+//! A malformed message, or a frame the session refuses (corrupt image, size mismatch, frame
+//! id not increasing, after the end), is answered with an `Error` on `poses` and counted;
+//! the session goes on.
+
+use std::sync::Arc;
+
+use relfusion_proto::Message as _;
+use relfusion_proto::v1::{self, Frame, SessionFinished};
+use relfusion_proto::zenoh_keys::{END, FINISHED, FRAMES, POSES, session_key, session_wildcard};
+use tokio::sync::broadcast::error::RecvError;
+use tokio::task::JoinHandle;
+use zenoh::handlers::FifoChannel;
+use zenoh::pubsub::Publisher;
+use zenoh::qos::CongestionControl;
+use zenoh::sample::{Locality, Sample};
+
+use super::{Shared, bump, error_message_bytes};
+use crate::ApiError;
+use crate::session::{CameraJson, FrameData, Session, SessionEvent, SessionInfo};
+
+/// Declares the session's subscriber and publishers and starts its two tasks.
+pub(crate) async fn attach(
+    shared: Arc<Shared>,
+    session: Arc<Session>,
+) -> Result<Vec<JoinHandle<()>>, ApiError> {
+    let id = session.id().to_string();
+    let zerr = |what: &str, e: zenoh::Error| ApiError::internal(format!("Zenoh {what}: {e}"));
+    // Subscribe to events before the first frame can arrive: every pose gets published.
+    let events = session.subscribe();
+    let poses = shared
+        .zenoh
+        .declare_publisher(session_key(&id, POSES))
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| zerr("poses publisher", e))?;
+    let capacity = shared.sessions.config().limits.frame_queue.max(1);
+    let subscriber = shared
+        .zenoh
+        .declare_subscriber(session_wildcard(&id))
+        .allowed_origin(Locality::Remote)
+        .with(FifoChannel::new(capacity))
+        .await
+        .map_err(|e| zerr("frames subscriber", e))?;
+
+    let ingest = {
+        let shared = shared.clone();
+        let session = session.clone();
+        let errors_key = session_key(&id, POSES);
+        tokio::spawn(async move {
+            let mut shutdown = shared.shutdown.clone();
+            let finished = session.wait_finished();
+            tokio::pin!(finished);
+            let mut tick = tokio::time::interval(LIVENESS_CHECK);
+            loop {
+                let sample = tokio::select! {
+                    sample = subscriber.recv_async() => match sample {
+                        Ok(sample) => sample,
+                        Err(_) => break,
+                    },
+                    _ = &mut finished => break,
+                    _ = shutdown.wait_for(|stop| *stop) => break,
+                    _ = tick.tick() => {
+                        if deleted(&shared, &session) {
+                            break;
+                        }
+                        continue;
+                    }
+                };
+                if let Err(error) = handle(&shared, &session, &sample).await {
+                    let put = shared
+                        .zenoh
+                        .put(errors_key.as_str(), error_message_bytes(&error))
+                        .congestion_control(CongestionControl::Block);
+                    if let Err(e) = put.await {
+                        tracing::warn!(session = %session.id(), "publishing an error: {e}");
+                    }
+                }
+            }
+            if let Err(e) = subscriber.undeclare().await {
+                tracing::debug!(session = %session.id(), "undeclaring the frames subscriber: {e}");
+            }
+        })
+    };
+    let publish = tokio::spawn(publish_updates(shared, session, events, poses));
+    Ok(vec![ingest, publish])
+}
+
+/// How often the session tasks check that their session still exists (deleted sessions
+/// emit no final event).
+const LIVENESS_CHECK: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// Whether the session was deleted (through HTTP): its tasks stop.
+fn deleted(shared: &Shared, session: &Session) -> bool {
+    shared.sessions.get(session.id(), session.owner()).is_err()
+}
+
+/// One message from the client.
+async fn handle(shared: &Shared, session: &Session, sample: &Sample) -> Result<(), ApiError> {
+    let key = sample.key_expr().as_str();
+    let leaf = key.rsplit('/').next().unwrap_or_default();
+    match leaf {
+        FRAMES => {
+            let payload = sample.payload().to_bytes();
+            let frame = Frame::decode(payload.as_ref()).map_err(|e| {
+                bump(&shared.stats.malformed_messages);
+                ApiError::bad_request(format!(
+                    "malformed message on {key}: not a protobuf relfusion.v1.Frame ({e})"
+                ))
+            })?;
+            push(shared, session, frame).await
+        }
+        END => {
+            session.end_of_stream();
+            Ok(())
+        }
+        // Other keys of the session (another node's updates, say) are not ours to consume.
+        _ => Ok(()),
+    }
+}
+
+async fn push(shared: &Shared, session: &Session, frame: Frame) -> Result<(), ApiError> {
+    let frame_id = frame.frame_id;
+    let result = async {
+        if let Some(camera) = &frame.camera {
+            check_same_camera(session, camera)?;
+        }
+        session
+            .push_frame(FrameData {
+                frame_id: Some(frame_id),
+                timestamp: frame.timestamp,
+                bytes: frame.image.into(),
+            })
+            .await
+    }
+    .await;
+    match result {
+        Ok(_) => {
+            bump(&shared.stats.frames_accepted);
+            Ok(())
+        }
+        Err(e) => {
+            bump(&shared.stats.frames_refused);
+            Err(ApiError {
+                message: format!("frame {frame_id}: {}", e.message),
+                ..e
+            })
+        }
+    }
+}
+
+/// A frame may repeat the session camera but not change it: the pipeline has one camera.
+fn check_same_camera(session: &Session, camera: &v1::Camera) -> Result<(), ApiError> {
+    let own = CameraJson::from_camera(session.camera());
+    let theirs = crate::convert::camera_json_from_proto(camera);
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(1.0);
+    let same = theirs.width == own.width
+        && theirs.height == own.height
+        && close(theirs.fx, own.fx)
+        && close(theirs.fy, own.fy)
+        && close(theirs.cx, own.cx)
+        && close(theirs.cy, own.cy);
+    if same {
+        return Ok(());
+    }
+    Err(ApiError::bad_request(format!(
+        "the frame's camera ({}x{}, fx {} fy {} cx {} cy {}) differs from the session's \
+         ({}x{}, fx {} fy {} cx {} cy {}); open a new session for another camera",
+        theirs.width,
+        theirs.height,
+        theirs.fx,
+        theirs.fy,
+        theirs.cx,
+        theirs.cy,
+        own.width,
+        own.height,
+        own.fx,
+        own.fy,
+        own.cx,
+        own.cy
+    )))
+}
+
+/// Publishes the session's events until it has finished or failed, then `finished`.
+async fn publish_updates(
+    shared: Arc<Shared>,
+    session: Arc<Session>,
+    mut events: tokio::sync::broadcast::Receiver<SessionEvent>,
+    poses: Publisher<'static>,
+) {
+    let id = session.id().to_string();
+    let mut tick = tokio::time::interval(LIVENESS_CHECK);
+    loop {
+        let received = tokio::select! {
+            received = events.recv() => received,
+            _ = tick.tick() => {
+                if deleted(&shared, &session) {
+                    // A deleted session emits nothing more and has no map to announce.
+                    let _ = poses.undeclare().await;
+                    return;
+                }
+                continue;
+            }
+        };
+        let event = match received {
+            Ok(event) => event,
+            Err(RecvError::Lagged(missed)) => {
+                tracing::warn!(session = %id, missed, "Zenoh publisher fell behind; events skipped");
+                continue;
+            }
+            Err(RecvError::Closed) => break,
+        };
+        if let Some(message) = event.to_proto(&id)
+            && let Err(e) = poses.put(message.encode_to_vec()).await
+        {
+            tracing::warn!(session = %id, "publishing an update: {e}");
+        }
+        if event.is_last() {
+            break;
+        }
+    }
+    let info = session.info();
+    let finished = finished_message(&info);
+    if let Err(e) = shared
+        .zenoh
+        .put(session_key(&id, FINISHED), finished.encode_to_vec())
+        .congestion_control(CongestionControl::Block)
+        .await
+    {
+        tracing::warn!(session = %id, "publishing the end of the session: {e}");
+    }
+    if let Err(e) = poses.undeclare().await {
+        tracing::debug!(session = %id, "undeclaring the poses publisher: {e}");
+    }
+}
+
+/// The `SessionFinished` message for a session's final info.
+pub fn finished_message(info: &SessionInfo) -> SessionFinished {
+    SessionFinished {
+        session_id: info.id.clone(),
+        state: super::map::state_name(info.state),
+        error: info.error.clone().unwrap_or_default(),
+        frames_received: info.frames_received,
+        frames_processed: info.frames_processed,
+        frames_dropped: info.frames_dropped,
+        keyframes: info.keyframes,
+    }
+}

@@ -1,0 +1,175 @@
+//! The `relfusion/sessions/*/map` queryable: the whole current map of one session as a
+//! protobuf `MapSnapshot` (trajectory, keyframes, mesh blocks).
+//!
+//! The query attachment carries the bearer token; an unknown session, or one of another
+//! token, is an error reply with a protobuf `Error` NOT_FOUND (missing or unknown token:
+//! UNAUTHENTICATED). Poses are those of the downloadable TUM files, value for value: the
+//! snapshot of a finished session equals `/v1/sessions/{id}/trajectory` and `/keyframes`.
+//! Queries on wildcard keys (`relfusion/sessions/*/map`) are ignored: a query names one
+//! session. The queryable is not complete, so in a multi-node deployment every node answers
+//! and the node that has the session replies with the snapshot.
+
+use std::sync::Arc;
+
+use relfusion_proto::Message as _;
+use relfusion_proto::v1::{self, MapSnapshot, StampedPose};
+use relfusion_proto::zenoh_keys::{ANY_MAP, MAP, parse_session_key};
+use tokio::task::JoinHandle;
+use zenoh::query::Query;
+
+use super::{Shared, bump, proto_error};
+use crate::session::{Session, SessionState};
+use crate::{ApiError, ServerError};
+
+/// Declares the queryable and serves it until shutdown.
+pub(crate) async fn serve(shared: Arc<Shared>) -> Result<JoinHandle<()>, ServerError> {
+    let queryable = shared
+        .zenoh
+        .declare_queryable(ANY_MAP)
+        .complete(false)
+        .await
+        .map_err(|e| ServerError::Startup(format!("declaring {ANY_MAP}: {e}")))?;
+    let mut shutdown = shared.shutdown.clone();
+    Ok(tokio::spawn(async move {
+        loop {
+            let query = tokio::select! {
+                query = queryable.recv_async() => match query {
+                    Ok(query) => query,
+                    Err(_) => break,
+                },
+                _ = shutdown.wait_for(|stop| *stop) => break,
+            };
+            answer(&shared, &query).await;
+        }
+    }))
+}
+
+async fn answer(shared: &Shared, query: &Query) {
+    let key = query.key_expr().as_str().to_string();
+    let Some((id, MAP)) = parse_session_key(&key) else {
+        return;
+    };
+    let result = match shared
+        .owner(query.attachment())
+        .and_then(|owner| shared.sessions.get(id, &owner))
+    {
+        Ok(session) => tokio::task::spawn_blocking(move || snapshot(&session))
+            .await
+            .map_err(|e| ApiError::internal(format!("building the snapshot: {e}")))
+            .and_then(|r| r),
+        Err(e) => Err(e),
+    };
+    let sent = match result {
+        Ok(snapshot) => query.reply(key.as_str(), snapshot.encode_to_vec()).await,
+        Err(error) => {
+            bump(&shared.stats.queries_refused);
+            query.reply_err(proto_error(&error).encode_to_vec()).await
+        }
+    };
+    if let Err(e) = sent {
+        tracing::warn!("replying to {key}: {e}");
+    }
+}
+
+/// The session's map as it stands (final once the session has finished).
+pub fn snapshot(session: &Session) -> Result<MapSnapshot, ApiError> {
+    let info = session.info();
+    Ok(MapSnapshot {
+        session_id: info.id.clone(),
+        state: state_name(info.state),
+        frames_processed: info.frames_processed,
+        frames_received: info.frames_received,
+        frames_dropped: info.frames_dropped,
+        trajectory: parse_tum(&session.trajectory_tum())?,
+        keyframes: parse_tum(&session.keyframes_tum())?,
+        // The fused mesh arrives with the fusion stage; until then the map has no blocks.
+        mesh_blocks: Vec::new(),
+        block_size: 0.0,
+        mesh_revision: 0,
+    })
+}
+
+/// The state as the HTTP API spells it (`"running"`, `"finished"`, ...).
+pub fn state_name(state: SessionState) -> String {
+    serde_json::to_value(state)
+        .ok()
+        .and_then(|v| v.as_str().map(String::from))
+        .unwrap_or_default()
+}
+
+/// TUM trajectory text → stamped poses, value for value (no re-normalisation: a client gets
+/// exactly the numbers of the downloadable file).
+fn parse_tum(text: &str) -> Result<Vec<StampedPose>, ApiError> {
+    let mut poses = Vec::new();
+    for (index, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let values: Vec<f64> = line
+            .split([' ', '\t', ','])
+            .filter(|f| !f.is_empty())
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .map_err(|e| ApiError::internal(format!("trajectory line {}: {e}", index + 1)))?;
+        let [timestamp, tx, ty, tz, qx, qy, qz, qw] = values[..] else {
+            return Err(ApiError::internal(format!(
+                "trajectory line {}: expected 8 values, got {}",
+                index + 1,
+                values.len()
+            )));
+        };
+        poses.push(StampedPose {
+            timestamp,
+            world_from_camera: Some(v1::Sim3Pose {
+                translation: Some(v1::Vector3 {
+                    x: tx,
+                    y: ty,
+                    z: tz,
+                }),
+                rotation: Some(v1::Quaternion {
+                    x: qx,
+                    y: qy,
+                    z: qz,
+                    w: qw,
+                }),
+                scale: 1.0,
+            }),
+        });
+    }
+    Ok(poses)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tum_text_becomes_stamped_poses_value_for_value() {
+        let text =
+            "# comment\n1.5 0.1 0.2 0.30000000000000004 0 0 0 1\n\n2.25 -1 -2 -3 0.5 0.5 0.5 0.5\n";
+        let poses = parse_tum(text).expect("valid");
+        assert_eq!(poses.len(), 2);
+        let p = poses[0].world_from_camera.expect("pose");
+        assert_eq!(poses[0].timestamp, 1.5);
+        assert_eq!(p.translation.expect("t").z, 0.30000000000000004);
+        assert_eq!(p.scale, 1.0);
+        assert_eq!(
+            poses[1]
+                .world_from_camera
+                .expect("pose")
+                .rotation
+                .expect("q")
+                .w,
+            0.5
+        );
+        assert!(parse_tum("1 2 3").is_err());
+        assert!(parse_tum("1 2 3 4 5 6 7 x").is_err());
+    }
+
+    #[test]
+    fn states_are_named_like_the_http_api() {
+        assert_eq!(state_name(SessionState::Finished), "finished");
+        assert_eq!(state_name(SessionState::Running), "running");
+    }
+}

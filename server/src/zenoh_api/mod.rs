@@ -1,0 +1,226 @@
+//! The service on Zenoh: the same sessions as the HTTP API, addressed by key expressions so a
+//! client or subscriber reaches a session wherever it runs (see the key space in
+//! [`relfusion_proto::zenoh_keys`]).
+//!
+//! - [`setup`]: the Zenoh configuration from `[zenoh]` (mode, endpoints, scouting).
+//! - [`create`]: the `relfusion/sessions/create` queryable.
+//! - [`link`]: one created session on Zenoh: its frames in, its updates out.
+//! - [`map`]: the `relfusion/sessions/*/map` queryable (the whole current map).
+//! - [`status`]: `relfusion/nodes/<node>/status`, published every 2 s.
+//!
+//! Auth: when the server has tokens, the create and map queries carry the bearer token as
+//! their attachment (UTF-8, optionally prefixed `Bearer `); a token sees only its own sessions
+//! (another token's session is NOT_FOUND, so ids cannot be probed). Frames need no token: the
+//! session id (unguessable, handed out only to its creator) is the capability.
+//!
+//! Nothing here does SLAM: frames go through [`Session::push_frame`] exactly like HTTP frames,
+//! so a Zenoh session gives the same result as any other.
+
+pub mod create;
+pub mod link;
+pub mod map;
+pub mod setup;
+pub mod status;
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use relfusion_proto::Message as _;
+use relfusion_proto::v1;
+use serde::Serialize;
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+
+use crate::config::ZenohConfig;
+use crate::session::{Owner, Session, SessionManager};
+use crate::{ApiError, ServerError};
+
+/// How long [`ZenohHandle::close`] waits for its tasks before aborting them.
+const CLOSE_GRACE: Duration = Duration::from_secs(5);
+
+/// Counters of the Zenoh side (published in the node status).
+#[derive(Debug, Default)]
+pub struct ZenohStats {
+    /// Sessions created through `relfusion/sessions/create`.
+    pub sessions_created: AtomicU64,
+    /// Create or map queries refused (bad request, auth, capacity, unknown session).
+    pub queries_refused: AtomicU64,
+    /// Frames accepted into a session.
+    pub frames_accepted: AtomicU64,
+    /// Frames refused by the session (corrupt image, size mismatch, after end of stream, ...).
+    pub frames_refused: AtomicU64,
+    /// Messages that were not the protobuf their key carries.
+    pub malformed_messages: AtomicU64,
+}
+
+/// A snapshot of [`ZenohStats`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct ZenohCounts {
+    pub sessions_created: u64,
+    pub queries_refused: u64,
+    pub frames_accepted: u64,
+    pub frames_refused: u64,
+    pub malformed_messages: u64,
+}
+
+impl ZenohStats {
+    pub fn counts(&self) -> ZenohCounts {
+        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        ZenohCounts {
+            sessions_created: get(&self.sessions_created),
+            queries_refused: get(&self.queries_refused),
+            frames_accepted: get(&self.frames_accepted),
+            frames_refused: get(&self.frames_refused),
+            malformed_messages: get(&self.malformed_messages),
+        }
+    }
+}
+
+pub(crate) fn bump(counter: &AtomicU64) {
+    counter.fetch_add(1, Ordering::Relaxed);
+}
+
+/// What every Zenoh task shares.
+#[derive(Debug)]
+pub(crate) struct Shared {
+    pub zenoh: zenoh::Session,
+    pub sessions: Arc<SessionManager>,
+    pub stats: Arc<ZenohStats>,
+    /// Turns `true` when the server shuts down.
+    pub shutdown: watch::Receiver<bool>,
+    /// The tasks of each session on Zenoh ([`link`]), pruned as they end.
+    pub links: Mutex<HashMap<String, Vec<JoinHandle<()>>>>,
+}
+
+impl Shared {
+    /// The owner a query's attachment authenticates (see the module docs).
+    pub fn owner(&self, attachment: Option<&zenoh::bytes::ZBytes>) -> Result<Owner, ApiError> {
+        let token = match attachment {
+            None => None,
+            Some(bytes) => {
+                let text = bytes.try_to_string().map_err(|_| {
+                    ApiError::unauthorized("the query attachment (bearer token) is not UTF-8")
+                })?;
+                let text = text.trim();
+                let token = text
+                    .strip_prefix("Bearer ")
+                    .or_else(|| text.strip_prefix("bearer "))
+                    .unwrap_or(text)
+                    .trim();
+                (!token.is_empty()).then(|| token.to_string())
+            }
+        };
+        crate::http::auth::authenticate(&self.sessions.config().auth, token.as_deref())
+    }
+
+    /// Puts `session` on Zenoh (its frames subscriber and update publishers).
+    pub async fn attach(self: &Arc<Self>, session: Arc<Session>) -> Result<(), ApiError> {
+        let tasks = link::attach(self.clone(), session.clone()).await?;
+        let mut links = self.links.lock().unwrap_or_else(|e| e.into_inner());
+        links.retain(|_, handles| handles.iter().any(|h| !h.is_finished()));
+        links.insert(session.id().to_string(), tasks);
+        Ok(())
+    }
+
+    fn take_tasks(&self) -> Vec<JoinHandle<()>> {
+        let mut links = self.links.lock().unwrap_or_else(|e| e.into_inner());
+        links.drain().flat_map(|(_, handles)| handles).collect()
+    }
+}
+
+/// The protobuf `Error` for a refused request (401 has its own code on the wire).
+pub(crate) fn proto_error(error: &ApiError) -> v1::Error {
+    let code = match error.status {
+        401 => v1::ErrorCode::Unauthenticated,
+        _ => error.proto_code(),
+    };
+    v1::Error {
+        code: code as i32,
+        message: error.message.clone(),
+    }
+}
+
+/// A `ServerMessage` carrying `error`, encoded.
+pub(crate) fn error_message_bytes(error: &ApiError) -> Vec<u8> {
+    v1::ServerMessage {
+        message: Some(v1::server_message::Message::Error(proto_error(error))),
+    }
+    .encode_to_vec()
+}
+
+/// The running Zenoh side of the service; [`ZenohHandle::close`] it on shutdown (after the
+/// session manager has finished its sessions, so their last updates still go out).
+#[derive(Debug)]
+pub struct ZenohHandle {
+    shared: Arc<Shared>,
+    shutdown: watch::Sender<bool>,
+    tasks: Vec<JoinHandle<()>>,
+}
+
+/// Opens the Zenoh session from `config` and declares the create and map queryables and the
+/// node status publisher. Sessions created through Zenoh are served until [`ZenohHandle::close`].
+pub async fn start(
+    config: &ZenohConfig,
+    sessions: Arc<SessionManager>,
+) -> Result<ZenohHandle, ServerError> {
+    let zconfig = setup::zenoh_config(config)?;
+    let zenoh = zenoh::open(zconfig)
+        .await
+        .map_err(|e| ServerError::Startup(format!("opening the Zenoh session: {e}")))?;
+    let (shutdown, shutdown_rx) = watch::channel(false);
+    let shared = Arc::new(Shared {
+        zenoh,
+        sessions,
+        stats: Arc::default(),
+        shutdown: shutdown_rx,
+        links: Mutex::default(),
+    });
+    let tasks = vec![
+        create::serve(shared.clone()).await?,
+        map::serve(shared.clone()).await?,
+        status::serve(shared.clone(), config.node.clone()).await?,
+    ];
+    tracing::info!(
+        mode = %config.mode,
+        listen = ?config.listen,
+        connect = ?config.connect,
+        node = %config.node,
+        "Zenoh endpoints up"
+    );
+    Ok(ZenohHandle {
+        shared,
+        shutdown,
+        tasks,
+    })
+}
+
+impl ZenohHandle {
+    /// The Zenoh side's counters.
+    pub fn stats(&self) -> ZenohCounts {
+        self.shared.stats.counts()
+    }
+
+    /// Stops the queryables and every session's Zenoh tasks (waiting up to 5 s for the last
+    /// updates to go out), then closes the Zenoh session.
+    pub async fn close(self) {
+        let _ = self.shutdown.send(true);
+        let mut tasks = self.tasks;
+        tasks.extend(self.shared.take_tasks());
+        let all = async {
+            for task in &mut tasks {
+                let _ = task.await;
+            }
+        };
+        if tokio::time::timeout(CLOSE_GRACE, all).await.is_err() {
+            tracing::warn!("Zenoh tasks still busy after {CLOSE_GRACE:?}; aborting them");
+            for task in &tasks {
+                task.abort();
+            }
+        }
+        if let Err(e) = self.shared.zenoh.close().await {
+            tracing::warn!("closing the Zenoh session: {e}");
+        }
+    }
+}
