@@ -156,21 +156,7 @@ pub fn tum_text(poses: &[(f64, Sim3)]) -> String {
 /// The bytes of a binary little-endian PLY point cloud, the layout of
 /// `relfusion_slam::export::write_points_ply` (`x y z` float, `red green blue` uchar).
 pub fn points_ply(points: &[ColoredPoint]) -> Vec<u8> {
-    let header = format!(
-        "ply\nformat binary_little_endian 1.0\ncomment relfusion semi-dense map\nelement vertex {}\n\
-         property float x\nproperty float y\nproperty float z\n\
-         property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
-        points.len()
-    );
-    let mut bytes = Vec::with_capacity(header.len() + points.len() * 15);
-    bytes.extend_from_slice(header.as_bytes());
-    for p in points {
-        for v in p.position {
-            bytes.extend_from_slice(&v.to_le_bytes());
-        }
-        bytes.extend_from_slice(&p.color);
-    }
-    bytes
+    relfusion_slam::export::points_ply_bytes(points)
 }
 
 #[cfg(test)]

@@ -16,35 +16,19 @@ use relfusion_proto::zenoh_keys::CREATE;
 use tokio::task::JoinHandle;
 use zenoh::query::Query;
 
-use super::{Shared, bump, proto_error};
+use super::{Shared, bump, proto_error, serve_queryable};
 use crate::convert::camera_json_from_proto;
 use crate::session::{CreateSession, FramePolicy};
 use crate::{ApiError, ServerError};
 
 /// Declares the queryable and serves it until shutdown.
 pub(crate) async fn serve(shared: Arc<Shared>) -> Result<JoinHandle<()>, ServerError> {
-    let queryable = shared
-        .zenoh
-        .declare_queryable(CREATE)
-        .complete(true)
-        .await
-        .map_err(|e| ServerError::Startup(format!("declaring {CREATE}: {e}")))?;
-    let mut shutdown = shared.shutdown.clone();
-    Ok(tokio::spawn(async move {
-        loop {
-            let query = tokio::select! {
-                query = queryable.recv_async() => match query {
-                    Ok(query) => query,
-                    Err(_) => break,
-                },
-                _ = shutdown.wait_for(|stop| *stop) => break,
-            };
-            if query.key_expr().as_str() != CREATE {
-                continue;
-            }
+    serve_queryable(shared, CREATE, true, |shared, query| async move {
+        if query.key_expr().as_str() == CREATE {
             answer(&shared, &query).await;
         }
-    }))
+    })
+    .await
 }
 
 async fn answer(shared: &Arc<Shared>, query: &Query) {

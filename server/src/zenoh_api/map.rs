@@ -17,31 +17,16 @@ use relfusion_proto::zenoh_keys::{ANY_MAP, MAP, parse_session_key};
 use tokio::task::JoinHandle;
 use zenoh::query::Query;
 
-use super::{Shared, bump, proto_error};
+use super::{Shared, bump, proto_error, serve_queryable};
 use crate::session::{Session, SessionState};
 use crate::{ApiError, ServerError};
 
 /// Declares the queryable and serves it until shutdown.
 pub(crate) async fn serve(shared: Arc<Shared>) -> Result<JoinHandle<()>, ServerError> {
-    let queryable = shared
-        .zenoh
-        .declare_queryable(ANY_MAP)
-        .complete(false)
-        .await
-        .map_err(|e| ServerError::Startup(format!("declaring {ANY_MAP}: {e}")))?;
-    let mut shutdown = shared.shutdown.clone();
-    Ok(tokio::spawn(async move {
-        loop {
-            let query = tokio::select! {
-                query = queryable.recv_async() => match query {
-                    Ok(query) => query,
-                    Err(_) => break,
-                },
-                _ = shutdown.wait_for(|stop| *stop) => break,
-            };
-            answer(&shared, &query).await;
-        }
-    }))
+    serve_queryable(shared, ANY_MAP, false, |shared, query| async move {
+        answer(&shared, &query).await;
+    })
+    .await
 }
 
 async fn answer(shared: &Shared, query: &Query) {

@@ -131,6 +131,40 @@ impl Shared {
 }
 
 /// The protobuf `Error` for a refused request (401 has its own code on the wire).
+/// Declares the queryable on `key` and hands every query to `answer`, one after the other,
+/// until shutdown. `complete`: whether this node answers for the whole key (create) or only
+/// for the sessions it runs (map).
+pub(crate) async fn serve_queryable<F, Fut>(
+    shared: Arc<Shared>,
+    key: &'static str,
+    complete: bool,
+    answer: F,
+) -> Result<JoinHandle<()>, ServerError>
+where
+    F: Fn(Arc<Shared>, zenoh::query::Query) -> Fut + Send + 'static,
+    Fut: std::future::Future<Output = ()> + Send,
+{
+    let queryable = shared
+        .zenoh
+        .declare_queryable(key)
+        .complete(complete)
+        .await
+        .map_err(|e| ServerError::Startup(format!("declaring {key}: {e}")))?;
+    let mut shutdown = shared.shutdown.clone();
+    Ok(tokio::spawn(async move {
+        loop {
+            let query = tokio::select! {
+                query = queryable.recv_async() => match query {
+                    Ok(query) => query,
+                    Err(_) => break,
+                },
+                _ = shutdown.wait_for(|stop| *stop) => break,
+            };
+            answer(shared.clone(), query).await;
+        }
+    }))
+}
+
 pub(crate) fn proto_error(error: &ApiError) -> v1::Error {
     let code = match error.status {
         401 => v1::ErrorCode::Unauthenticated,

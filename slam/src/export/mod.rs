@@ -2,4 +2,4 @@
 
 pub mod ply;
 
-pub use ply::{ColoredPoint, read_points_ply, write_points_ply};
+pub use ply::{ColoredPoint, points_ply_bytes, read_points_ply, write_points_ply};

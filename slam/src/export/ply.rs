@@ -13,9 +13,9 @@ pub struct ColoredPoint {
     pub color: [u8; 3],
 }
 
-/// Writes `points` as `binary_little_endian` PLY with `x y z` (float) and `red green blue`
-/// (uchar) vertex properties.
-pub fn write_points_ply(path: &Path, points: &[ColoredPoint]) -> Result<()> {
+/// The bytes of `points` as `binary_little_endian` PLY with `x y z` (float) and
+/// `red green blue` (uchar) vertex properties (files here, HTTP downloads in the server).
+pub fn points_ply_bytes(points: &[ColoredPoint]) -> Vec<u8> {
     let header = format!(
         "ply\nformat binary_little_endian 1.0\ncomment relfusion semi-dense map\nelement vertex {}\n\
          property float x\nproperty float y\nproperty float z\n\
@@ -30,6 +30,12 @@ pub fn write_points_ply(path: &Path, points: &[ColoredPoint]) -> Result<()> {
         }
         bytes.extend_from_slice(&p.color);
     }
+    bytes
+}
+
+/// Writes `points` as a PLY file ([`points_ply_bytes`]).
+pub fn write_points_ply(path: &Path, points: &[ColoredPoint]) -> Result<()> {
+    let bytes = points_ply_bytes(points);
     let mut file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
     file.write_all(&bytes).map_err(|e| Error::io(path, e))
 }
