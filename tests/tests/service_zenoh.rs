@@ -319,6 +319,12 @@ fn stream_over_zenoh_gives_every_pose_and_the_same_trajectory_as_run() {
     assert_eq!(snapshot.frames_received, FRAMES_N as u64);
     assert!(!snapshot.keyframes.is_empty(), "the map has keyframes");
     assert!(
+        keyframes >= 2 * snapshot.keyframes.len(),
+        "every keyframe is announced when made and again with its optimised pose \
+         ({keyframes} updates, {} keyframes)",
+        snapshot.keyframes.len()
+    );
+    assert!(
         snapshot.mesh_blocks.is_empty(),
         "no fusion stage yet: no mesh"
     );

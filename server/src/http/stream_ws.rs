@@ -148,10 +148,10 @@ async fn send_loop(
             },
             event = events.recv() => match event {
                 Ok(event) => {
-                    if let Some(message) = event.to_proto(&session_id)
-                        && sink.send(binary(&message)).await.is_err()
-                    {
-                        return;
+                    for message in event.to_proto(&session_id) {
+                        if sink.send(binary(&message)).await.is_err() {
+                            return;
+                        }
                     }
                     if event.is_last() {
                         // Error replies already queued still go out before the close.

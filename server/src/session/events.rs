@@ -7,6 +7,16 @@ use serde::Serialize;
 use super::types::{PoseJson, SessionInfo};
 use crate::convert::{pose_json_to_proto, tracking_state_to_proto};
 
+/// A keyframe's pose after a pose-graph optimisation.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct KeyframePose {
+    pub keyframe_id: u64,
+    /// The (client's) frame the keyframe was made from.
+    pub frame_id: u64,
+    pub timestamp: f64,
+    pub pose: PoseJson,
+}
+
 /// One event of a session's stream. Frame ids are the client's.
 #[derive(Clone, Debug, Serialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
@@ -27,8 +37,9 @@ pub enum SessionEvent {
         timestamp: f64,
         pose: PoseJson,
     },
-    /// The pose graph moved keyframes: the current pose of every keyframe.
-    KeyframePoses { poses: Vec<(u64, PoseJson)> },
+    /// The pose graph moved keyframes (loop closure, final optimisation): the current pose of
+    /// every keyframe, so subscribers can re-anchor the frames tracked against them.
+    KeyframePoses { poses: Vec<KeyframePose> },
     /// Frames were dropped because the stream outran the pipeline (running total).
     Dropped { frames_dropped: u64 },
     /// The session finished; results are final.
@@ -61,9 +72,19 @@ impl SessionEvent {
     /// The protobuf message of the stream envelopes: Pose → `PoseUpdate`, Keyframe →
     /// `KeyframeUpdate` (pose only; the dense depth comes with the dense layer), Failed →
     /// `Error`; the others have no wire form.
-    pub fn to_proto(&self, session_id: &str) -> Option<v1::ServerMessage> {
+    pub fn to_proto(&self, session_id: &str) -> Vec<v1::ServerMessage> {
         use v1::server_message::Message;
-        let message = match self {
+        let keyframe = |keyframe_id: u64, frame_id: u64, timestamp: f64, pose: &PoseJson| {
+            Message::Keyframe(v1::KeyframeUpdate {
+                session_id: session_id.to_string(),
+                keyframe_id,
+                frame_id,
+                timestamp,
+                world_from_camera: Some(pose_json_to_proto(pose)),
+                depth: None,
+            })
+        };
+        let messages = match self {
             SessionEvent::Pose {
                 frame_id,
                 timestamp,
@@ -71,36 +92,37 @@ impl SessionEvent {
                 state,
                 is_keyframe,
                 ..
-            } => Message::Pose(v1::PoseUpdate {
+            } => vec![Message::Pose(v1::PoseUpdate {
                 session_id: session_id.to_string(),
                 frame_id: *frame_id,
                 timestamp: *timestamp,
                 world_from_camera: Some(pose_json_to_proto(pose)),
                 tracking_state: tracking_state_to_proto(*state) as i32,
                 is_keyframe: *is_keyframe,
-            }),
+            })],
             SessionEvent::Keyframe {
                 keyframe_id,
                 frame_id,
                 timestamp,
                 pose,
-            } => Message::Keyframe(v1::KeyframeUpdate {
-                session_id: session_id.to_string(),
-                keyframe_id: *keyframe_id,
-                frame_id: *frame_id,
-                timestamp: *timestamp,
-                world_from_camera: Some(pose_json_to_proto(pose)),
-                depth: None,
-            }),
-            SessionEvent::Failed { message } => Message::Error(v1::Error {
+            } => vec![keyframe(*keyframe_id, *frame_id, *timestamp, pose)],
+            // KeyframeUpdate without depth = "only the pose changed" (updates.proto).
+            SessionEvent::KeyframePoses { poses } => poses
+                .iter()
+                .map(|k| keyframe(k.keyframe_id, k.frame_id, k.timestamp, &k.pose))
+                .collect(),
+            SessionEvent::Failed { message } => vec![Message::Error(v1::Error {
                 code: v1::ErrorCode::Internal as i32,
                 message: message.clone(),
-            }),
-            _ => return None,
+            })],
+            SessionEvent::Dropped { .. } | SessionEvent::Finished { .. } => Vec::new(),
         };
-        Some(v1::ServerMessage {
-            message: Some(message),
-        })
+        messages
+            .into_iter()
+            .map(|message| v1::ServerMessage {
+                message: Some(message),
+            })
+            .collect()
     }
 }
 
@@ -127,17 +149,47 @@ mod tests {
         assert_eq!(json["type"], "pose");
         assert_eq!(json["frame_id"], 7);
         assert_eq!(json["state"], "tracking");
-        let Some(v1::ServerMessage {
-            message: Some(v1::server_message::Message::Pose(p)),
-        }) = e.to_proto("s-1")
+        let messages = e.to_proto("s-1");
+        let [
+            v1::ServerMessage {
+                message: Some(v1::server_message::Message::Pose(p)),
+            },
+        ] = messages.as_slice()
         else {
-            panic!("not a pose update");
+            panic!("not one pose update");
         };
         assert_eq!((p.frame_id, p.session_id.as_str()), (7, "s-1"));
         assert!(
             SessionEvent::Dropped { frames_dropped: 1 }
                 .to_proto("s")
-                .is_none()
+                .is_empty()
         );
+        let moved = SessionEvent::KeyframePoses {
+            poses: vec![
+                KeyframePose {
+                    keyframe_id: 0,
+                    frame_id: 0,
+                    timestamp: 1.0,
+                    pose,
+                },
+                KeyframePose {
+                    keyframe_id: 1,
+                    frame_id: 9,
+                    timestamp: 1.3,
+                    pose,
+                },
+            ],
+        };
+        let updates = moved.to_proto("s");
+        assert_eq!(
+            updates.len(),
+            2,
+            "one pose-only KeyframeUpdate per keyframe"
+        );
+        let Some(v1::server_message::Message::Keyframe(k)) = &updates[1].message else {
+            panic!("not a keyframe update");
+        };
+        assert_eq!((k.keyframe_id, k.frame_id), (1, 9));
+        assert!(k.depth.is_none());
     }
 }

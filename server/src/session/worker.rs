@@ -15,7 +15,7 @@ use relfusion_slam::dense::DepthPrior;
 use relfusion_slam::pipeline::{Event, FrameInput, Pipeline, Stats, TrackingState};
 use serde_json::json;
 
-use super::events::SessionEvent;
+use super::events::{KeyframePose, SessionEvent};
 use super::handle::{QueuedFrame, Session};
 use super::persist::Results;
 use super::prior::SharedModel;
@@ -67,6 +67,7 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         pipeline,
         last_stats: Stats::default(),
         since_checkpoint: 0,
+        keyframe_frames: std::collections::HashMap::new(),
     };
     let fed = match session.kind() {
         SessionKind::Live => runner.feed_live(),
@@ -95,9 +96,33 @@ struct Runner<'a> {
     pipeline: Pipeline,
     last_stats: Stats,
     since_checkpoint: usize,
+    /// Client frame id and timestamp of each keyframe, for pose-graph updates.
+    keyframe_frames: std::collections::HashMap<u64, (u64, f64)>,
 }
 
 impl Runner<'_> {
+    /// The pose-graph update of `poses` with each keyframe's frame id and timestamp.
+    fn keyframe_poses_event(
+        &self,
+        poses: &[(usize, relfusion_slam::geometry::Sim3)],
+    ) -> SessionEvent {
+        SessionEvent::KeyframePoses {
+            poses: poses
+                .iter()
+                .filter_map(|(id, p)| {
+                    let id = *id as u64;
+                    let &(frame_id, timestamp) = self.keyframe_frames.get(&id)?;
+                    Some(KeyframePose {
+                        keyframe_id: id,
+                        frame_id,
+                        timestamp,
+                        pose: pose_json(p),
+                    })
+                })
+                .collect(),
+        }
+    }
+
     fn feed_live(&mut self) -> Result<Outcome, String> {
         let Some(queue) = &self.session.queue else {
             return Err("live session without a frame queue".into());
@@ -211,6 +236,8 @@ impl Runner<'_> {
                 Event::Keyframe(k) => {
                     s.counters.keyframes.fetch_add(1, Ordering::Relaxed);
                     s.record_keyframe(k.keyframe_id as u64, k.timestamp, k.world_from_keyframe);
+                    self.keyframe_frames
+                        .insert(k.keyframe_id as u64, (frame.frame_id, k.timestamp));
                     s.emit(SessionEvent::Keyframe {
                         keyframe_id: k.keyframe_id as u64,
                         frame_id: frame.frame_id,
@@ -221,12 +248,7 @@ impl Runner<'_> {
                 }
                 Event::KeyframePoses { poses } => {
                     s.update_keyframe_poses(&poses);
-                    s.emit(SessionEvent::KeyframePoses {
-                        poses: poses
-                            .iter()
-                            .map(|(id, p)| (*id as u64, pose_json(p)))
-                            .collect(),
-                    });
+                    s.emit(self.keyframe_poses_event(&poses));
                 }
             }
         }
@@ -281,12 +303,7 @@ impl Runner<'_> {
             Err(e) => return fail(s, Some(&self), format!("final optimisation: {e}")),
         };
         s.update_keyframe_poses(&poses);
-        s.emit(SessionEvent::KeyframePoses {
-            poses: poses
-                .iter()
-                .map(|(id, p)| (*id as u64, pose_json(p)))
-                .collect(),
-        });
+        s.emit(self.keyframe_poses_event(&poses));
         if s.cancelled.load(Ordering::SeqCst) {
             return Outcome::Cancelled;
         }

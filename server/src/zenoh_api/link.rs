@@ -225,10 +225,10 @@ async fn publish_updates(
             }
             Err(RecvError::Closed) => break,
         };
-        if let Some(message) = event.to_proto(&id)
-            && let Err(e) = poses.put(message.encode_to_vec()).await
-        {
-            tracing::warn!(session = %id, "publishing an update: {e}");
+        for message in event.to_proto(&id) {
+            if let Err(e) = poses.put(message.encode_to_vec()).await {
+                tracing::warn!(session = %id, "publishing an update: {e}");
+            }
         }
         if event.is_last() {
             break;
