@@ -29,7 +29,7 @@ use tokio::sync::mpsc;
 
 use super::auth::Auth;
 use super::error::ErrorBody;
-use crate::session::{FrameData, Session, SessionEvent};
+use crate::session::{Session, SessionEvent};
 use crate::{ApiError, AppState};
 
 /// Room for protobuf framing around the largest allowed image.
@@ -215,27 +215,7 @@ async fn handle(session: &Session, data: Bytes) -> Result<(), ApiError> {
     })?;
     match message.message {
         Some(client_message::Message::Frame(frame)) => {
-            if let Some(camera) = &frame.camera {
-                check_same_camera(session, camera)?;
-            }
-            if !frame.timestamp.is_finite() {
-                return Err(ApiError::bad_request(format!(
-                    "frame {}: timestamp must be finite, got {}",
-                    frame.frame_id, frame.timestamp
-                )));
-            }
-            let frame_id = frame.frame_id;
-            session
-                .push_frame(FrameData {
-                    frame_id: Some(frame_id),
-                    timestamp: frame.timestamp,
-                    bytes: frame.image.into(),
-                })
-                .await
-                .map_err(|e| ApiError {
-                    message: format!("frame {frame_id}: {}", e.message),
-                    ..e
-                })?;
+            session.push_proto_frame(frame).await?;
             Ok(())
         }
         Some(client_message::Message::EndOfStream(_)) => {
@@ -247,37 +227,5 @@ async fn handle(session: &Session, data: Bytes) -> Result<(), ApiError> {
         None => Err(ApiError::bad_request(
             "empty ClientMessage: set one of frame, end_of_stream",
         )),
-    }
-}
-
-/// Frames may repeat the session camera but not change it: the pipeline has one camera.
-fn check_same_camera(session: &Session, camera: &v1::Camera) -> Result<(), ApiError> {
-    let own = session.camera();
-    let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(1.0);
-    let same = camera.width == own.width
-        && camera.height == own.height
-        && close(camera.fx, own.fx)
-        && close(camera.fy, own.fy)
-        && close(camera.cx, own.cx)
-        && close(camera.cy, own.cy);
-    if same {
-        Ok(())
-    } else {
-        Err(ApiError::bad_request(format!(
-            "the frame's camera ({}x{}, fx {} fy {} cx {} cy {}) differs from the session's \
-             ({}x{}, fx {} fy {} cx {} cy {}); open a new session for another camera",
-            camera.width,
-            camera.height,
-            camera.fx,
-            camera.fy,
-            camera.cx,
-            camera.cy,
-            own.width,
-            own.height,
-            own.fx,
-            own.fy,
-            own.cx,
-            own.cy
-        )))
     }
 }

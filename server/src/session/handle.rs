@@ -241,6 +241,65 @@ impl Session {
         }
     }
 
+    /// [`Session::push_frame`] for a protobuf `Frame` (WebSocket, Zenoh): the frame may
+    /// repeat the session camera but not change it (the pipeline has one camera), and every
+    /// error names the frame.
+    pub async fn push_proto_frame(
+        &self,
+        frame: relfusion_proto::v1::Frame,
+    ) -> Result<u64, ApiError> {
+        let frame_id = frame.frame_id;
+        let result = match &frame.camera {
+            Some(camera) => self.check_same_camera(camera),
+            None => Ok(()),
+        };
+        let result = match result {
+            Ok(()) => {
+                self.push_frame(FrameData {
+                    frame_id: Some(frame_id),
+                    timestamp: frame.timestamp,
+                    bytes: frame.image.into(),
+                })
+                .await
+            }
+            Err(e) => Err(e),
+        };
+        result.map_err(|e| ApiError {
+            message: format!("frame {frame_id}: {}", e.message),
+            ..e
+        })
+    }
+
+    fn check_same_camera(&self, camera: &relfusion_proto::v1::Camera) -> Result<(), ApiError> {
+        let own = &self.camera;
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(1.0);
+        let same = camera.width == own.width
+            && camera.height == own.height
+            && close(camera.fx, own.fx)
+            && close(camera.fy, own.fy)
+            && close(camera.cx, own.cx)
+            && close(camera.cy, own.cy);
+        if same {
+            return Ok(());
+        }
+        Err(ApiError::bad_request(format!(
+            "the frame's camera ({}x{}, fx {} fy {} cx {} cy {}) differs from the session's \
+             ({}x{}, fx {} fy {} cx {} cy {}); open a new session for another camera",
+            camera.width,
+            camera.height,
+            camera.fx,
+            camera.fy,
+            camera.cx,
+            camera.cy,
+            own.width,
+            own.height,
+            own.fx,
+            own.fy,
+            own.cx,
+            own.cy
+        )))
+    }
+
     /// Decodes and checks one frame now (400 for a corrupt image or a size that does not match
     /// the camera, 413 beyond `limits.max_frame_bytes`), then queues it for the pipeline:
     /// with `drop_oldest` a full queue loses its oldest frame (counted), with `wait` the call

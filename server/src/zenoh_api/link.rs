@@ -21,7 +21,7 @@
 use std::sync::Arc;
 
 use relfusion_proto::Message as _;
-use relfusion_proto::v1::{self, Frame, SessionFinished};
+use relfusion_proto::v1::{Frame, SessionFinished};
 use relfusion_proto::zenoh_keys::{END, FINISHED, FRAMES, POSES, session_key, session_wildcard};
 use tokio::sync::broadcast::error::RecvError;
 use tokio::task::JoinHandle;
@@ -32,7 +32,7 @@ use zenoh::sample::{Locality, Sample};
 
 use super::{Shared, bump, error_message_bytes};
 use crate::ApiError;
-use crate::session::{CameraJson, FrameData, Session, SessionEvent, SessionInfo};
+use crate::session::{Session, SessionEvent, SessionInfo};
 
 /// Declares the session's subscriber and publishers and starts its two tasks.
 pub(crate) async fn attach(
@@ -135,65 +135,16 @@ async fn handle(shared: &Shared, session: &Session, sample: &Sample) -> Result<(
 }
 
 async fn push(shared: &Shared, session: &Session, frame: Frame) -> Result<(), ApiError> {
-    let frame_id = frame.frame_id;
-    let result = async {
-        if let Some(camera) = &frame.camera {
-            check_same_camera(session, camera)?;
-        }
-        session
-            .push_frame(FrameData {
-                frame_id: Some(frame_id),
-                timestamp: frame.timestamp,
-                bytes: frame.image.into(),
-            })
-            .await
-    }
-    .await;
-    match result {
+    match session.push_proto_frame(frame).await {
         Ok(_) => {
             bump(&shared.stats.frames_accepted);
             Ok(())
         }
         Err(e) => {
             bump(&shared.stats.frames_refused);
-            Err(ApiError {
-                message: format!("frame {frame_id}: {}", e.message),
-                ..e
-            })
+            Err(e)
         }
     }
-}
-
-/// A frame may repeat the session camera but not change it: the pipeline has one camera.
-fn check_same_camera(session: &Session, camera: &v1::Camera) -> Result<(), ApiError> {
-    let own = CameraJson::from_camera(session.camera());
-    let theirs = crate::convert::camera_json_from_proto(camera);
-    let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(1.0);
-    let same = theirs.width == own.width
-        && theirs.height == own.height
-        && close(theirs.fx, own.fx)
-        && close(theirs.fy, own.fy)
-        && close(theirs.cx, own.cx)
-        && close(theirs.cy, own.cy);
-    if same {
-        return Ok(());
-    }
-    Err(ApiError::bad_request(format!(
-        "the frame's camera ({}x{}, fx {} fy {} cx {} cy {}) differs from the session's \
-         ({}x{}, fx {} fy {} cx {} cy {}); open a new session for another camera",
-        theirs.width,
-        theirs.height,
-        theirs.fx,
-        theirs.fy,
-        theirs.cx,
-        theirs.cy,
-        own.width,
-        own.height,
-        own.fx,
-        own.fy,
-        own.cx,
-        own.cy
-    )))
 }
 
 /// Publishes the session's events until it has finished or failed, then `finished`.

@@ -38,6 +38,42 @@ fn pose_error(estimate: &SE3, truth: &SE3) -> (f64, f64) {
     (e.translation.norm(), e.rotation.log().norm().to_degrees())
 }
 
+/// Tracks frames `indices` (loaded by `load`) one after the other against the keyframe 0
+/// `reference`, each starting from the previous result as LSD-SLAM does; asserts every frame
+/// is tracked and returns the worst (translation m, rotation °) error against ground truth.
+fn track_chain(
+    label: &str,
+    seq: &TumSequence,
+    reference: &TrackingReference,
+    indices: impl IntoIterator<Item = usize>,
+    load: impl Fn(usize) -> Frame,
+) -> (f64, f64) {
+    let w_kf = seq.frames[0].world_from_camera.expect("gt");
+    let mut tracker = SE3Tracker::new(TrackingConfig::default()).expect("tracker");
+    let mut guess = SE3::identity();
+    let mut worst = (0.0f64, 0.0f64);
+    for i in indices {
+        let f = load(i);
+        let result = tracker.track(reference, &f, &guess);
+        let truth = seq.frames[i].world_from_camera.expect("gt").inverse() * w_kf;
+        let (et, er) = pose_error(&result.frame_from_keyframe, &truth);
+        let (mt, mr) = pose_error(&SE3::identity(), &truth);
+        eprintln!(
+            "{label} {i:2}: motion {mt:.3} m {mr:.2}°, error {et:.4} m {er:.3}°, good {} ({:.2}), usage {:.2}, residual {:.2}, its {}, corr {:.3}",
+            result.good,
+            result.good_ratio,
+            result.point_usage,
+            result.residual,
+            result.iterations,
+            result.correlation
+        );
+        assert!(result.good, "{label} frame {i} lost");
+        worst = (worst.0.max(et), worst.1.max(er));
+        guess = result.frame_from_keyframe;
+    }
+    worst
+}
+
 #[test]
 fn tracking_real_7scenes_against_sensor_depth() {
     let Some(seq) = sequence("7scenes_redkitchen_f0000-0299") else {
@@ -47,29 +83,9 @@ fn tracking_real_7scenes_against_sensor_depth() {
     let depth = seq.load_depth(0).expect("depth").expect("has depth");
     let map = sensor_map(&key, &depth, 5.0);
     let reference = TrackingReference::new(&key, &map).expect("reference");
-    let w_kf = seq.frames[0].world_from_camera.expect("gt");
-    let mut tracker = SE3Tracker::new(TrackingConfig::default()).expect("tracker");
-    let mut guess = SE3::identity();
-    let mut worst = (0.0f64, 0.0f64);
-    for i in (2..=40).step_by(2) {
-        let f = frame(&seq, i);
-        let result = tracker.track(&reference, &f, &guess);
-        let truth = seq.frames[i].world_from_camera.expect("gt").inverse() * w_kf;
-        let (et, er) = pose_error(&result.frame_from_keyframe, &truth);
-        let (mt, mr) = pose_error(&SE3::identity(), &truth);
-        eprintln!(
-            "7scenes {i:2}: motion {mt:.3} m {mr:.2}°, error {et:.4} m {er:.3}°, good {} ({:.2}), usage {:.2}, residual {:.2}, its {}, corr {:.3}",
-            result.good,
-            result.good_ratio,
-            result.point_usage,
-            result.residual,
-            result.iterations,
-            result.correlation
-        );
-        assert!(result.good, "frame {i} lost");
-        worst = (worst.0.max(et), worst.1.max(er));
-        guess = result.frame_from_keyframe;
-    }
+    let worst = track_chain("7scenes", &seq, &reference, (2..=40).step_by(2), |i| {
+        frame(&seq, i)
+    });
     eprintln!("7scenes worst error {:.4} m {:.3}°", worst.0, worst.1);
     // Colour and depth of 7-Scenes are not registered (a few pixels apart) and the ground truth
     // is KinectFusion's: centimetre-level agreement is what the data supports.
@@ -104,29 +120,8 @@ fn tracking_real_fr1_rpy_against_sensor_depth() {
     let key = load(0);
     let map = sensor_map(&key, &depth, 5.0);
     let reference = TrackingReference::new(&key, &map).expect("reference");
-    let w_kf = seq.frames[0].world_from_camera.expect("gt");
+    let worst = track_chain("fr1", &seq, &reference, 1..=10, load);
     let mut tracker = SE3Tracker::new(TrackingConfig::default()).expect("tracker");
-    let mut guess = SE3::identity();
-    let mut worst = (0.0f64, 0.0f64);
-    for i in 1..=10 {
-        let f = load(i);
-        let result = tracker.track(&reference, &f, &guess);
-        let truth = seq.frames[i].world_from_camera.expect("gt").inverse() * w_kf;
-        let (et, er) = pose_error(&result.frame_from_keyframe, &truth);
-        let (mt, mr) = pose_error(&SE3::identity(), &truth);
-        eprintln!(
-            "fr1 {i:2}: motion {mt:.3} m {mr:.2}°, error {et:.4} m {er:.3}°, good {} ({:.2}), usage {:.2}, residual {:.2}, its {}, corr {:.3}",
-            result.good,
-            result.good_ratio,
-            result.point_usage,
-            result.residual,
-            result.iterations,
-            result.correlation
-        );
-        assert!(result.good, "frame {i} lost");
-        worst = (worst.0.max(et), worst.1.max(er));
-        guess = result.frame_from_keyframe;
-    }
     // The sensor depth is captured up to ~20 ms apart from the colour image while the camera
     // turns at ~120°/s, so the "map" itself is off by up to a few degrees at edges.
     assert!(worst.0 < 0.03 && worst.1 < 2.0, "worst error {worst:?}");
