@@ -3,10 +3,10 @@
 
 use relfusion_proto::Message;
 use relfusion_proto::v1::{
-    BlockIndex, Camera, ClientMessage, CreateSessionReply, Distortion, EndOfStream, Error,
-    ErrorCode, Frame, FramePolicy, ImageEncoding, KeyframeDepth, KeyframeUpdate, MapSnapshot,
-    MeshBlock, MeshUpdate, PoseUpdate, Quaternion, ServerMessage, SessionConfig, SessionFinished,
-    Sim3Pose, StampedPose, TrackingState, Vector3, client_message, server_message,
+    BlockIndex, Camera, ClientMessage, CreateSessionReply, DenseMode, Distortion, EndOfStream,
+    Error, ErrorCode, Frame, FramePolicy, ImageEncoding, KeyframeDepth, KeyframeUpdate,
+    MapSnapshot, MeshBlock, MeshUpdate, PoseUpdate, Quaternion, ServerMessage, SessionConfig,
+    SessionFinished, Sim3Pose, StampedPose, TrackingState, Vector3, client_message, server_message,
 };
 
 fn roundtrip<M: Message + Default + PartialEq + std::fmt::Debug>(message: &M) {
@@ -83,6 +83,16 @@ fn keyframe_update() -> KeyframeUpdate {
             height: 2,
             inverse_depth: f32_bytes(&[0.5, 0.0, 1.25, 2.0]),
             variance: f32_bytes(&[0.01, 0.0, 0.02, 0.03]),
+            camera: Some(Camera {
+                fx: 2.0,
+                fy: 2.0,
+                cx: 0.5,
+                cy: 0.5,
+                width: 2,
+                height: 2,
+                distortion: None,
+            }),
+            mode: DenseMode::Prior as i32,
         }),
     }
 }

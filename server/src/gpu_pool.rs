@@ -371,6 +371,12 @@ mod tests {
             *order.lock().expect("order"),
             ["a0", "b0", "a1", "b1", "a2", "b2", "a3"]
         );
+        // The worker counts a job after handing its result over, so the count may trail the
+        // last `wait` by a moment.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        while pool.completed() < 8 && std::time::Instant::now() < deadline {
+            std::thread::yield_now();
+        }
         assert_eq!(pool.completed(), 8);
     }
 

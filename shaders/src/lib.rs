@@ -25,8 +25,23 @@ pub const PYRAMID_DOWNSAMPLE: &str = include_str!("../wgsl/pyramid_downsample.wg
 /// Central-difference gradients `gx`, `gy` and `|∇I|` of one pyramid level (clamp-to-edge).
 pub const IMAGE_GRADIENT: &str = include_str!("../wgsl/image_gradient.wgsl");
 
+/// The semi-dense adaptive filter of DeepRelativeFusion (eqs. 4–8): one pixel per invocation,
+/// filtered inverse depth and re-estimated variance over a (2r+1)² window.
+pub const ADAPTIVE_FILTER: &str = include_str!("../wgsl/adaptive_filter.wgsl");
+
+/// One Adam iteration of the densification (eqs. 10–13): analytic gradient of the energy at
+/// each pixel from the previous iterate (ping-pong buffers), moment update, step.
+pub const DENSIFY_ADAM: &str = include_str!("../wgsl/densify_adam.wgsl");
+
+/// Forward warp of the previous keyframe's inverse depth into the new keyframe (eq. 14) with a
+/// nearest-surface test (atomic max on the inverse depth's bits).
+pub const TWO_VIEW_WARP: &str = include_str!("../wgsl/two_view_warp.wgsl");
+
 /// Every kernel as `(name, source)`; names are unique and are the pipeline-cache keys.
 pub const ALL: &[(&str, &str)] = &[
     ("pyramid_downsample", PYRAMID_DOWNSAMPLE),
     ("image_gradient", IMAGE_GRADIENT),
+    ("adaptive_filter", ADAPTIVE_FILTER),
+    ("densify_adam", DENSIFY_ADAM),
+    ("two_view_warp", TWO_VIEW_WARP),
 ];

@@ -17,6 +17,10 @@ pub enum BenchCommand {
     Slam(super::bench_slam::SlamArgs),
     /// A running relfusiond: HTTP/Zenoh ingest rate, frame-to-pose latency, sessions at 30 fps.
     Serve(super::bench_serve::ServeArgs),
+    /// Densification (eqs. 10–13, Adam) on saved inputs: GPU kernel vs CPU reference.
+    Densify(super::bench_densify::DensifyArgs),
+    /// Per keyframe of a saved run: prior, adaptive filter and densification, GPU vs CPU.
+    Dense(super::bench_dense::DenseArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -43,6 +47,8 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Pyramid(args) => pyramid(&args),
         BenchCommand::Slam(args) => super::bench_slam::slam(&args),
         BenchCommand::Serve(args) => super::bench_serve::serve(&args),
+        BenchCommand::Densify(args) => super::bench_densify::densify(&args),
+        BenchCommand::Dense(args) => super::bench_dense::dense(&args),
     }
 }
 

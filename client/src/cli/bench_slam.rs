@@ -37,6 +37,10 @@ pub struct SlamArgs {
     /// Use only the first N frames.
     #[arg(long)]
     pub frames: Option<usize>,
+    /// Turn the dense layer off (compare tracking time with it on: it must not slow
+    /// tracking down, issue 4).
+    #[arg(long)]
+    pub no_dense: bool,
 }
 
 pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
@@ -46,6 +50,7 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
         None => Config::default(),
     };
     config.pipeline.deterministic |= args.deterministic;
+    config.dense.enabled &= !args.no_dense;
     let seq = TumSequence::open(&args.dataset, None)
         .with_context(|| format!("opening {}", args.dataset.display()))?;
     let n = args.frames.unwrap_or(seq.len()).min(seq.len());
@@ -104,6 +109,8 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
             "tracking_ms_per_frame": 1e3 * stats.tracking_s / n as f64,
             "mapping_ms_per_frame": 1e3 * stats.mapping_s / n as f64,
             "keyframes": stats.keyframes,
+            "keyframes_densified": stats.keyframes_densified,
+            "keyframes_not_densified": stats.keyframes_not_densified,
             "frames_lost": stats.frames_lost,
             "ate_trajectory_m": ate_of(&pipeline.trajectory()),
             "ate_keyframes_m": ate_of(&pipeline.keyframe_trajectory()),
@@ -125,11 +132,13 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
             "width": seq.camera.width,
             "height": seq.camera.height,
             "mode": if config.pipeline.deterministic { "deterministic" } else { "threaded" },
+            "dense": if config.dense.enabled { "on" } else { "off" },
             "build": if cfg!(debug_assertions) { "debug" } else { "release" },
             "image_decode_ms_per_frame": decode_ms,
             "runs": runs,
             "spread": {
                 "ms_per_frame": spread("ms_per_frame"),
+                "tracking_ms_per_frame": spread("tracking_ms_per_frame"),
                 "ate_trajectory_m": spread("ate_trajectory_m"),
                 "ate_keyframes_m": spread("ate_keyframes_m"),
             },

@@ -2,17 +2,25 @@
 //! (the paper's percentage of correct depth, §V.A). Each subcommand prints one JSON object on
 //! stdout so that scripts and the end-to-end tests can read it.
 //!
-//! Later additions (whole-run evaluation, `--dataset DIR --run OUT`) become further variants of
-//! [`EvalCommand`]; the single-file subcommands stay as they are.
+//! `eval depth` has two modes: one depth map against one ground-truth map (`--gt-depth A --est
+//! B`), or a whole run (`--dataset DIR --run OUT`): every dense-layer stage of the keyframes
+//! `relfusion run` stored in `OUT/keyframes/` (`relfusion_slam::eval::dense_depth`).
+//! `eval ablation` re-densifies those keyframes with each energy of the paper's Table II.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use anyhow::Context as _;
 use relfusion_slam::dataset::trajectory::{StampedPose, read_tum_trajectory};
+use relfusion_slam::dense::DenseCompute;
+use relfusion_slam::dense::gpu_densify::GpuDensifier;
+use relfusion_slam::eval::ablation::{run_ablation, table_ii_rows};
+use relfusion_slam::eval::dense_depth::evaluate_dense_depth;
 use relfusion_slam::eval::{
     self, AlignMode, DEFAULT_DEPTH_THRESHOLD, DEFAULT_MAX_DT, associate_poses, ate_matched,
     percent_correct_depth, read_depth_map, rpe_matched,
 };
+use relfusion_slam::pipeline::Config;
 use serde_json::json;
 
 #[derive(Debug, clap::Subcommand)]
@@ -20,9 +28,17 @@ pub enum EvalCommand {
     /// ATE/RPE of an estimated trajectory against ground truth (both TUM files
     /// `t tx ty tz qx qy qz qw`); same figures as `evo_ape`/`evo_rpe` with `--t_max_diff`.
     Traj(TrajArgs),
-    /// Percentage of correct depth (relative error < threshold) of one depth map against ground
-    /// truth, counted over the valid ground-truth pixels (missing estimates count as wrong).
+    /// Percentage of correct depth (relative error < threshold), counted over the valid
+    /// ground-truth pixels (missing estimates count as wrong). Either one map
+    /// (`--gt-depth A --est B`) or every dense-layer stage of a run's stored keyframes
+    /// (`--dataset DIR --run OUT`: prior fitted to ground truth, prior aligned by the pipeline,
+    /// raw and filtered semi-dense on their pixels, densified), scaled by the Sim(3) alignment
+    /// of `OUT/keyframes.txt` to `DIR/groundtruth.txt`.
     Depth(DepthArgs),
+    /// The paper's Table II: re-densify a run's stored keyframes (`OUT/keyframes/`, written
+    /// with their stage maps) with each combination of energy terms and score each result like
+    /// `eval depth --dataset --run`'s `dense` stage.
+    Ablation(AblationArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -47,21 +63,54 @@ pub struct TrajArgs {
 
 #[derive(Debug, clap::Args)]
 pub struct DepthArgs {
-    /// Ground-truth depth map: 16-bit PNG (divided by --png-scale) or float32 .npy in metres.
-    #[arg(long)]
-    pub gt_depth: PathBuf,
-    /// Estimated depth map, same size: .npy (float32 metres) or 16-bit PNG.
-    #[arg(long)]
-    pub est: PathBuf,
-    /// Scale applied to the estimate (monocular: trajectory scale × keyframe scale).
-    #[arg(long, default_value_t = 1.0)]
+    /// Single map: ground-truth depth map, 16-bit PNG (divided by --png-scale) or float32 .npy
+    /// in metres.
+    #[arg(
+        long,
+        requires = "est",
+        conflicts_with_all = ["dataset", "run"],
+        required_unless_present = "dataset"
+    )]
+    pub gt_depth: Option<PathBuf>,
+    /// Single map: estimated depth map, same size: .npy (float32 metres) or 16-bit PNG.
+    #[arg(long, requires = "gt_depth")]
+    pub est: Option<PathBuf>,
+    /// Whole run: the dataset folder (TUM layout with depth and groundtruth.txt).
+    #[arg(long, requires = "run")]
+    pub dataset: Option<PathBuf>,
+    /// Whole run: the output folder of `relfusion run` (keyframes.txt, keyframes/).
+    #[arg(long, requires = "dataset")]
+    pub run: Option<PathBuf>,
+    /// Single map: scale applied to the estimate (monocular: trajectory scale × keyframe
+    /// scale).
+    #[arg(long, default_value_t = 1.0, conflicts_with = "dataset")]
     pub scale: f64,
     /// Relative error bound of a correct pixel (the paper: 10 %).
     #[arg(long, default_value_t = DEFAULT_DEPTH_THRESHOLD)]
     pub threshold: f64,
-    /// Units per metre of 16-bit PNG depth (TUM: 5000).
-    #[arg(long, default_value_t = eval::depth::TUM_PNG_DEPTH_SCALE)]
+    /// Single map: units per metre of 16-bit PNG depth (TUM: 5000).
+    #[arg(long, default_value_t = eval::depth::TUM_PNG_DEPTH_SCALE, conflicts_with = "dataset")]
     pub png_scale: f64,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct AblationArgs {
+    /// The dataset folder (TUM layout with depth and groundtruth.txt).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// The output folder of `relfusion run` (keyframes.txt, keyframes/ with stage maps).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Pipeline config (TOML/JSON) whose `[dense.densify]` section gives every parameter but
+    /// the energy terms; the paper's values otherwise. Use the run's config to reproduce it.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Densify with the CPU reference instead of the GPU kernel.
+    #[arg(long)]
+    pub cpu: bool,
+    /// Relative error bound of a correct pixel (the paper: 10 %).
+    #[arg(long, default_value_t = DEFAULT_DEPTH_THRESHOLD)]
+    pub threshold: f64,
 }
 
 fn parse_align(s: &str) -> Result<AlignMode, String> {
@@ -72,6 +121,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
     let report = match cmd {
         EvalCommand::Traj(args) => traj(&args)?,
         EvalCommand::Depth(args) => depth(&args)?,
+        EvalCommand::Ablation(args) => ablation(&args)?,
     };
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
@@ -112,8 +162,23 @@ fn traj(args: &TrajArgs) -> anyhow::Result<serde_json::Value> {
 }
 
 fn depth(args: &DepthArgs) -> anyhow::Result<serde_json::Value> {
-    let gt = read_depth_map(&args.gt_depth, args.png_scale)?;
-    let est = read_depth_map(&args.est, args.png_scale)?;
+    let (gt_path, est_path) = match (&args.dataset, &args.run, &args.gt_depth, &args.est) {
+        (Some(dataset), Some(run), _, _) => {
+            let report = evaluate_dense_depth(dataset, run, args.threshold).with_context(|| {
+                format!(
+                    "evaluating the keyframes of {} against {}",
+                    run.display(),
+                    dataset.display()
+                )
+            })?;
+            return Ok(serde_json::to_value(report)?);
+        }
+        (_, _, Some(gt), Some(est)) => (gt, est),
+        // clap's `requires` rules make other combinations unreachable.
+        _ => anyhow::bail!("give --gt-depth and --est, or --dataset and --run"),
+    };
+    let gt = read_depth_map(gt_path, args.png_scale)?;
+    let est = read_depth_map(est_path, args.png_scale)?;
     let acc = percent_correct_depth(&est, &gt, args.scale, args.threshold)?;
     Ok(json!({
         "percent_correct": acc.percent,
@@ -123,4 +188,41 @@ fn depth(args: &DepthArgs) -> anyhow::Result<serde_json::Value> {
         "scale": args.scale,
         "threshold": args.threshold,
     }))
+}
+
+fn ablation(args: &AblationArgs) -> anyhow::Result<serde_json::Value> {
+    let config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    let gpu = if args.cpu || config.dense.compute == DenseCompute::Cpu {
+        None
+    } else {
+        // Like the pipeline: the kernel when an adapter opens, else the CPU reference.
+        match super::gpu_info::open_context(None)
+            .and_then(|ctx| Ok(GpuDensifier::new(Arc::new(ctx))?))
+        {
+            Ok(g) => Some(g),
+            Err(e) => {
+                tracing::warn!("no GPU for densification ({e:#}); using the CPU reference");
+                None
+            }
+        }
+    };
+    let report = run_ablation(
+        &args.dataset,
+        &args.run,
+        &table_ii_rows(),
+        &config.dense.densify,
+        gpu.as_ref(),
+        args.threshold,
+    )
+    .with_context(|| {
+        format!(
+            "ablation on the keyframes of {} against {}",
+            args.run.display(),
+            args.dataset.display()
+        )
+    })?;
+    Ok(serde_json::to_value(report)?)
 }

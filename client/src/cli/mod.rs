@@ -1,6 +1,8 @@
 //! One module per subcommand: each exposes its clap `Args` (or subcommand enum) and `run`.
 
 pub mod bench;
+pub mod bench_dense;
+pub mod bench_densify;
 pub mod bench_serve;
 pub mod bench_slam;
 pub mod connect;

@@ -1,6 +1,9 @@
 //! What a session tells its subscribers (SSE as JSON, WebSocket and Zenoh as protobuf).
 
 use relfusion_proto::v1;
+use std::sync::Arc;
+
+use relfusion_slam::dense::{DenseKeyframe, DenseMode};
 use relfusion_slam::pipeline::TrackingState;
 use serde::Serialize;
 
@@ -40,6 +43,19 @@ pub enum SessionEvent {
     /// The pose graph moved keyframes (loop closure, final optimisation): the current pose of
     /// every keyframe, so subscribers can re-anchor the frames tracked against them.
     KeyframePoses { poses: Vec<KeyframePose> },
+    /// The dense layer finished a keyframe (its dense inverse depth and variance travel only
+    /// on the WebSocket and Zenoh, as `KeyframeUpdate.depth`; SSE gets the summary).
+    KeyframeDensified {
+        keyframe_id: u64,
+        frame_id: u64,
+        timestamp: f64,
+        pose: PoseJson,
+        mode: DenseMode,
+        width: usize,
+        height: usize,
+        #[serde(skip)]
+        dense: Arc<DenseKeyframe>,
+    },
     /// Frames were dropped because the stream outran the pipeline (running total).
     Dropped { frames_dropped: u64 },
     /// The session finished; results are final.
@@ -55,6 +71,7 @@ impl SessionEvent {
             SessionEvent::Pose { .. } => "pose",
             SessionEvent::Keyframe { .. } => "keyframe",
             SessionEvent::KeyframePoses { .. } => "keyframe_poses",
+            SessionEvent::KeyframeDensified { .. } => "keyframe_densified",
             SessionEvent::Dropped { .. } => "dropped",
             SessionEvent::Finished { .. } => "finished",
             SessionEvent::Failed { .. } => "failed",
@@ -111,6 +128,21 @@ impl SessionEvent {
                 .iter()
                 .map(|k| keyframe(k.keyframe_id, k.frame_id, k.timestamp, &k.pose))
                 .collect(),
+            SessionEvent::KeyframeDensified {
+                keyframe_id,
+                frame_id,
+                timestamp,
+                pose,
+                dense,
+                ..
+            } => vec![Message::Keyframe(v1::KeyframeUpdate {
+                session_id: session_id.to_string(),
+                keyframe_id: *keyframe_id,
+                frame_id: *frame_id,
+                timestamp: *timestamp,
+                world_from_camera: Some(pose_json_to_proto(pose)),
+                depth: Some(keyframe_depth(dense)),
+            })],
             SessionEvent::Failed { message } => vec![Message::Error(v1::Error {
                 code: v1::ErrorCode::Internal as i32,
                 message: message.clone(),
@@ -123,6 +155,35 @@ impl SessionEvent {
                 message: Some(message),
             })
             .collect()
+    }
+}
+
+/// The wire form of a dense keyframe: little-endian f32 maps plus the camera they belong to.
+fn keyframe_depth(dense: &DenseKeyframe) -> v1::KeyframeDepth {
+    let bytes = |data: &[f32]| {
+        data.iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect::<Vec<u8>>()
+    };
+    let c = &dense.camera;
+    v1::KeyframeDepth {
+        width: dense.idepth.width as u32,
+        height: dense.idepth.height as u32,
+        inverse_depth: bytes(&dense.idepth.data),
+        variance: bytes(&dense.variance.data),
+        camera: Some(v1::Camera {
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+            width: c.width,
+            height: c.height,
+            distortion: None,
+        }),
+        mode: match dense.mode {
+            DenseMode::Prior => v1::DenseMode::Prior,
+            DenseMode::NoModel => v1::DenseMode::NoModel,
+        } as i32,
     }
 }
 

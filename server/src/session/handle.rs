@@ -44,6 +44,7 @@ pub(crate) struct Counters {
     pub dropped: AtomicU64,
     pub lost: AtomicU64,
     pub keyframes: AtomicU64,
+    pub densified: AtomicU64,
 }
 
 impl Counters {
@@ -54,6 +55,7 @@ impl Counters {
             dropped: self.dropped.load(Ordering::Relaxed),
             lost: self.lost.load(Ordering::Relaxed),
             keyframes: self.keyframes.load(Ordering::Relaxed),
+            densified: self.densified.load(Ordering::Relaxed),
         }
     }
 
@@ -64,6 +66,7 @@ impl Counters {
             dropped: snapshot.dropped.into(),
             lost: snapshot.lost.into(),
             keyframes: snapshot.keyframes.into(),
+            densified: snapshot.densified.into(),
         }
     }
 }
@@ -230,6 +233,8 @@ impl Session {
             frames_dropped: c.dropped,
             frames_lost: c.lost,
             keyframes: c.keyframes,
+            keyframes_densified: c.densified,
+            dense_mode: super::types::dense_mode(&self.config, &self.model),
             progress: Progress {
                 processed: c.processed,
                 total: self.total_frames,

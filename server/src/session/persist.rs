@@ -10,7 +10,7 @@ use relfusion_slam::pipeline::Config as SlamConfig;
 use serde::{Deserialize, Serialize};
 
 use super::types::{
-    CameraJson, FramePolicy, Owner, Progress, SessionInfo, SessionKind, SessionState,
+    CameraJson, FramePolicy, Owner, Progress, SessionInfo, SessionKind, SessionState, dense_mode,
 };
 use crate::storage::{ObjectStore, StoreError};
 
@@ -46,6 +46,9 @@ pub struct CounterSnapshot {
     pub dropped: u64,
     pub lost: u64,
     pub keyframes: u64,
+    /// Keyframes the dense layer finished.
+    #[serde(default)]
+    pub densified: u64,
 }
 
 /// Everything needed to show a session after a restart, and to re-run an upload exactly.
@@ -104,6 +107,8 @@ impl SessionMeta {
             frames_dropped: self.counters.dropped,
             frames_lost: self.counters.lost,
             keyframes: self.counters.keyframes,
+            keyframes_densified: self.counters.densified,
+            dense_mode: dense_mode(&self.config, &self.model),
             progress: Progress {
                 processed: self.counters.processed,
                 total: self.total_frames,

@@ -171,6 +171,11 @@ pub struct SessionInfo {
     /// Processed frames whose tracking was lost.
     pub frames_lost: u64,
     pub keyframes: u64,
+    /// Keyframes the dense layer finished (`KeyframeDensified` events).
+    pub keyframes_densified: u64,
+    /// `prior` (the paper's dense layer), `no_model` (no depth model: densified from the
+    /// semi-dense depth alone, with edge-aware smoothness) or `off`.
+    pub dense_mode: String,
     pub progress: Progress,
     /// Creation time, seconds since the Unix epoch.
     pub created_unix: u64,
@@ -180,6 +185,16 @@ pub struct SessionInfo {
     /// Why the session failed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+}
+
+/// The dense layer's mode for a session's config and model (`SessionInfo::dense_mode`).
+pub fn dense_mode(config: &relfusion_slam::pipeline::Config, model: &str) -> String {
+    match (config.dense.enabled, model) {
+        (false, _) => "off",
+        (true, "none") => "no_model",
+        (true, _) => "prior",
+    }
+    .to_string()
 }
 
 /// A pose in events: `world_from_camera` as translation, unit quaternion `[x, y, z, w]` and

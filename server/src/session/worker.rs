@@ -123,6 +123,24 @@ impl Runner<'_> {
         }
     }
 
+    /// Reports a dense keyframe (with the client's frame id of its keyframe).
+    fn emit_densified(&self, dense: Arc<relfusion_slam::dense::DenseKeyframe>) {
+        let s = self.session;
+        s.counters.densified.fetch_add(1, Ordering::Relaxed);
+        let id = dense.keyframe_id as u64;
+        let frame_id = self.keyframe_frames.get(&id).map_or(0, |&(f, _)| f);
+        s.emit(SessionEvent::KeyframeDensified {
+            keyframe_id: id,
+            frame_id,
+            timestamp: dense.timestamp,
+            pose: pose_json(&dense.world_from_keyframe),
+            mode: dense.mode,
+            width: dense.idepth.width,
+            height: dense.idepth.height,
+            dense,
+        });
+    }
+
     fn feed_live(&mut self) -> Result<Outcome, String> {
         let Some(queue) = &self.session.queue else {
             return Err("live session without a frame queue".into());
@@ -250,6 +268,7 @@ impl Runner<'_> {
                     s.update_keyframe_poses(&poses);
                     s.emit(self.keyframe_poses_event(&poses));
                 }
+                Event::KeyframeDensified { keyframe, .. } => self.emit_densified(keyframe),
             }
         }
         if self.since_checkpoint >= self.env.checkpoint_keyframes {
@@ -280,6 +299,9 @@ impl Runner<'_> {
                 "frames_lost": stats.frames_lost,
                 "tracking_s": stats.tracking_s,
                 "mapping_s": stats.mapping_s,
+                "keyframes_densified": stats.keyframes_densified,
+                "keyframes_not_densified": stats.keyframes_not_densified,
+                "dense_mode": stats.dense_mode,
             }),
         };
         match results.save(s.store.as_ref(), s.id()) {
@@ -302,6 +324,12 @@ impl Runner<'_> {
             Ok(poses) => poses,
             Err(e) => return fail(s, Some(&self), format!("final optimisation: {e}")),
         };
+        // Keyframes the dense layer finished while the session was finishing.
+        for event in self.pipeline.take_events() {
+            if let Event::KeyframeDensified { keyframe, .. } = event {
+                self.emit_densified(keyframe);
+            }
+        }
         s.update_keyframe_poses(&poses);
         s.emit(self.keyframe_poses_event(&poses));
         if s.cancelled.load(Ordering::SeqCst) {

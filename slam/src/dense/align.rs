@@ -133,6 +133,69 @@ pub fn fit_scale_shift_unconstrained(
     })
 }
 
+/// Eq. (3) made robust for the pipeline, where the target is LSD-SLAM's semi-dense map with
+/// its spurious points (the reason for the paper's adaptive filter): fit, drop the pixels whose
+/// residual exceeds `params.outlier_k` robust standard deviations (1.4826 × the median absolute
+/// residual), re-fit, `params.outlier_rounds` times. Rejected, with the reason, when fewer than
+/// `params.min_pixels` pixels have a target or remain, when the prior is constant over them, or
+/// when the scale comes out ≤ 0 (the prior's ordering contradicts the map).
+pub fn fit_scale_shift_robust(
+    prior_inv: &ImageF32,
+    target_inv: &ImageF32,
+    params: &super::AlignParams,
+) -> Result<ScaleShift> {
+    let has_target = |i: usize| {
+        let t = target_inv.data[i];
+        t.is_finite() && t > 0.0 && prior_inv.data.get(i).is_some_and(|p| p.is_finite())
+    };
+    let mut mask: Vec<bool> = (0..target_inv.data.len()).map(has_target).collect();
+    let count = |m: &[bool]| m.iter().filter(|&&k| k).count();
+    let too_few = |n: usize, what: &str| {
+        Error::Prior(format!(
+            "prior alignment needs at least {} semi-dense pixels, {what} {n}",
+            params.min_pixels
+        ))
+    };
+    let n = count(&mask);
+    if n < params.min_pixels {
+        return Err(too_few(n, "the keyframe has"));
+    }
+    let mut fit = fit_scale_shift(prior_inv, target_inv, Some(&mask))?;
+    for _ in 0..params.outlier_rounds {
+        let mut residuals: Vec<f64> = (0..mask.len())
+            .filter(|&i| mask[i])
+            .map(|i| {
+                (f64::from(fit.apply(prior_inv.data[i])) - f64::from(target_inv.data[i])).abs()
+            })
+            .collect();
+        let mid = residuals.len() / 2;
+        let (_, median, _) = residuals.select_nth_unstable_by(mid, f64::total_cmp);
+        let bound = params.outlier_k * 1.4826 * *median;
+        if bound.is_nan() || bound <= 0.0 {
+            break;
+        }
+        let mut changed = false;
+        for (i, keep) in mask.iter_mut().enumerate() {
+            if *keep
+                && (f64::from(fit.apply(prior_inv.data[i])) - f64::from(target_inv.data[i])).abs()
+                    > bound
+            {
+                *keep = false;
+                changed = true;
+            }
+        }
+        let n = count(&mask);
+        if n < params.min_pixels {
+            return Err(too_few(n, "outlier rejection left"));
+        }
+        fit = fit_scale_shift(prior_inv, target_inv, Some(&mask))?;
+        if !changed {
+            break;
+        }
+    }
+    Ok(fit)
+}
+
 /// Ground truth for eq. (3) from a metric depth map: the target inverse depth `1 / depth` and
 /// the mask of pixels with `depth > min_depth` (finite). Other pixels get target 0 ("no value").
 /// The shared data README §1.4 uses `min_depth` = 0.1 m.
@@ -220,6 +283,36 @@ mod tests {
         // Without the mask the outlier pulls the fit away.
         let loose = fit_scale_shift(&prior, &target, None).expect("fit");
         assert!((loose.a - 2.5).abs() > 1e-3);
+    }
+
+    #[test]
+    fn robust_align_ignores_spurious_points_and_explains_rejections() {
+        let prior = ramp(40, 30);
+        let mut target = prior.clone();
+        for (i, t) in target.data.iter_mut().enumerate() {
+            *t = 1.5 * *t + 0.2 + if i % 97 == 0 { 0.002 } else { -0.001 };
+            if i % 10 == 0 {
+                *t *= 4.0; // 10 % spurious points
+            }
+        }
+        let params = crate::dense::AlignParams::default();
+        let plain = fit_scale_shift(&prior, &target, None).expect("fit");
+        let robust = fit_scale_shift_robust(&prior, &target, &params).expect("fit");
+        assert!((plain.a - 1.5).abs() > 0.1, "{plain:?}");
+        assert!(
+            (robust.a - 1.5).abs() < 0.01 && (robust.b - 0.2).abs() < 0.01,
+            "{robust:?}"
+        );
+        assert!(robust.used < 1200 && robust.used > 1000);
+        let sparse = ImageF32::filled(40, 30, 0.0);
+        let err = fit_scale_shift_robust(&prior, &sparse, &params).expect_err("must fail");
+        assert!(err.to_string().contains("at least 200"), "{err}");
+        let mut inverted = prior.clone();
+        for p in &mut inverted.data {
+            *p = 3.0 - *p;
+        }
+        let err = fit_scale_shift_robust(&inverted, &prior, &params).expect_err("must fail");
+        assert!(err.to_string().contains("<= 0"), "{err}");
     }
 
     #[test]

@@ -10,9 +10,13 @@
 //!   IROS 2012 §VI.B).
 //! - [`rpe`]: relative pose error over a fixed frame offset (`evo_rpe`; Sturm et al. §VI.A).
 //! - [`depth`]: the paper's reconstruction accuracy (§V.A, after CNN-SLAM).
+//! - [`dense_depth`]: that accuracy per dense-layer stage over a run's stored keyframes.
+//! - [`ablation`]: Table II, re-densifying the stored keyframes with each energy.
 
+pub mod ablation;
 pub mod associate;
 pub mod ate;
+pub mod dense_depth;
 pub mod depth;
 pub mod rpe;
 pub mod umeyama;

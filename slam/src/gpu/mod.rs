@@ -13,3 +13,19 @@ pub mod pyramid;
 
 pub use context::{AdapterChoice, GpuConfig, GpuContext};
 pub use pyramid::{GpuPyramid, PyramidKernel};
+
+/// The process-wide GPU context with the default [`GpuConfig`], opened on first use and shared
+/// by every session (a wgpu device is thread-safe; one per process keeps the pipeline cache
+/// and driver memory single). The error, if opening failed, is returned to every caller.
+pub fn shared_context() -> crate::Result<std::sync::Arc<GpuContext>> {
+    static SHARED: std::sync::OnceLock<std::result::Result<std::sync::Arc<GpuContext>, String>> =
+        std::sync::OnceLock::new();
+    SHARED
+        .get_or_init(|| {
+            GpuContext::new(&GpuConfig::default())
+                .map(std::sync::Arc::new)
+                .map_err(|e| e.to_string())
+        })
+        .clone()
+        .map_err(crate::Error::Gpu)
+}

@@ -3,6 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::dense::DenseConfig;
 use crate::graph::BackendConfig;
 use crate::mapping::MappingConfig;
 use crate::tracking::TrackingConfig;
@@ -98,6 +99,8 @@ pub struct Config {
     pub tracking: TrackingConfig,
     pub mapping: MappingConfig,
     pub backend: BackendConfig,
+    /// The dense layer (DeepRelativeFusion §III-B..E).
+    pub dense: DenseConfig,
 }
 
 impl Config {
@@ -124,7 +127,8 @@ impl Config {
         }
         self.tracking.validate()?;
         self.mapping.validate()?;
-        self.backend.validate()
+        self.backend.validate()?;
+        self.dense.validate()
     }
 }
 

@@ -1,5 +1,8 @@
 //! What the pipeline tells the world: one event stream per session.
 
+use std::sync::Arc;
+
+use crate::dense::{DenseKeyframe, DenseMode};
 use crate::geometry::Sim3;
 use crate::graph::KeyframeId;
 
@@ -49,5 +52,14 @@ pub enum Event {
     /// The back end optimised the pose graph: the current pose of every keyframe.
     KeyframePoses {
         poses: Vec<(KeyframeId, Sim3)>,
+    },
+    /// The dense layer finished a keyframe: dense inverse depth and variance at the working
+    /// resolution (320×240 by default) with the keyframe's pose (paper §III-D).
+    KeyframeDensified {
+        keyframe_id: KeyframeId,
+        timestamp: f64,
+        mode: DenseMode,
+        #[serde(skip)]
+        keyframe: Arc<DenseKeyframe>,
     },
 }

@@ -6,7 +6,9 @@
 //! has moved far enough, the frame becomes the next keyframe (depth propagated, scale
 //! normalised) and the finished keyframe goes to the back end (Sim(3) constraints, pose graph).
 //! Tracking and mapping run in the caller's thread, one frame at a time; the back end runs on
-//! its own thread unless `pipeline.deterministic` is set.
+//! its own thread unless `pipeline.deterministic` is set. Each finished keyframe also goes to
+//! the dense layer (DeepRelativeFusion §III-B..E, [`crate::dense::layer`]), on its own thread
+//! likewise; its two-view consistent depth comes back to refine the keyframe's constraints.
 
 pub mod config;
 pub mod events;
@@ -20,10 +22,12 @@ use nalgebra::{Matrix6, Vector3};
 pub use config::{Config, DepthInit, PipelineConfig};
 pub use events::{Event, KeyframeEvent, PoseEvent, TrackingState};
 
+use crate::dense::DenseKeyframe;
+use crate::dense::layer::{DenseJob, DenseLayer, DenseOutput, DenseWorker, SharedPrior, predict};
 use crate::dense::prior::DepthPrior;
 use crate::export::ColoredPoint;
 use crate::frame::Frame;
-use crate::geometry::{PinholeCamera, SE3, SO3, Sim3, UndistortMap};
+use crate::geometry::{Matrix7, PinholeCamera, SE3, SO3, Sim3, UndistortMap};
 use crate::graph::{Backend, BackendHandle, KeyframeId, NewKeyframe, ParentEdge};
 use crate::image::ImageF32;
 use crate::mapping::{DepthFilter, DepthMap, PriorFillParams, needs_new_keyframe};
@@ -60,6 +64,8 @@ struct KeyframeRecord {
     /// The tracking constraint to the keyframe it was created from (sent with it to the back
     /// end once the keyframe is finished).
     parent: Option<ParentEdge>,
+    /// The prior's raw output for this image when hole filling already ran the network.
+    prior: Option<Arc<ImageF32>>,
 }
 
 /// The keyframe being mapped.
@@ -80,6 +86,13 @@ enum BackendLink {
     Threaded(BackendHandle),
 }
 
+/// Where the dense layer runs (like the back end: in step when deterministic).
+#[derive(Debug)]
+enum DenseLink {
+    InStep(Box<DenseLayer>),
+    Threaded(DenseWorker),
+}
+
 /// Summary counters of a run.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
 pub struct Stats {
@@ -89,6 +102,15 @@ pub struct Stats {
     /// Accumulated wall time of tracking, mapping and keyframe creation (seconds).
     pub tracking_s: f64,
     pub mapping_s: f64,
+    /// Keyframes the dense layer finished.
+    pub keyframes_densified: usize,
+    /// Keyframes it skipped (queue full) or failed on (reason logged).
+    pub keyframes_not_densified: usize,
+    /// `"prior"`, or `"no_model"` when no depth model is loaded (the dense layer then densifies
+    /// from the semi-dense depth alone); `"off"` when the dense layer is disabled.
+    pub dense_mode: &'static str,
+    /// Dense keyframes whose two-view consistent depth went to the back end (§III-E).
+    pub depth_refinements: usize,
 }
 
 /// The pipeline of one session.
@@ -98,9 +120,15 @@ pub struct Pipeline {
     /// The camera as given (possibly distorted).
     camera: PinholeCamera,
     undistort: Option<UndistortMap>,
-    prior: Option<Box<dyn DepthPrior>>,
+    prior: Option<SharedPrior>,
     tracker: SE3Tracker,
     backend: BackendLink,
+    dense: Option<DenseLink>,
+    /// The latest dense result of each keyframe, by keyframe id.
+    dense_keyframes: std::collections::BTreeMap<KeyframeId, Arc<DenseKeyframe>>,
+    /// Events produced outside a frame's own processing (dense results), returned with the
+    /// next [`Pipeline::push`] or by [`Pipeline::take_events`].
+    pending_events: Vec<Event>,
     keyframes: Vec<KeyframeRecord>,
     current: Option<CurrentKeyframe>,
     frames: Vec<FrameRecord>,
@@ -135,6 +163,23 @@ impl Pipeline {
         } else {
             BackendLink::Threaded(Backend::spawn(config.backend.clone())?)
         };
+        let prior: Option<SharedPrior> = prior.map(|p| Arc::new(std::sync::Mutex::new(p)));
+        let dense = match (config.dense.enabled, config.pipeline.deterministic) {
+            (false, _) => None,
+            (true, true) => Some(DenseLink::InStep(Box::new(DenseLayer::new(
+                config.dense.clone(),
+                prior.clone(),
+            )?))),
+            (true, false) => Some(DenseLink::Threaded(DenseWorker::spawn(
+                config.dense.clone(),
+                prior.clone(),
+            )?)),
+        };
+        let dense_mode = match (&dense, &prior) {
+            (None, _) => "off",
+            (Some(_), Some(_)) => "prior",
+            (Some(_), None) => "no_model",
+        };
         Ok(Self {
             config,
             camera,
@@ -142,6 +187,9 @@ impl Pipeline {
             prior,
             tracker,
             backend,
+            dense,
+            dense_keyframes: std::collections::BTreeMap::new(),
+            pending_events: Vec::new(),
             keyframes: Vec::new(),
             current: None,
             frames: Vec::new(),
@@ -149,7 +197,10 @@ impl Pipeline {
             velocity: None,
             lost: false,
             next_frame_id: 0,
-            stats: Stats::default(),
+            stats: Stats {
+                dense_mode,
+                ..Stats::default()
+            },
             final_poses: None,
         })
     }
@@ -165,8 +216,31 @@ impl Pipeline {
     }
 
     /// Processes one frame and returns what happened (a pose event always; keyframe events
-    /// when one was created).
+    /// when one was created; dense keyframes as the dense layer finishes them).
     pub fn push(&mut self, input: FrameInput) -> Result<Vec<Event>> {
+        let mut events = self.push_frame(input)?;
+        self.poll_dense()?;
+        events.append(&mut self.pending_events);
+        Ok(events)
+    }
+
+    /// Events produced since the last [`Pipeline::push`] outside a frame's processing: the
+    /// dense keyframes [`Pipeline::finish`] waited for.
+    pub fn take_events(&mut self) -> Vec<Event> {
+        std::mem::take(&mut self.pending_events)
+    }
+
+    /// The latest dense result of every densified keyframe with its current pose (optimised
+    /// after [`Pipeline::finish`]).
+    pub fn dense_keyframes(&self) -> Vec<(Arc<DenseKeyframe>, Sim3)> {
+        let poses = self.keyframe_poses();
+        self.dense_keyframes
+            .values()
+            .map(|kf| (kf.clone(), poses[kf.keyframe_id].1))
+            .collect()
+    }
+
+    fn push_frame(&mut self, input: FrameInput) -> Result<Vec<Event>> {
         let frame = Arc::new(self.make_frame(input)?);
         self.stats.frames += 1;
         let Some(current) = self.current.as_mut() else {
@@ -261,6 +335,10 @@ impl Pipeline {
     /// and returns the optimised pose of every keyframe.
     pub fn finish(&mut self) -> Result<Vec<(KeyframeId, Sim3)>> {
         self.finish_current()?;
+        if let Some(DenseLink::Threaded(worker)) = &mut self.dense {
+            let replies = worker.finish();
+            self.apply_dense(replies)?;
+        }
         let poses = match &mut self.backend {
             BackendLink::InStep(backend) => {
                 backend.optimize_full()?;
@@ -365,6 +443,37 @@ impl Pipeline {
         points
     }
 
+    /// Every densified keyframe back-projected at its current pose (optimised after
+    /// [`Pipeline::finish`]), coloured from its image: the dense point cloud (`dense.ply`).
+    pub fn dense_points(&self) -> Result<Vec<ColoredPoint>> {
+        let mut points = Vec::new();
+        for (kf, world_from_kf) in self.dense_keyframes() {
+            let (w, h) = (kf.idepth.width, kf.idepth.height);
+            let colors = match &self.keyframes[kf.keyframe_id].frame.rgb {
+                Some(rgb) => Some(crate::dense::resample::box_downsample_rgb(rgb, w, h)?),
+                None => None,
+            };
+            for y in 0..h {
+                for x in 0..w {
+                    let idepth = kf.idepth.at(x, y);
+                    if !(idepth.is_finite() && idepth > 0.0) {
+                        continue;
+                    }
+                    let p = kf.camera.unproject(
+                        &nalgebra::Vector2::new(x as f64, y as f64),
+                        1.0 / f64::from(idepth),
+                    );
+                    let p: Vector3<f64> = world_from_kf.act(&p);
+                    points.push(ColoredPoint {
+                        position: [p.x as f32, p.y as f32, p.z as f32],
+                        color: colors.as_ref().map_or([200, 200, 200], |c| c[y * w + x]),
+                    });
+                }
+            }
+        }
+        Ok(points)
+    }
+
     /// Undistorts and converts the input; rejects a size that does not match the camera.
     fn make_frame(&mut self, input: FrameInput) -> Result<Frame> {
         let (w, h) = input.rgb.dimensions();
@@ -396,15 +505,15 @@ impl Pipeline {
         let mut filter = DepthFilter::new(frame.clone(), self.config.mapping.clone())?;
         let prior_depth = match (
             self.config.pipeline.init,
-            self.prior.as_mut(),
+            self.prior.as_ref(),
             frame.rgb.as_ref(),
         ) {
-            (DepthInit::Prior, Some(prior), Some(rgb)) => Some(prior.predict(rgb)?.into_image()),
+            (DepthInit::Prior, Some(prior), Some(rgb)) => Some(Arc::new(predict(prior, rgb)?)),
             _ => None,
         };
-        match prior_depth {
+        match &prior_depth {
             Some(idepth) => filter.init_from_depth(
-                &normalise_mean(&idepth)?,
+                &normalise_mean(idepth)?,
                 self.config.pipeline.prior_init_var,
             )?,
             None => filter.init_random(self.config.pipeline.seed),
@@ -415,6 +524,7 @@ impl Pipeline {
             filter,
             Sim3::identity(),
             None,
+            prior_depth,
             TrackingState::Initializing,
         )
     }
@@ -432,7 +542,7 @@ impl Pipeline {
         state: TrackingState,
     ) -> Result<Vec<Event>> {
         let t0 = std::time::Instant::now();
-        self.fill_from_prior(&mut filter)?;
+        let prior = self.fill_from_prior(&mut filter)?;
         // New inverse depths are multiplied by `factor`, so new-keyframe coordinates shrink by
         // it: source_from_new = [R t] · diag(factor).
         let factor = filter.normalize_scale();
@@ -457,6 +567,7 @@ impl Pipeline {
             filter,
             world_from_source * source_from_new,
             Some(parent),
+            prior,
             state,
         )?;
         self.stats.mapping_s += t0.elapsed().as_secs_f64();
@@ -465,20 +576,21 @@ impl Pipeline {
 
     /// Fills the holes of a new keyframe's propagated depth from the depth prior
     /// (`pipeline.prior_fill`; nothing without a prior or an RGB image).
-    fn fill_from_prior(&mut self, filter: &mut DepthFilter) -> Result<()> {
+    /// Returns the prior's output when the network ran, for the dense layer to reuse.
+    fn fill_from_prior(&mut self, filter: &mut DepthFilter) -> Result<Option<Arc<ImageF32>>> {
         let cfg = &self.config.pipeline;
         let (true, Some(prior), Some(rgb)) = (
             cfg.prior_fill,
-            self.prior.as_mut(),
+            self.prior.as_ref(),
             filter.keyframe().rgb.clone(),
         ) else {
-            return Ok(());
+            return Ok(None);
         };
         // The network runs only for keyframes the prior will fill.
         if filter.coverage() > cfg.prior_fill_max_coverage {
-            return Ok(());
+            return Ok(None);
         }
-        let prior_inv = prior.predict(&rgb)?.into_image();
+        let prior_inv = predict(prior, &rgb)?;
         let params = PriorFillParams {
             var: cfg.prior_fill_var,
             validity: cfg.prior_fill_validity,
@@ -487,7 +599,7 @@ impl Pipeline {
         };
         // `None`: no trustworthy alignment; the keyframe keeps its propagated depth only.
         filter.fill_from_prior(&prior_inv, &params)?;
-        Ok(())
+        Ok(Some(Arc::new(prior_inv)))
     }
 
     /// Registers `frame` as the current keyframe and reports it.
@@ -497,6 +609,7 @@ impl Pipeline {
         filter: DepthFilter,
         world_from_keyframe: Sim3,
         parent: Option<ParentEdge>,
+        prior: Option<Arc<ImageF32>>,
         state: TrackingState,
     ) -> Result<Vec<Event>> {
         let id = self.keyframes.len();
@@ -508,6 +621,7 @@ impl Pipeline {
             world_from_keyframe,
             reference: reference.clone(),
             parent,
+            prior,
         });
         self.current = Some(CurrentKeyframe {
             id,
@@ -563,12 +677,94 @@ impl Pipeline {
             world_from_keyframe: record.world_from_keyframe,
             parent: record.parent.clone(),
         };
+        let pose_covariance = record
+            .parent
+            .as_ref()
+            .map_or_else(Matrix7::zeros, |p| covariance(&p.information));
+        let job = DenseJob {
+            keyframe_id: current.id,
+            frame: record.frame.clone(),
+            depth: record.depth.clone(),
+            poses: Vec::new(),
+            pose_covariance,
+            prior: record.prior.take(),
+        };
         match &mut self.backend {
             BackendLink::InStep(backend) => {
                 backend.add_keyframe(new)?;
                 backend.process()?;
             }
             BackendLink::Threaded(handle) => handle.add_keyframe(new)?,
+        }
+        self.densify(job)
+    }
+
+    /// Hands a finished keyframe to the dense layer (in step when deterministic).
+    fn densify(&mut self, mut job: DenseJob) -> Result<()> {
+        if self.dense.is_none() {
+            return Ok(());
+        }
+        job.poses = self.keyframe_poses();
+        let id = job.keyframe_id;
+        match self.dense.as_mut() {
+            Some(DenseLink::InStep(layer)) => {
+                let reply = layer.process(job);
+                self.apply_dense(vec![(id, reply)])
+            }
+            Some(DenseLink::Threaded(worker)) => {
+                if !worker.submit(job)? {
+                    tracing::warn!(keyframe = id, "dense layer busy: keyframe not densified");
+                    self.stats.keyframes_not_densified += 1;
+                }
+                Ok(())
+            }
+            None => Ok(()),
+        }
+    }
+
+    /// Collects the dense worker's finished keyframes.
+    fn poll_dense(&mut self) -> Result<()> {
+        let replies = match &self.dense {
+            Some(DenseLink::Threaded(worker)) => worker.poll(),
+            _ => return Ok(()),
+        };
+        self.apply_dense(replies)
+    }
+
+    /// Records dense results, sends their two-view consistent depth to the back end (§III-E)
+    /// and queues their events. A keyframe the layer failed on is logged and counted: the
+    /// semi-dense SLAM goes on without it.
+    fn apply_dense(&mut self, replies: Vec<(KeyframeId, Result<DenseOutput>)>) -> Result<()> {
+        for (id, reply) in replies {
+            let output = match reply {
+                Ok(output) => output,
+                Err(e) => {
+                    tracing::warn!(keyframe = id, error = %e, "dense layer failed on a keyframe");
+                    self.stats.keyframes_not_densified += 1;
+                    continue;
+                }
+            };
+            if let Some(depth) = output.refined_depth {
+                self.stats.depth_refinements += 1;
+                match &mut self.backend {
+                    BackendLink::InStep(backend) => {
+                        backend.update_keyframe_depth(id, depth)?;
+                        backend.process()?;
+                    }
+                    BackendLink::Threaded(handle) => {
+                        handle.send(crate::graph::BackendCommand::UpdateDepth { id, depth })?
+                    }
+                }
+            }
+            let kf = output.keyframe;
+            self.stats.keyframes_densified += 1;
+            self.pending_events.push(Event::KeyframeDensified {
+                keyframe_id: id,
+                timestamp: kf.timestamp,
+                mode: kf.mode,
+                keyframe: kf.clone(),
+            });
+            self.dense_keyframes.insert(id, kf);
         }
         Ok(())
     }
@@ -673,6 +869,12 @@ fn track_with_motion_model(
         }
     }
     tracker.track(reference, frame, last_frame_from_keyframe)
+}
+
+/// Σ of a pose from its information matrix; zero (no uncertainty propagated) when the
+/// information is singular.
+fn covariance(information: &Matrix7) -> Matrix7 {
+    information.try_inverse().unwrap_or_else(Matrix7::zeros)
 }
 
 /// Scales a relative inverse-depth map so that its mean over positive pixels is 1 (the
