@@ -42,7 +42,7 @@ use bytemuck::{Pod, Zeroable};
 
 use super::config::DensifyParams;
 use super::densify::{DensifyProblem, adam_step_constants};
-use crate::gpu::GpuContext;
+use crate::gpu::{GpuContext, PassTimer};
 use crate::image::ImageF32;
 use crate::{Error, Result};
 
@@ -240,39 +240,38 @@ impl GpuDensifier {
         let (w, h) = (p.width, p.height);
         let padded_width = QUAD * row_quads(w);
         let plane = 4 * res.n_quads;
-        // Planes of `planes.len()` maps, padded with `pad[k]`; `value(k, x, y)` fills map k.
-        let pack = |pad: &[f32], value: &dyn Fn(usize, usize, usize) -> f32| {
-            let mut out = vec![0.0f32; pad.len() * plane];
-            for (k, &fill) in pad.iter().enumerate() {
-                let dst = &mut out[k * plane..(k + 1) * plane];
-                for (y, row) in dst.chunks_exact_mut(padded_width).enumerate() {
-                    for (x, v) in row.iter_mut().enumerate() {
-                        *v = if x < w { value(k, x, y) } else { fill };
-                    }
+        // Maps laid out as padded planes, back to back (see the module docs).
+        let pack = |maps: &[(&[f32], f32)]| {
+            let mut out = vec![0.0f32; maps.len() * plane];
+            for (dst, &(src, fill)) in out.chunks_exact_mut(plane).zip(maps) {
+                for (row, src_row) in dst.chunks_exact_mut(padded_width).zip(src.chunks_exact(w)) {
+                    row[..w].copy_from_slice(src_row);
+                    row[w..].fill(fill);
                 }
             }
             out
         };
-        // No difference leaves the last column / row (the energy's definition).
-        let grad = pack(&[0.0; 4], &|k, x, y| {
-            let i = y * w + x;
-            match k {
-                0 if x + 1 < w => p.wx[i],
-                1 if y + 1 < h => p.wy[i],
-                2 if x + 1 < w => p.tx[i],
-                3 if y + 1 < h => p.ty[i],
-                _ => 0.0,
+        let mut grad = pack(&[(&p.wx, 0.0), (&p.wy, 0.0), (&p.tx, 0.0), (&p.ty, 0.0)]);
+        // No difference leaves the last column (wx, tx) or row (wy, ty): the energy's
+        // definition, whatever the problem holds there.
+        for k in [0, 2] {
+            for row in grad[k * plane..(k + 1) * plane].chunks_exact_mut(padded_width) {
+                row[w - 1] = 0.0;
             }
-        });
-        let data = pack(&[0.0; 4], &|k, x, y| {
-            let i = y * w + x;
-            [&p.semi, &p.semi_var, &p.cnn, &p.cnn_weight][k][i]
-        });
+        }
+        for k in [1, 3] {
+            let last = k * plane + (h - 1) * padded_width;
+            grad[last..last + padded_width].fill(0.0);
+        }
+        let data = pack(&[
+            (&p.semi, 0.0),
+            (&p.semi_var, 0.0),
+            (&p.cnn, 0.0),
+            (&p.cnn_weight, 0.0),
+        ]);
         // Padding: D = 1, ln D = 0 (finite, never moved).
-        let iterate = pack(&[1.0, 0.0], &|k, x, y| {
-            let d = start[y * w + x];
-            if k == 0 { d } else { d.ln() }
-        });
+        let logs: Vec<f32> = start.iter().map(|d| d.ln()).collect();
+        let iterate = pack(&[(start, 1.0), (&logs, 0.0)]);
         queue.write_buffer(&res.grad_terms, 0, bytemuck::cast_slice(&grad));
         queue.write_buffer(&res.data_terms, 0, bytemuck::cast_slice(&data));
         queue.write_buffer(&res.iterates[0], 0, bytemuck::cast_slice(&iterate));
@@ -344,16 +343,7 @@ impl GpuDensifier {
                 "densify: {iterations} iterations need {uniform_bytes} B of uniforms"
             )));
         }
-        let storage = |label: &str, bytes: u64| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: bytes,
-                usage: wgpu::BufferUsages::STORAGE
-                    | wgpu::BufferUsages::COPY_SRC
-                    | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
-        };
+        let storage = |label: &str, bytes: u64| ctx.storage_buffer(label, bytes);
         let iterates = [
             storage("densify iterate 0", 2 * plane),
             storage("densify iterate 1", 2 * plane),
@@ -397,7 +387,9 @@ impl GpuDensifier {
             iterations,
             n_quads,
             staging: ctx.staging_buffer("densify readback", plane),
-            timer: ctx.supports_timestamps().then(|| PassTimer::new(ctx)),
+            timer: ctx
+                .supports_timestamps()
+                .then(|| PassTimer::new(ctx, "densify")),
             iterates,
             moments,
             grad_terms,
@@ -413,58 +405,6 @@ fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
     wgpu::BindGroupEntry {
         binding,
         resource: buffer.as_entire_binding(),
-    }
-}
-
-/// Two timestamps around the compute pass, resolved and read back for the kernel time.
-#[derive(Debug)]
-struct PassTimer {
-    queries: wgpu::QuerySet,
-    resolve: wgpu::Buffer,
-    staging: wgpu::Buffer,
-}
-
-impl PassTimer {
-    fn new(ctx: &GpuContext) -> Self {
-        let device = ctx.device();
-        let bytes = 2 * u64::from(wgpu::QUERY_SIZE);
-        Self {
-            queries: device.create_query_set(&wgpu::QuerySetDescriptor {
-                label: Some("densify timer"),
-                ty: wgpu::QueryType::Timestamp,
-                count: 2,
-            }),
-            resolve: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("densify timer resolve"),
-                size: bytes,
-                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: false,
-            }),
-            staging: ctx.staging_buffer("densify timer readback", bytes),
-        }
-    }
-
-    fn writes(&self) -> wgpu::ComputePassTimestampWrites<'_> {
-        wgpu::ComputePassTimestampWrites {
-            query_set: &self.queries,
-            beginning_of_pass_write_index: Some(0),
-            end_of_pass_write_index: Some(1),
-        }
-    }
-
-    fn record_resolve(&self, encoder: &mut wgpu::CommandEncoder) {
-        encoder.resolve_query_set(&self.queries, 0..2, &self.resolve, 0);
-        encoder.copy_buffer_to_buffer(&self.resolve, 0, &self.staging, 0, self.resolve.size());
-    }
-
-    /// Elapsed GPU time between the two timestamps (the submission included the resolve).
-    fn read(&self, ctx: &GpuContext) -> Result<Duration> {
-        let ticks = ctx.read_mapped(&self.staging, |raw| {
-            let t: &[u64] = bytemuck::cast_slice(&raw[..16]);
-            t[1].saturating_sub(t[0])
-        })?;
-        let ns = ticks as f64 * f64::from(ctx.queue().get_timestamp_period());
-        Ok(Duration::from_nanos(ns.round() as u64))
     }
 }
 
@@ -634,25 +574,5 @@ mod tests {
         let mut broken = problem.clone();
         broken.wx.pop();
         assert!(matches!(gpu.run(&broken, &params), Err(Error::Shape(_))));
-    }
-
-    #[test]
-    fn tmp_overhead() {
-        let gpu = densifier();
-        let params = DensifyParams::default();
-        for (w, h) in [(8, 2), (64, 48), (160, 120), (320, 240), (640, 480)] {
-            let problem = random_problem(w, h, 1);
-            gpu.run(&problem, &params).expect("warm");
-            let mut best = (f64::MAX, f64::MAX);
-            for _ in 0..5 {
-                let t0 = std::time::Instant::now();
-                let (_, k) = gpu.run_timed(&problem, &params).expect("gpu");
-                let wall = t0.elapsed().as_secs_f64() * 1e3;
-                best = (best.0.min(wall), best.1.min(k.expect("ts").as_secs_f64() * 1e3));
-            }
-            let t0 = std::time::Instant::now();
-            densify_cpu(&problem, &params).expect("cpu");
-            eprintln!("OVERHEAD {w}x{h}: gpu wall {:.2} kernel {:.2} cpu {:.2}", best.0, best.1, t0.elapsed().as_secs_f64() * 1e3);
-        }
     }
 }

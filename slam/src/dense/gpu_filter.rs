@@ -64,16 +64,7 @@ struct Buffers {
 impl Buffers {
     fn new(ctx: &GpuContext, len: usize) -> Self {
         let bytes = 4 * len as u64;
-        let storage = |label: &str| {
-            ctx.device().create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: bytes,
-                usage: wgpu::BufferUsages::STORAGE
-                    | wgpu::BufferUsages::COPY_SRC
-                    | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
-        };
+        let storage = |label: &str| ctx.storage_buffer(label, bytes);
         Self {
             len,
             intensity: storage("adaptive_filter intensity"),

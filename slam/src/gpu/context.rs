@@ -261,6 +261,19 @@ impl GpuContext {
         })
     }
 
+    /// A `STORAGE | COPY_SRC | COPY_DST` buffer of `bytes` bytes: a kernel's input or output
+    /// that is uploaded to and read back from.
+    pub fn storage_buffer(&self, label: &str, bytes: u64) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes,
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
     /// A `MAP_READ | COPY_DST` buffer of `bytes` bytes (rounded up to the copy alignment).
     pub fn staging_buffer(&self, label: &str, bytes: u64) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {

@@ -16,7 +16,7 @@ use std::time::Duration;
 use bytemuck::{Pod, Zeroable};
 use wgpu::util::DeviceExt;
 
-use super::GpuContext;
+use super::{GpuContext, PassTimer};
 use crate::image::ImageF32;
 use crate::image::pyramid::{Pyramid, PyramidLevel, level_sizes};
 use crate::{Error, Result};
@@ -172,7 +172,9 @@ impl PyramidKernel {
         levels: usize,
     ) -> Result<(Pyramid, Option<Duration>)> {
         let pyramid = allocate(ctx, image, levels)?;
-        let timer = ctx.supports_timestamps().then(|| PassTimer::new(ctx));
+        let timer = ctx
+            .supports_timestamps()
+            .then(|| PassTimer::new(ctx, "pyramid"));
         let staging = ctx.staging_buffer("pyramid readback", 4 * pyramid.byte_len());
         ctx.queue()
             .write_buffer(&pyramid.intensity, 0, bytemuck::cast_slice(&image.data));
@@ -381,16 +383,7 @@ fn allocate(ctx: &GpuContext, image: &ImageF32, levels: usize) -> Result<GpuPyra
     }
     let total_len =
         u32::try_from(total).map_err(|_| Error::Gpu("pyramid too large for u32 offsets".into()))?;
-    let buffer = |label: &str| {
-        ctx.device().create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: bytes,
-            usage: wgpu::BufferUsages::STORAGE
-                | wgpu::BufferUsages::COPY_SRC
-                | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        })
-    };
+    let buffer = |label: &str| ctx.storage_buffer(label, bytes);
     Ok(GpuPyramid {
         levels: layout,
         total_len,
@@ -399,57 +392,6 @@ fn allocate(ctx: &GpuContext, image: &ImageF32, levels: usize) -> Result<GpuPyra
         gy: buffer("pyramid gy"),
         grad_mag: buffer("pyramid grad_mag"),
     })
-}
-
-/// Two timestamps around one compute pass, resolved and read back for the kernel time.
-struct PassTimer {
-    queries: wgpu::QuerySet,
-    resolve: wgpu::Buffer,
-    staging: wgpu::Buffer,
-}
-
-impl PassTimer {
-    fn new(ctx: &GpuContext) -> Self {
-        let device = ctx.device();
-        let bytes = 2 * u64::from(wgpu::QUERY_SIZE);
-        Self {
-            queries: device.create_query_set(&wgpu::QuerySetDescriptor {
-                label: Some("pyramid timer"),
-                ty: wgpu::QueryType::Timestamp,
-                count: 2,
-            }),
-            resolve: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("pyramid timer resolve"),
-                size: bytes,
-                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: false,
-            }),
-            staging: ctx.staging_buffer("pyramid timer readback", bytes),
-        }
-    }
-
-    fn writes(&self) -> wgpu::ComputePassTimestampWrites<'_> {
-        wgpu::ComputePassTimestampWrites {
-            query_set: &self.queries,
-            beginning_of_pass_write_index: Some(0),
-            end_of_pass_write_index: Some(1),
-        }
-    }
-
-    fn record_resolve(&self, encoder: &mut wgpu::CommandEncoder) {
-        encoder.resolve_query_set(&self.queries, 0..2, &self.resolve, 0);
-        encoder.copy_buffer_to_buffer(&self.resolve, 0, &self.staging, 0, self.resolve.size());
-    }
-
-    /// Elapsed GPU time between the two timestamps (submitted work must include the resolve).
-    fn read(&self, ctx: &GpuContext) -> Result<Duration> {
-        let ticks = ctx.read_mapped(&self.staging, |raw| {
-            let t: &[u64] = bytemuck::cast_slice(&raw[..16]);
-            t[1].saturating_sub(t[0])
-        })?;
-        let ns = ticks as f64 * f64::from(ctx.queue().get_timestamp_period());
-        Ok(Duration::from_nanos(ns.round() as u64))
-    }
 }
 
 #[cfg(test)]
