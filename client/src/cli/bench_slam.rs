@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use relfusion_slam::dataset::TumSequence;
-use relfusion_slam::dataset::trajectory::StampedPose;
+use relfusion_slam::dataset::trajectory::{StampedPose, stamped_se3};
 use relfusion_slam::eval::{AlignMode, ate};
 use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
@@ -92,14 +92,9 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
         let stats = pipeline.stats().clone();
         per_frame.sort_by(f64::total_cmp);
         let ate_of = |poses: &[(f64, Sim3)]| -> Option<f64> {
-            let est: Vec<StampedPose> = poses
-                .iter()
-                .map(|(t, p)| StampedPose {
-                    timestamp: *t,
-                    world_from_camera: p.to_se3_and_scale().0,
-                })
-                .collect();
-            ate(&gt, &est, AlignMode::Sim3).ok().map(|r| r.rmse)
+            ate(&gt, &stamped_se3(poses), AlignMode::Sim3)
+                .ok()
+                .map(|r| r.rmse)
         };
         runs.push(json!({
             "ms_per_frame": 1e3 * frames_s / n as f64,

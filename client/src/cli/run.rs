@@ -13,7 +13,7 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use relfusion_slam::dataset::TumSequence;
-use relfusion_slam::dataset::trajectory::{StampedPose, write_tum_trajectory};
+use relfusion_slam::dataset::trajectory::{stamped_se3, write_tum_trajectory};
 use relfusion_slam::dense::{DepthPrior, ModelConfig, OnnxDepthPrior};
 use relfusion_slam::export::write_points_ply;
 use relfusion_slam::geometry::Sim3;
@@ -169,14 +169,8 @@ pub fn load_prior(
 /// TUM trajectory file of Sim(3) poses: the scale is dropped from the rotation (it lives in the
 /// map, not in the camera), positions keep the map's scale.
 pub fn write_trajectory(path: &Path, poses: &[(f64, Sim3)]) -> anyhow::Result<()> {
-    let stamped: Vec<StampedPose> = poses
-        .iter()
-        .map(|(t, pose)| StampedPose {
-            timestamp: *t,
-            world_from_camera: pose.to_se3_and_scale().0,
-        })
-        .collect();
-    write_tum_trajectory(path, &stamped).with_context(|| format!("writing {}", path.display()))
+    write_tum_trajectory(path, &stamped_se3(poses))
+        .with_context(|| format!("writing {}", path.display()))
 }
 
 fn progress_bar(len: u64) -> indicatif::ProgressBar {

@@ -47,6 +47,21 @@ impl StampedSim3 {
     }
 }
 
+/// The rigid part of every `(timestamp, world_from_camera)` pose of the pipeline (see
+/// [`StampedSim3::to_se3`]): what TUM files and trajectory evaluation take.
+pub fn stamped_se3(poses: &[(f64, Sim3)]) -> Vec<StampedPose> {
+    poses
+        .iter()
+        .map(|&(timestamp, world_from_camera)| {
+            StampedSim3 {
+                timestamp,
+                world_from_camera,
+            }
+            .to_se3()
+        })
+        .collect()
+}
+
 /// Reads a TUM trajectory file. Poses keep file order (evaluation does not need sorted stamps).
 /// Errors name the file and the 1-based line.
 pub fn read_tum_trajectory(path: &Path) -> Result<Vec<StampedPose>> {

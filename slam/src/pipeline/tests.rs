@@ -50,13 +50,7 @@ fn run(config: Config) -> (Pipeline, Vec<Event>) {
 }
 
 fn stamped(poses: &[(f64, Sim3)]) -> Vec<StampedPose> {
-    poses
-        .iter()
-        .map(|(t, p)| StampedPose {
-            timestamp: *t,
-            world_from_camera: p.to_se3_and_scale().0,
-        })
-        .collect()
+    crate::dataset::trajectory::stamped_se3(poses)
 }
 
 fn deterministic() -> Config {
