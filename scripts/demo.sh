@@ -5,7 +5,7 @@
 #    depth model when the shared data is present;
 # 2. streams a sequence through it with the client (`relfusion stream`): the shared 7-Scenes
 #    redkitchen frames when ../shared/data is present, else a freshly synthesised room;
-# 3. fetches the trajectory, the keyframes, the point cloud (and the mesh once fusion lands)
+# 3. fetches the trajectory, the keyframes, the point cloud and the fused mesh (PLY, GLB)
 #    into $DEMO_OUT/result/;
 # 4. prints what was produced and its ATE against the ground truth, then stops the server
 #    gracefully.

@@ -37,6 +37,14 @@ pub const DENSIFY_ADAM: &str = include_str!("../wgsl/densify_adam.wgsl");
 /// nearest-surface test (atomic max on the inverse depth's bits).
 pub const TWO_VIEW_WARP: &str = include_str!("../wgsl/two_view_warp.wgsl");
 
+/// TSDF integration / de-integration of one depth map: one invocation per voxel of the listed
+/// blocks, projective signed distance, weighted running average.
+pub const TSDF_INTEGRATE: &str = include_str!("../wgsl/tsdf_integrate.wgsl");
+
+/// Marching cubes over voxel blocks: one invocation per cell of each meshing job, triangles
+/// appended through an atomic counter (case table uploaded by the runner).
+pub const MARCHING_CUBES: &str = include_str!("../wgsl/marching_cubes.wgsl");
+
 /// Every kernel as `(name, source)`; names are unique and are the pipeline-cache keys.
 pub const ALL: &[(&str, &str)] = &[
     ("pyramid_downsample", PYRAMID_DOWNSAMPLE),
@@ -44,4 +52,6 @@ pub const ALL: &[(&str, &str)] = &[
     ("adaptive_filter", ADAPTIVE_FILTER),
     ("densify_adam", DENSIFY_ADAM),
     ("two_view_warp", TWO_VIEW_WARP),
+    ("tsdf_integrate", TSDF_INTEGRATE),
+    ("marching_cubes", MARCHING_CUBES),
 ];

@@ -25,6 +25,7 @@ pub mod error;
 pub mod eval;
 pub mod export;
 pub mod frame;
+pub mod fusion;
 pub mod geometry;
 pub mod gpu;
 pub mod graph;

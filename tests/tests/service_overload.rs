@@ -295,13 +295,15 @@ fn four_sessions_at_twice_the_processing_rate() {
     // (8 × 230 KB) wait and events are dropped for slow subscribers (1024 per subscriber).
     // What does grow is each session's map, by keyframe, which only *processed* frames
     // create: `relfusion run` on these 320×240 sequences holds ~10 MiB per keyframe (max RSS
-    // 59 MiB with 4 keyframes, 146 MiB with 13). Bound: the idle process + 12 MiB per
+    // 59 MiB with 4 keyframes, 146 MiB with 13), and the fusion ~4.5 MiB more (voxel blocks,
+    // the depth kept for re-integration, the mesh; 269 → 317 MiB with 11 keyframes, a copy of
+    // the mesh in the session record on top). Bound: the idle process + 16 MiB per
     // keyframe + 32 MiB per session (queue, thread stack, pipeline buffers, HTTP buffers).
     let keyframes: u64 = finals
         .iter()
         .map(|f| f["keyframes"].as_u64().unwrap_or(0))
         .sum();
-    let bound_kib = idle_rss + keyframes * 12 * 1024 + SESSIONS as u64 * 32 * 1024;
+    let bound_kib = idle_rss + keyframes * 16 * 1024 + SESSIONS as u64 * 32 * 1024;
     eprintln!(
         "{total_accepted} frames offered, {total_processed} processed, {keyframes} keyframes; \
          VmRSS bound {} MiB",

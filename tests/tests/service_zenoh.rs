@@ -3,9 +3,9 @@
 //! scouting off) speaking the key space of `relfusion_proto::zenoh_keys`.
 //!
 //! - A session created through the create queryable (deterministic config, `wait` policy)
-//!   gives a pose for every frame published, announces its end on `finished`, and its map
-//!   (the map queryable) holds a trajectory whose ATE equals `relfusion run --deterministic`
-//!   on the same data.
+//!   gives a pose for every frame published, mesh deltas on `mesh` that add up to the map's
+//!   mesh, announces its end on `finished`, and its map (the map queryable) holds a trajectory
+//!   whose ATE equals `relfusion run --deterministic` on the same data.
 //! - With tokens configured: a create without a token or with an unknown one is refused
 //!   (UNAUTHENTICATED), another token's map query is NOT_FOUND, malformed messages and corrupt
 //!   frames are answered with an `Error` on `poses`, counted, and the session goes on.
@@ -22,7 +22,7 @@ use relfusion_proto::v1::{
     MapSnapshot, ServerMessage, SessionConfig, SessionFinished, server_message,
 };
 use relfusion_proto::zenoh_keys::{
-    CREATE, END, FINISHED, FRAMES, MAP, POSES, session_key, session_wildcard,
+    CREATE, END, FINISHED, FRAMES, MAP, MESH, POSES, session_key, session_wildcard,
 };
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{StampedPose, read_tum_trajectory};
@@ -184,7 +184,8 @@ fn subscribe(z: &zenoh::Session, id: &str) -> Subscriber<FifoChannelHandler<Samp
         .expect("subscribe to the session")
 }
 
-/// The next update: `Ok(message on poses)` or `Err(SessionFinished)`.
+/// The next update: `Ok(message on poses, or a MeshUpdate on mesh wrapped as a
+/// ServerMessage)` or `Err(SessionFinished)`.
 fn next_update(
     sub: &Subscriber<FifoChannelHandler<Sample>>,
     server: &Relfusiond,
@@ -197,6 +198,12 @@ fn next_update(
         let bytes = sample.payload().to_bytes();
         match sample.key_expr().as_str().rsplit('/').next() {
             Some(POSES) => return Ok(ServerMessage::decode(bytes.as_ref()).expect("ServerMessage")),
+            Some(MESH) => {
+                let update = v1::MeshUpdate::decode(bytes.as_ref()).expect("MeshUpdate");
+                return Ok(ServerMessage {
+                    message: Some(server_message::Message::Mesh(update)),
+                });
+            }
             Some(FINISHED) => {
                 return Err(SessionFinished::decode(bytes.as_ref()).expect("SessionFinished"));
             }
@@ -278,6 +285,9 @@ fn stream_over_zenoh_gives_every_pose_and_the_same_trajectory_as_run() {
 
     let mut posed = BTreeSet::new();
     let mut keyframes = 0;
+    // The mesh as a subscriber patches it: block index → block, and the last revision.
+    let mut mesh = std::collections::BTreeMap::new();
+    let mut revision = 0;
     let finished = loop {
         match next_update(&updates, &server) {
             Ok(message) => match message.message {
@@ -291,6 +301,22 @@ fn stream_over_zenoh_gives_every_pose_and_the_same_trajectory_as_run() {
                 Some(server_message::Message::Keyframe(k)) => {
                     assert_eq!(k.session_id, id);
                     keyframes += 1;
+                }
+                Some(server_message::Message::Mesh(m)) => {
+                    assert_eq!(m.session_id, id);
+                    assert_eq!(m.revision, revision + 1, "mesh revisions have no gap");
+                    revision = m.revision;
+                    assert!(m.block_size > 0.0);
+                    for b in &m.removed_blocks {
+                        mesh.remove(&(b.x, b.y, b.z));
+                    }
+                    for b in m.changed_blocks {
+                        let i = b.index.expect("block index");
+                        assert_eq!(b.vertices.len(), 12 * (b.colors.len() / 3));
+                        assert_eq!(b.normals.len(), b.vertices.len());
+                        assert!(!b.indices.is_empty() && b.indices.len() % 3 == 0);
+                        mesh.insert((i.x, i.y, i.z), b);
+                    }
                 }
                 Some(server_message::Message::Error(e)) => {
                     panic!("unexpected error: {e:?}\n{}", server.log())
@@ -324,9 +350,22 @@ fn stream_over_zenoh_gives_every_pose_and_the_same_trajectory_as_run() {
          ({keyframes} updates, {} keyframes)",
         snapshot.keyframes.len()
     );
+    assert!(revision >= 1, "the fused mesh was published on `mesh`");
+    assert_eq!(snapshot.mesh_revision, revision);
+    let served_mesh: std::collections::BTreeMap<_, _> = snapshot
+        .mesh_blocks
+        .iter()
+        .map(|b| {
+            let i = b.index.expect("block index");
+            ((i.x, i.y, i.z), b.clone())
+        })
+        .collect();
+    assert!(!served_mesh.is_empty(), "the map has the fused mesh");
     assert!(
-        snapshot.mesh_blocks.is_empty(),
-        "no fusion stage yet: no mesh"
+        served_mesh == mesh,
+        "applying every MeshUpdate gives the map's mesh ({} vs {} blocks)",
+        mesh.len(),
+        served_mesh.len()
     );
     let served = to_slam(&snapshot.trajectory);
     assert_eq!(served.len(), FRAMES_N, "every frame is in the trajectory");

@@ -21,6 +21,9 @@ pub enum BenchCommand {
     Densify(super::bench_densify::DensifyArgs),
     /// Per keyframe of a saved run: prior, adaptive filter and densification, GPU vs CPU.
     Dense(super::bench_dense::DenseArgs),
+    /// TSDF fusion of a saved run's keyframes: integration, meshing, re-integration, memory;
+    /// GPU kernels vs CPU references.
+    Fusion(super::bench_fusion::FusionArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -49,6 +52,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Serve(args) => super::bench_serve::serve(&args),
         BenchCommand::Densify(args) => super::bench_densify::densify(&args),
         BenchCommand::Dense(args) => super::bench_dense::dense(&args),
+        BenchCommand::Fusion(args) => super::bench_fusion::fusion(&args),
     }
 }
 

@@ -39,6 +39,32 @@ pub enum EvalCommand {
     /// with their stage maps) with each combination of energy terms and score each result like
     /// `eval depth --dataset --run`'s `dense` stage.
     Ablation(AblationArgs),
+    /// Accuracy and completeness of a run's fused mesh (`OUT/mesh.ply`) against the
+    /// ground-truth surface the keyframes saw, after the Sim(3) alignment of
+    /// `OUT/keyframes.txt`; also scores the mesh fused from ground-truth depth and poses (the
+    /// upper bound) and our mesh against that mesh.
+    Mesh(MeshArgs),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct MeshArgs {
+    /// The dataset folder (TUM layout with depth and groundtruth.txt).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// The output folder of `relfusion run` (mesh.ply, mesh.json, keyframes.txt).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Pipeline config whose `[fusion]` section the ground-truth fusion uses (the run's, to
+    /// compare like with like); defaults otherwise.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Fuse the run's stored keyframes (`OUT/keyframes/`) again with `--config`'s `[fusion]`
+    /// and score that mesh instead of `OUT/mesh.ply` (tunes the fusion without the SLAM).
+    #[arg(long)]
+    pub refuse: bool,
+    /// Distance bound of an accurate vertex / a covered point, in voxels (issue 5: 2).
+    #[arg(long, default_value_t = 2.0)]
+    pub threshold_voxels: f64,
 }
 
 #[derive(Debug, clap::Args)]
@@ -122,6 +148,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
         EvalCommand::Traj(args) => traj(&args)?,
         EvalCommand::Depth(args) => depth(&args)?,
         EvalCommand::Ablation(args) => ablation(&args)?,
+        EvalCommand::Mesh(args) => mesh(&args)?,
     };
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
@@ -224,5 +251,25 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<serde_json::Value> {
             args.dataset.display()
         )
     })?;
+    Ok(serde_json::to_value(report)?)
+}
+
+fn mesh(args: &MeshArgs) -> anyhow::Result<serde_json::Value> {
+    let config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    use relfusion_slam::eval::fused_mesh::{MeshSource, evaluate_fused_mesh};
+    let report = evaluate_fused_mesh(
+        &args.dataset,
+        &args.run,
+        &config.fusion,
+        if args.refuse {
+            MeshSource::Refuse
+        } else {
+            MeshSource::RunMesh
+        },
+        args.threshold_voxels,
+    )?;
     Ok(serde_json::to_value(report)?)
 }

@@ -3,6 +3,7 @@
 pub mod bench;
 pub mod bench_dense;
 pub mod bench_densify;
+pub mod bench_fusion;
 pub mod bench_serve;
 pub mod bench_slam;
 pub mod connect;

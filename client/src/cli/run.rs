@@ -5,8 +5,10 @@
 //! `OUT/semidense.ply` (coloured semi-dense points of all keyframes at their optimised poses),
 //! and, from the dense layer, `OUT/dense.ply` (every densified keyframe back-projected at its
 //! optimised pose) and `OUT/keyframes/` (`<timestamp>.depth.npy` per keyframe plus the stage
-//! maps `relfusion eval depth` and `relfusion eval ablation` read), then prints a one-line JSON
-//! summary.
+//! maps `relfusion eval depth` and `relfusion eval ablation` read), and, from the fusion,
+//! `OUT/mesh.ply` and `OUT/mesh.glb` (the fused mesh at the optimised poses, with normals and
+//! colours) and `OUT/mesh.json` (voxel size and the fusion's counters, read by
+//! `relfusion eval mesh`); then prints a one-line JSON summary.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -15,7 +17,8 @@ use anyhow::Context as _;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{stamped_se3, write_tum_trajectory};
 use relfusion_slam::dense::{DepthPrior, ModelConfig, OnnxDepthPrior};
-use relfusion_slam::export::write_points_ply;
+use relfusion_slam::eval::fused_mesh::write_mesh_stats;
+use relfusion_slam::export::{write_mesh_glb, write_mesh_ply, write_points_ply};
 use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
 use serde_json::json;
@@ -65,7 +68,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .with_context(|| format!("creating {}", args.out.display()))?;
 
     let outcome = run_sequence(&seq, n, config, prior, !args.quiet)?;
-    let (pipeline, wall_s, load_s) = (outcome.pipeline, outcome.wall_s, outcome.load_s);
+    let (mut pipeline, wall_s, load_s) = (outcome.pipeline, outcome.wall_s, outcome.load_s);
 
     write_trajectory(&args.out.join("trajectory.txt"), &pipeline.trajectory())?;
     write_trajectory(
@@ -86,6 +89,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .collect();
         relfusion_slam::dense::store::write_dense_keyframes(&args.out.join("keyframes"), &dense)?;
     }
+    let mesh = pipeline.mesh()?;
+    if let Some(mesh) = &mesh {
+        write_mesh_ply(&args.out.join("mesh.ply"), mesh)?;
+        write_mesh_glb(&args.out.join("mesh.glb"), mesh)?;
+    }
+    let fusion = pipeline.fusion_stats();
+    if let Some(fusion) = &fusion {
+        write_mesh_stats(&args.out, fusion)?;
+    }
     let stats = pipeline.stats();
     println!(
         "{}",
@@ -102,6 +114,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "keyframes_densified": stats.keyframes_densified,
             "keyframes_not_densified": stats.keyframes_not_densified,
             "depth_refinements": stats.depth_refinements,
+            "keyframes_fused": stats.keyframes_fused,
+            "keyframes_not_fused": stats.keyframes_not_fused,
+            "mesh_triangles": mesh.as_ref().map_or(0, |m| m.triangle_count()),
+            "voxel_size": fusion.as_ref().map(|f| f.voxel_size),
             "out": args.out,
         })
     );

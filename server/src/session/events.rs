@@ -4,6 +4,7 @@ use relfusion_proto::v1;
 use std::sync::Arc;
 
 use relfusion_slam::dense::{DenseKeyframe, DenseMode};
+use relfusion_slam::fusion::{BlockIndex, BlockMesh, MeshDelta};
 use relfusion_slam::pipeline::TrackingState;
 use serde::Serialize;
 
@@ -56,6 +57,15 @@ pub enum SessionEvent {
         #[serde(skip)]
         dense: Arc<DenseKeyframe>,
     },
+    /// The fused mesh changed: the blocks' new triangles travel on the WebSocket and on Zenoh
+    /// (`MeshUpdate` on `…/mesh`); SSE gets the summary.
+    MeshUpdated {
+        revision: u64,
+        changed_blocks: usize,
+        removed_blocks: usize,
+        #[serde(skip)]
+        delta: Arc<MeshDelta>,
+    },
     /// Frames were dropped because the stream outran the pipeline (running total).
     Dropped { frames_dropped: u64 },
     /// The session finished; results are final.
@@ -72,6 +82,7 @@ impl SessionEvent {
             SessionEvent::Keyframe { .. } => "keyframe",
             SessionEvent::KeyframePoses { .. } => "keyframe_poses",
             SessionEvent::KeyframeDensified { .. } => "keyframe_densified",
+            SessionEvent::MeshUpdated { .. } => "mesh",
             SessionEvent::Dropped { .. } => "dropped",
             SessionEvent::Finished { .. } => "finished",
             SessionEvent::Failed { .. } => "failed",
@@ -87,8 +98,8 @@ impl SessionEvent {
     }
 
     /// The protobuf message of the stream envelopes: Pose → `PoseUpdate`, Keyframe →
-    /// `KeyframeUpdate` (pose only; the dense depth comes with the dense layer), Failed →
-    /// `Error`; the others have no wire form.
+    /// `KeyframeUpdate` (pose only), KeyframeDensified → `KeyframeUpdate` with its depth,
+    /// MeshUpdated → `MeshUpdate`, Failed → `Error`; the others have no wire form.
     pub fn to_proto(&self, session_id: &str) -> Vec<v1::ServerMessage> {
         use v1::server_message::Message;
         let keyframe = |keyframe_id: u64, frame_id: u64, timestamp: f64, pose: &PoseJson| {
@@ -143,6 +154,9 @@ impl SessionEvent {
                 world_from_camera: Some(pose_json_to_proto(pose)),
                 depth: Some(keyframe_depth(dense)),
             })],
+            SessionEvent::MeshUpdated { delta, .. } => {
+                vec![Message::Mesh(mesh_update(session_id, delta))]
+            }
             SessionEvent::Failed { message } => vec![Message::Error(v1::Error {
                 code: v1::ErrorCode::Internal as i32,
                 message: message.clone(),
@@ -155,6 +169,42 @@ impl SessionEvent {
                 message: Some(message),
             })
             .collect()
+    }
+}
+
+/// The wire form of a mesh delta.
+pub fn mesh_update(session_id: &str, delta: &MeshDelta) -> v1::MeshUpdate {
+    v1::MeshUpdate {
+        session_id: session_id.to_string(),
+        revision: delta.revision,
+        changed_blocks: delta.changed.iter().map(mesh_block).collect(),
+        removed_blocks: delta.removed.iter().map(|b| block_index(*b)).collect(),
+        block_size: delta.block_size,
+    }
+}
+
+fn block_index(b: BlockIndex) -> v1::BlockIndex {
+    v1::BlockIndex {
+        x: b.x,
+        y: b.y,
+        z: b.z,
+    }
+}
+
+/// One block's triangles as `updates.proto` packs them (little-endian f32 triplets, RGB bytes).
+pub fn mesh_block(m: &BlockMesh) -> v1::MeshBlock {
+    let floats = |v: &[[f32; 3]]| {
+        v.iter()
+            .flatten()
+            .flat_map(|c| c.to_le_bytes())
+            .collect::<Vec<u8>>()
+    };
+    v1::MeshBlock {
+        index: Some(block_index(m.index)),
+        vertices: floats(&m.positions),
+        colors: m.colors.iter().flatten().copied().collect(),
+        normals: floats(&m.normals),
+        indices: m.indices.clone(),
     }
 }
 

@@ -8,6 +8,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
+use relfusion_slam::export::{mesh_glb_bytes, mesh_ply_bytes};
+use relfusion_slam::fusion::{BlockIndex, BlockMesh, Mesh, MeshDelta};
 use relfusion_slam::geometry::{PinholeCamera, Sim3};
 use relfusion_slam::pipeline::Config as SlamConfig;
 use tokio::sync::{broadcast, watch};
@@ -45,6 +47,8 @@ pub(crate) struct Counters {
     pub lost: AtomicU64,
     pub keyframes: AtomicU64,
     pub densified: AtomicU64,
+    pub mesh_revision: AtomicU64,
+    pub mesh_triangles: AtomicU64,
 }
 
 impl Counters {
@@ -56,6 +60,8 @@ impl Counters {
             lost: self.lost.load(Ordering::Relaxed),
             keyframes: self.keyframes.load(Ordering::Relaxed),
             densified: self.densified.load(Ordering::Relaxed),
+            mesh_revision: self.mesh_revision.load(Ordering::Relaxed),
+            mesh_triangles: self.mesh_triangles.load(Ordering::Relaxed),
         }
     }
 
@@ -67,6 +73,8 @@ impl Counters {
             lost: snapshot.lost.into(),
             keyframes: snapshot.keyframes.into(),
             densified: snapshot.densified.into(),
+            mesh_revision: snapshot.mesh_revision.into(),
+            mesh_triangles: snapshot.mesh_triangles.into(),
         }
     }
 }
@@ -85,6 +93,37 @@ struct Track {
     frames: Vec<(f64, Sim3, bool)>,
     /// Keyframe id → (timestamp, latest pose).
     keyframes: BTreeMap<u64, (f64, Sim3)>,
+    /// The fused mesh as the subscribers have it: every delta applied.
+    mesh: MeshState,
+}
+
+/// The session's fused mesh, block by block (what `MeshUpdate`s describe).
+#[derive(Debug, Default)]
+pub(crate) struct MeshState {
+    pub blocks: BTreeMap<BlockIndex, BlockMesh>,
+    pub revision: u64,
+    pub block_size: f32,
+}
+
+impl MeshState {
+    /// Replaces the changed blocks and drops the removed ones.
+    fn apply(&mut self, delta: &MeshDelta) {
+        for b in &delta.removed {
+            self.blocks.remove(b);
+        }
+        for m in &delta.changed {
+            self.blocks.insert(m.index, m.clone());
+        }
+        self.revision = delta.revision;
+        self.block_size = delta.block_size;
+    }
+
+    fn triangles(&self) -> u64 {
+        self.blocks
+            .values()
+            .map(|m| m.triangle_count() as u64)
+            .sum()
+    }
 }
 
 /// One session. Shared (`Arc`) by the manager, request handlers and its worker thread.
@@ -234,6 +273,8 @@ impl Session {
             frames_lost: c.lost,
             keyframes: c.keyframes,
             keyframes_densified: c.densified,
+            mesh_revision: c.mesh_revision,
+            mesh_triangles: c.mesh_triangles,
             dense_mode: super::types::dense_mode(&self.config, &self.model),
             progress: Progress {
                 processed: c.processed,
@@ -474,20 +515,24 @@ impl Session {
         }
     }
 
-    /// The fused mesh as PLY; `None` until the fusion stage exists.
+    /// The fused mesh as PLY: the stored result once finished, the current mesh while
+    /// running; `None` before the first mesh update.
     pub fn mesh_ply(&self) -> Option<Vec<u8>> {
-        self.store
-            .get(&result_key(&self.id, "mesh.ply"))
-            .ok()
-            .flatten()
+        self.mesh_file("mesh.ply", mesh_ply_bytes)
     }
 
-    /// The fused mesh as glTF binary; `None` until the fusion stage exists.
+    /// The fused mesh as glTF binary (like [`Session::mesh_ply`]).
     pub fn mesh_glb(&self) -> Option<Vec<u8>> {
-        self.store
-            .get(&result_key(&self.id, "mesh.glb"))
-            .ok()
-            .flatten()
+        self.mesh_file("mesh.glb", mesh_glb_bytes)
+    }
+
+    fn mesh_file(&self, name: &str, encode: fn(&Mesh) -> Vec<u8>) -> Option<Vec<u8>> {
+        if self.state().is_terminal()
+            && let Ok(Some(bytes)) = self.store.get(&result_key(&self.id, name))
+        {
+            return Some(bytes);
+        }
+        self.current_mesh().map(|m| encode(&m))
     }
 
     /// A stored result of a finished (or failed) session.
@@ -512,6 +557,32 @@ impl Session {
 
     pub(crate) fn record_keyframe(&self, id: u64, timestamp: f64, pose: Sim3) {
         lock(&self.track).keyframes.insert(id, (timestamp, pose));
+    }
+
+    pub(crate) fn apply_mesh_delta(&self, delta: &MeshDelta) {
+        let mut track = lock(&self.track);
+        track.mesh.apply(delta);
+        let c = &self.counters;
+        c.mesh_revision.store(delta.revision, Ordering::Relaxed);
+        c.mesh_triangles
+            .store(track.mesh.triangles(), Ordering::Relaxed);
+    }
+
+    /// The mesh blocks with their revision and block size (the map snapshot's mesh).
+    pub(crate) fn mesh_blocks(&self) -> (Vec<BlockMesh>, u64, f32) {
+        let track = lock(&self.track);
+        let m = &track.mesh;
+        (
+            m.blocks.values().cloned().collect(),
+            m.revision,
+            m.block_size,
+        )
+    }
+
+    /// The whole current mesh, welded (`None` before the first mesh update).
+    pub(crate) fn current_mesh(&self) -> Option<Mesh> {
+        let track = lock(&self.track);
+        (!track.mesh.blocks.is_empty()).then(|| Mesh::from_blocks(track.mesh.blocks.values()))
     }
 
     pub(crate) fn update_keyframe_poses(&self, poses: &[(usize, Sim3)]) {

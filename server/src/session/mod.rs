@@ -27,7 +27,7 @@ pub mod types;
 pub mod upload;
 mod worker;
 
-pub use events::{KeyframePose, SessionEvent};
+pub use events::{KeyframePose, SessionEvent, mesh_block};
 pub use handle::Session;
 pub use manager::SessionManager;
 pub use overrides::merge_config;

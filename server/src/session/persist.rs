@@ -27,8 +27,8 @@ pub fn meta_key(id: &str) -> String {
     format!("sessions/{id}/meta.json")
 }
 
-/// Key of one result file (`trajectory.txt`, `keyframes.txt`, `pointcloud.ply`,
-/// `summary.json`).
+/// Key of one result file (`trajectory.txt`, `keyframes.txt`, `pointcloud.ply`, `mesh.ply`,
+/// `mesh.glb`, `summary.json`).
 pub fn result_key(id: &str, name: &str) -> String {
     format!("sessions/{id}/results/{name}")
 }
@@ -49,6 +49,11 @@ pub struct CounterSnapshot {
     /// Keyframes the dense layer finished.
     #[serde(default)]
     pub densified: u64,
+    /// Revision of the last mesh update, and the mesh's triangles then.
+    #[serde(default)]
+    pub mesh_revision: u64,
+    #[serde(default)]
+    pub mesh_triangles: u64,
 }
 
 /// Everything needed to show a session after a restart, and to re-run an upload exactly.
@@ -108,6 +113,8 @@ impl SessionMeta {
             frames_lost: self.counters.lost,
             keyframes: self.counters.keyframes,
             keyframes_densified: self.counters.densified,
+            mesh_revision: self.counters.mesh_revision,
+            mesh_triangles: self.counters.mesh_triangles,
             dense_mode: dense_mode(&self.config, &self.model),
             progress: Progress {
                 processed: self.counters.processed,
@@ -127,6 +134,8 @@ pub struct Results {
     pub trajectory: String,
     pub keyframes: String,
     pub pointcloud: Vec<u8>,
+    /// The fused mesh as PLY and GLB (absent until the first mesh update).
+    pub mesh: Option<(Vec<u8>, Vec<u8>)>,
     pub summary: serde_json::Value,
 }
 
@@ -139,6 +148,10 @@ impl Results {
         )?;
         store.put(&result_key(id, "keyframes.txt"), self.keyframes.as_bytes())?;
         store.put(&result_key(id, "pointcloud.ply"), &self.pointcloud)?;
+        if let Some((ply, glb)) = &self.mesh {
+            store.put(&result_key(id, "mesh.ply"), ply)?;
+            store.put(&result_key(id, "mesh.glb"), glb)?;
+        }
         let summary = serde_json::to_vec_pretty(&self.summary).unwrap_or_default();
         store.put(&result_key(id, "summary.json"), &summary)
     }

@@ -173,6 +173,10 @@ pub struct SessionInfo {
     pub keyframes: u64,
     /// Keyframes the dense layer finished (`KeyframeDensified` events).
     pub keyframes_densified: u64,
+    /// Revision of the last `MeshUpdate` (0 before the first fused keyframe).
+    pub mesh_revision: u64,
+    /// Triangles of the fused mesh so far.
+    pub mesh_triangles: u64,
     /// `prior` (the paper's dense layer), `no_model` (no depth model: densified from the
     /// semi-dense depth alone, with edge-aware smoothness) or `off`.
     pub dense_mode: String,

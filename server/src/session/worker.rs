@@ -12,6 +12,7 @@ use std::time::Duration;
 
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dense::DepthPrior;
+use relfusion_slam::export::{mesh_glb_bytes, mesh_ply_bytes};
 use relfusion_slam::pipeline::{Event, FrameInput, Pipeline, Stats, TrackingState};
 use serde_json::json;
 
@@ -120,6 +121,25 @@ impl Runner<'_> {
                     })
                 })
                 .collect(),
+        }
+    }
+
+    /// Reports what the dense layer and the fusion produced (they run beside tracking, so
+    /// their events also come after the frames, from [`Pipeline::take_events`]).
+    fn emit_dense(&self, event: Event) {
+        match event {
+            Event::KeyframeDensified { keyframe, .. } => self.emit_densified(keyframe),
+            Event::MeshUpdated { delta, .. } => {
+                let s = self.session;
+                s.apply_mesh_delta(&delta);
+                s.emit(SessionEvent::MeshUpdated {
+                    revision: delta.revision,
+                    changed_blocks: delta.changed.len(),
+                    removed_blocks: delta.removed.len(),
+                    delta,
+                });
+            }
+            _ => {}
         }
     }
 
@@ -268,7 +288,9 @@ impl Runner<'_> {
                     s.update_keyframe_poses(&poses);
                     s.emit(self.keyframe_poses_event(&poses));
                 }
-                Event::KeyframeDensified { keyframe, .. } => self.emit_densified(keyframe),
+                event @ (Event::KeyframeDensified { .. } | Event::MeshUpdated { .. }) => {
+                    self.emit_dense(event)
+                }
             }
         }
         if self.since_checkpoint >= self.env.checkpoint_keyframes {
@@ -291,6 +313,9 @@ impl Runner<'_> {
             trajectory: tum_text(&self.pipeline.trajectory()),
             keyframes: tum_text(&self.pipeline.keyframe_trajectory()),
             pointcloud: points_ply(&self.pipeline.semidense_points()),
+            mesh: s
+                .current_mesh()
+                .map(|m| (mesh_ply_bytes(&m), mesh_glb_bytes(&m))),
             summary: json!({
                 "final": final_,
                 "info": s.info(),
@@ -302,6 +327,8 @@ impl Runner<'_> {
                 "keyframes_densified": stats.keyframes_densified,
                 "keyframes_not_densified": stats.keyframes_not_densified,
                 "dense_mode": stats.dense_mode,
+                "keyframes_fused": stats.keyframes_fused,
+                "mesh_revision": s.info().mesh_revision,
             }),
         };
         match results.save(s.store.as_ref(), s.id()) {
@@ -324,11 +351,10 @@ impl Runner<'_> {
             Ok(poses) => poses,
             Err(e) => return fail(s, Some(&self), format!("final optimisation: {e}")),
         };
-        // Keyframes the dense layer finished while the session was finishing.
+        // Keyframes the dense layer finished and fused while the session was finishing, and
+        // the final mesh at the optimised poses.
         for event in self.pipeline.take_events() {
-            if let Event::KeyframeDensified { keyframe, .. } = event {
-                self.emit_densified(keyframe);
-            }
+            self.emit_dense(event);
         }
         s.update_keyframe_poses(&poses);
         s.emit(self.keyframe_poses_event(&poses));

@@ -21,8 +21,11 @@
 use std::sync::Arc;
 
 use relfusion_proto::Message as _;
+use relfusion_proto::v1::server_message::Message;
 use relfusion_proto::v1::{Frame, SessionFinished};
-use relfusion_proto::zenoh_keys::{END, FINISHED, FRAMES, POSES, session_key, session_wildcard};
+use relfusion_proto::zenoh_keys::{
+    END, FINISHED, FRAMES, MESH, POSES, session_key, session_wildcard,
+};
 use tokio::sync::broadcast::error::RecvError;
 use tokio::task::JoinHandle;
 use zenoh::handlers::FifoChannel;
@@ -49,6 +52,12 @@ pub(crate) async fn attach(
         .congestion_control(CongestionControl::Block)
         .await
         .map_err(|e| zerr("poses publisher", e))?;
+    let mesh = shared
+        .zenoh
+        .declare_publisher(session_key(&id, MESH))
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| zerr("mesh publisher", e))?;
     let capacity = shared.sessions.config().limits.frame_queue.max(1);
     let subscriber = shared
         .zenoh
@@ -97,7 +106,7 @@ pub(crate) async fn attach(
             }
         })
     };
-    let publish = tokio::spawn(publish_updates(shared, session, events, poses));
+    let publish = tokio::spawn(publish_updates(shared, session, events, poses, mesh));
     Ok(vec![ingest, publish])
 }
 
@@ -147,12 +156,14 @@ async fn push(shared: &Shared, session: &Session, frame: Frame) -> Result<(), Ap
     }
 }
 
-/// Publishes the session's events until it has finished or failed, then `finished`.
+/// Publishes the session's events until it has finished or failed, then `finished`: mesh
+/// deltas as bare `MeshUpdate`s on `…/mesh`, everything else as `ServerMessage`s on `…/poses`.
 async fn publish_updates(
     shared: Arc<Shared>,
     session: Arc<Session>,
     mut events: tokio::sync::broadcast::Receiver<SessionEvent>,
     poses: Publisher<'static>,
+    mesh: Publisher<'static>,
 ) {
     let id = session.id().to_string();
     let mut tick = tokio::time::interval(LIVENESS_CHECK);
@@ -163,6 +174,7 @@ async fn publish_updates(
                 if deleted(&shared, &session) {
                     // A deleted session emits nothing more and has no map to announce.
                     let _ = poses.undeclare().await;
+                    let _ = mesh.undeclare().await;
                     return;
                 }
                 continue;
@@ -177,7 +189,11 @@ async fn publish_updates(
             Err(RecvError::Closed) => break,
         };
         for message in event.to_proto(&id) {
-            if let Err(e) = poses.put(message.encode_to_vec()).await {
+            let put = match &message.message {
+                Some(Message::Mesh(update)) => mesh.put(update.encode_to_vec()).await,
+                _ => poses.put(message.encode_to_vec()).await,
+            };
+            if let Err(e) = put {
                 tracing::warn!(session = %id, "publishing an update: {e}");
             }
         }
@@ -197,6 +213,9 @@ async fn publish_updates(
     }
     if let Err(e) = poses.undeclare().await {
         tracing::debug!(session = %id, "undeclaring the poses publisher: {e}");
+    }
+    if let Err(e) = mesh.undeclare().await {
+        tracing::debug!(session = %id, "undeclaring the mesh publisher: {e}");
     }
 }
 

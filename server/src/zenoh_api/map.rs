@@ -18,7 +18,7 @@ use tokio::task::JoinHandle;
 use zenoh::query::Query;
 
 use super::{Shared, bump, proto_error, serve_queryable};
-use crate::session::{Session, SessionState};
+use crate::session::{Session, SessionState, mesh_block};
 use crate::{ApiError, ServerError};
 
 /// Declares the queryable and serves it until shutdown.
@@ -59,6 +59,7 @@ async fn answer(shared: &Shared, query: &Query) {
 /// The session's map as it stands (final once the session has finished).
 pub fn snapshot(session: &Session) -> Result<MapSnapshot, ApiError> {
     let info = session.info();
+    let (blocks, mesh_revision, block_size) = session.mesh_blocks();
     Ok(MapSnapshot {
         session_id: info.id.clone(),
         state: state_name(info.state),
@@ -67,10 +68,9 @@ pub fn snapshot(session: &Session) -> Result<MapSnapshot, ApiError> {
         frames_dropped: info.frames_dropped,
         trajectory: parse_tum(&session.trajectory_tum())?,
         keyframes: parse_tum(&session.keyframes_tum())?,
-        // The fused mesh arrives with the fusion stage; until then the map has no blocks.
-        mesh_blocks: Vec::new(),
-        block_size: 0.0,
-        mesh_revision: 0,
+        mesh_blocks: blocks.iter().map(mesh_block).collect(),
+        block_size,
+        mesh_revision,
     })
 }
 

@@ -12,12 +12,15 @@
 //! - [`depth`]: the paper's reconstruction accuracy (§V.A, after CNN-SLAM).
 //! - [`dense_depth`]: that accuracy per dense-layer stage over a run's stored keyframes.
 //! - [`ablation`]: Table II, re-densifying the stored keyframes with each energy.
+//! - [`mesh`]: surface accuracy and completeness of a fused mesh against ground-truth depth.
 
 pub mod ablation;
 pub mod associate;
 pub mod ate;
 pub mod dense_depth;
 pub mod depth;
+pub mod fused_mesh;
+pub mod mesh;
 pub mod rpe;
 pub mod umeyama;
 
@@ -27,6 +30,7 @@ mod evo_tests;
 pub use associate::{DEFAULT_MAX_DT, Matched, associate, associate_poses};
 pub use ate::{AlignMode, AteResult, align, ate, ate_matched};
 pub use depth::{DEFAULT_DEPTH_THRESHOLD, DepthAccuracy, percent_correct_depth, read_depth_map};
+pub use mesh::{MeshScores, PointGrid, ground_truth_points, score_surface, transform_vertices};
 pub use rpe::{RpeResult, rpe, rpe_matched};
 pub use umeyama::umeyama;
 

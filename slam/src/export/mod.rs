@@ -1,5 +1,40 @@
-//! Files a person opens: point clouds now, meshes with the fusion layer.
+//! Files a person opens: point clouds, and the fused mesh as PLY (MeshLab, CloudCompare) or
+//! binary glTF (Blender, web viewers).
 
+pub mod glb;
+pub mod mesh_ply;
 pub mod ply;
 
+pub use glb::{mesh_glb_bytes, write_mesh_glb};
+pub use mesh_ply::{mesh_ply_bytes, read_mesh_ply, write_mesh_ply};
 pub use ply::{ColoredPoint, points_ply_bytes, read_points_ply, write_points_ply};
+
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use crate::{Error, Result};
+
+/// Writes `bytes` to a temporary file beside `path` and renames it over `path`, so a reader
+/// (a viewer polling the file, a download) never sees a half-written mesh. The temporary name
+/// carries the process id and a counter so concurrent exports to one path cannot interleave.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let name = path.file_name().ok_or_else(|| {
+        Error::io(
+            path,
+            std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file path"),
+        )
+    })?;
+    let mut tmp_name = name.to_os_string();
+    tmp_name.push(format!(
+        ".{}-{}.tmp",
+        std::process::id(),
+        COUNTER.fetch_add(1, Ordering::Relaxed)
+    ));
+    let tmp = path.with_file_name(tmp_name);
+    std::fs::write(&tmp, bytes).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        Error::io(path, e)
+    })
+}

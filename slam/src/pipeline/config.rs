@@ -101,6 +101,8 @@ pub struct Config {
     pub backend: BackendConfig,
     /// The dense layer (DeepRelativeFusion §III-B..E).
     pub dense: DenseConfig,
+    /// TSDF fusion of the dense keyframes and meshing (§III-F).
+    pub fusion: crate::fusion::FusionConfig,
 }
 
 impl Config {
@@ -128,7 +130,8 @@ impl Config {
         self.tracking.validate()?;
         self.mapping.validate()?;
         self.backend.validate()?;
-        self.dense.validate()
+        self.dense.validate()?;
+        self.fusion.validate()
     }
 }
 

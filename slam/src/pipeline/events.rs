@@ -3,6 +3,7 @@
 use std::sync::Arc;
 
 use crate::dense::{DenseKeyframe, DenseMode};
+use crate::fusion::MeshDelta;
 use crate::geometry::Sim3;
 use crate::graph::KeyframeId;
 
@@ -61,5 +62,11 @@ pub enum Event {
         mode: DenseMode,
         #[serde(skip)]
         keyframe: Arc<DenseKeyframe>,
+    },
+    /// The fused mesh changed: the blocks re-meshed since the last update (§III-F).
+    MeshUpdated {
+        revision: u64,
+        #[serde(skip)]
+        delta: Arc<MeshDelta>,
     },
 }

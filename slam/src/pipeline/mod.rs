@@ -9,6 +9,8 @@
 //! its own thread unless `pipeline.deterministic` is set. Each finished keyframe also goes to
 //! the dense layer (DeepRelativeFusion §III-B..E, [`crate::dense::layer`]), on its own thread
 //! likewise; its two-view consistent depth comes back to refine the keyframe's constraints.
+//! Densified keyframes are fused into the TSDF at their current poses and meshed
+//! ([`crate::fusion`]), on a third thread; pose-graph moves re-integrate them.
 
 pub mod config;
 pub mod events;
@@ -27,6 +29,9 @@ use crate::dense::layer::{DenseJob, DenseLayer, DenseOutput, DenseWorker, Shared
 use crate::dense::prior::DepthPrior;
 use crate::export::ColoredPoint;
 use crate::frame::Frame;
+use crate::fusion::Mesh;
+use crate::fusion::fuser::{Fuser, FusionStats, MeshDelta};
+use crate::fusion::worker::{FusionJob, FusionReply, FusionWorker, process as fuse_in_step};
 use crate::geometry::{Matrix7, PinholeCamera, SE3, SO3, Sim3, UndistortMap};
 use crate::graph::{Backend, BackendHandle, KeyframeId, NewKeyframe, ParentEdge};
 use crate::image::ImageF32;
@@ -93,6 +98,15 @@ enum DenseLink {
     Threaded(DenseWorker),
 }
 
+/// Where the fusion runs (in step when deterministic); `Done` holds the fuser after
+/// [`Pipeline::finish`], for the final mesh.
+#[derive(Debug)]
+enum FusionLink {
+    InStep(Box<Fuser>),
+    Threaded(FusionWorker),
+    Done(Box<Fuser>),
+}
+
 /// Summary counters of a run.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
 pub struct Stats {
@@ -111,6 +125,12 @@ pub struct Stats {
     pub dense_mode: &'static str,
     /// Dense keyframes whose two-view consistent depth went to the back end (§III-E).
     pub depth_refinements: usize,
+    /// Dense keyframes fused into the TSDF.
+    pub keyframes_fused: usize,
+    /// Dense keyframes the fusion skipped (queue full) or failed on (reason logged).
+    pub keyframes_not_fused: usize,
+    /// Revision of the last mesh update.
+    pub mesh_revision: u64,
 }
 
 /// The pipeline of one session.
@@ -124,6 +144,7 @@ pub struct Pipeline {
     tracker: SE3Tracker,
     backend: BackendLink,
     dense: Option<DenseLink>,
+    fusion: Option<FusionLink>,
     /// The latest dense result of each keyframe, by keyframe id.
     dense_keyframes: std::collections::BTreeMap<KeyframeId, Arc<DenseKeyframe>>,
     /// Events produced outside a frame's own processing (dense results), returned with the
@@ -175,6 +196,19 @@ impl Pipeline {
                 prior.clone(),
             )?)),
         };
+        let fusion = match (
+            config.fusion.enabled && config.dense.enabled,
+            config.pipeline.deterministic,
+        ) {
+            (false, _) => None,
+            (true, true) => Some(FusionLink::InStep(Box::new(Fuser::new(
+                config.fusion.clone(),
+                None,
+            )?))),
+            (true, false) => Some(FusionLink::Threaded(FusionWorker::spawn(
+                config.fusion.clone(),
+            )?)),
+        };
         let dense_mode = match (&dense, &prior) {
             (None, _) => "off",
             (Some(_), Some(_)) => "prior",
@@ -188,6 +222,7 @@ impl Pipeline {
             tracker,
             backend,
             dense,
+            fusion,
             dense_keyframes: std::collections::BTreeMap::new(),
             pending_events: Vec::new(),
             keyframes: Vec::new(),
@@ -220,6 +255,7 @@ impl Pipeline {
     pub fn push(&mut self, input: FrameInput) -> Result<Vec<Event>> {
         let mut events = self.push_frame(input)?;
         self.poll_dense()?;
+        self.poll_fusion();
         events.append(&mut self.pending_events);
         Ok(events)
     }
@@ -347,7 +383,115 @@ impl Pipeline {
             BackendLink::Threaded(handle) => handle.finish()?,
         };
         self.final_poses = Some(poses);
-        Ok(self.keyframe_poses())
+        let poses = self.keyframe_poses();
+        self.finish_fusion(&poses)?;
+        Ok(poses)
+    }
+
+    /// The fused mesh (at the optimised poses after [`Pipeline::finish`]); `None` without
+    /// fusion, while it runs on its thread, or before any surface.
+    pub fn mesh(&mut self) -> Result<Option<Mesh>> {
+        let fuser = match &mut self.fusion {
+            Some(FusionLink::InStep(f) | FusionLink::Done(f)) => f,
+            _ => return Ok(None),
+        };
+        let mesh = fuser.mesh()?;
+        Ok((!mesh.is_empty()).then_some(mesh))
+    }
+
+    /// The fusion's figures (voxel size, blocks, timings), when the fuser is at hand (in step,
+    /// or after [`Pipeline::finish`]).
+    pub fn fusion_stats(&self) -> Option<FusionStats> {
+        match &self.fusion {
+            Some(FusionLink::InStep(f) | FusionLink::Done(f)) => Some(f.stats()),
+            _ => None,
+        }
+    }
+
+    /// Hands a densified keyframe to the fusion with the current keyframe poses (which
+    /// re-integrate keyframes the pose graph moved).
+    fn fuse(&mut self, keyframe: Arc<DenseKeyframe>) -> Result<()> {
+        if self.fusion.is_none() {
+            return Ok(());
+        }
+        let id = keyframe.keyframe_id;
+        let job = FusionJob {
+            rgb: self.keyframes[id].frame.rgb.clone(),
+            pose: self.current_pose(id),
+            keyframe,
+        };
+        let poses = self.keyframe_poses();
+        match &mut self.fusion {
+            Some(FusionLink::InStep(fuser)) => {
+                let reply = fuse_in_step(fuser, &self.config.fusion, Some(job), Some(poses));
+                self.apply_fusion(vec![(true, reply)]);
+            }
+            Some(FusionLink::Threaded(worker)) => {
+                worker.post_poses(poses);
+                if !worker.submit(job)? {
+                    tracing::warn!(keyframe = id, "fusion busy: keyframe not fused");
+                    self.stats.keyframes_not_fused += 1;
+                }
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// Collects the fusion thread's mesh deltas.
+    fn poll_fusion(&mut self) {
+        if let Some(FusionLink::Threaded(worker)) = &self.fusion {
+            let replies = worker.poll();
+            self.apply_fusion(replies);
+        }
+    }
+
+    /// Turns fusion replies into `MeshUpdated` events; a keyframe the fusion failed on is
+    /// logged and counted (the mesh goes on without it).
+    fn apply_fusion(&mut self, replies: Vec<FusionReply>) {
+        for (had_keyframe, reply) in replies {
+            match reply {
+                Ok(delta) => {
+                    self.stats.keyframes_fused += usize::from(had_keyframe);
+                    if let Some(delta) = delta {
+                        self.push_mesh_event(delta);
+                    }
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "fusion failed");
+                    self.stats.keyframes_not_fused += usize::from(had_keyframe);
+                }
+            }
+        }
+    }
+
+    fn push_mesh_event(&mut self, delta: MeshDelta) {
+        self.stats.mesh_revision = delta.revision;
+        self.pending_events.push(Event::MeshUpdated {
+            revision: delta.revision,
+            delta: Arc::new(delta),
+        });
+    }
+
+    /// Re-integrates at the final poses, meshes, and keeps the fuser for [`Pipeline::mesh`].
+    fn finish_fusion(&mut self, poses: &[(KeyframeId, Sim3)]) -> Result<()> {
+        let fuser = match self.fusion.take() {
+            None => return Ok(()),
+            Some(FusionLink::InStep(mut fuser) | FusionLink::Done(mut fuser)) => {
+                let reply =
+                    fuse_in_step(&mut fuser, &self.config.fusion, None, Some(poses.to_vec()));
+                self.apply_fusion(vec![(false, reply)]);
+                Some(fuser)
+            }
+            Some(FusionLink::Threaded(mut worker)) => {
+                worker.post_poses(poses.to_vec());
+                let (replies, fuser) = worker.finish();
+                self.apply_fusion(replies);
+                fuser.map(Box::new)
+            }
+        };
+        self.fusion = fuser.map(FusionLink::Done);
+        Ok(())
     }
 
     /// Current pose of every keyframe: optimised where the back end has one, else the front
@@ -764,7 +908,8 @@ impl Pipeline {
                 mode: kf.mode,
                 keyframe: kf.clone(),
             });
-            self.dense_keyframes.insert(id, kf);
+            self.dense_keyframes.insert(id, kf.clone());
+            self.fuse(kf)?;
         }
         Ok(())
     }

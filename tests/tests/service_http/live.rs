@@ -1,5 +1,5 @@
 //! A live session fed over HTTP and WebSocket: a pose for every frame over SSE and WebSocket,
-//! a trajectory with every frame, results downloadable, delete.
+//! a trajectory with every frame, results (the fused mesh included) downloadable, delete.
 
 use super::client::*;
 
@@ -96,11 +96,22 @@ fn live_session_reports_every_frame_over_sse_and_websocket() {
             .expect("ply")
             .starts_with(b"ply")
     );
-    get(&server, &format!("/v1/sessions/{id}/mesh.ply"), None).expect_error(
-        404,
-        "not_found",
-        "mesh",
-    );
+    // The dense layer (no model: edge-aware densification) and the fusion ran: a mesh.
+    for (file, magic) in [("mesh.ply", &b"ply"[..]), ("mesh.glb", &b"glTF"[..])] {
+        let mut response = agent()
+            .get(format!("{}/v1/sessions/{id}/{file}", server.url()))
+            .call()
+            .unwrap_or_else(|e| panic!("{file}: {e}"));
+        assert_eq!(response.status().as_u16(), 200, "{file}");
+        let bytes = response.body_mut().read_to_vec().expect(file);
+        assert!(
+            bytes.starts_with(magic) && bytes.len() > 1000,
+            "{file}: {} bytes",
+            bytes.len()
+        );
+    }
+    assert!(info["mesh_revision"].as_u64() >= Some(1), "{info}");
+    assert!(info["mesh_triangles"].as_u64() > Some(0), "{info}");
     let late = format!(
         "/v1/sessions/{id}/frames?timestamp=9&frame_id={}",
         FRAMES + 5

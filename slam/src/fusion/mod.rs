@@ -1,0 +1,33 @@
+//! TSDF fusion of the dense keyframes and meshing (paper §III-F; issue 5).
+//!
+//! - [`config`]: `[fusion]` parameters.
+//! - [`block`]: sparse voxel blocks, the block table, meshing jobs.
+//! - [`voxels`]: the voxel pool layout (CPU reference pool, GPU buffers).
+//! - [`integrate`]: integration / de-integration of one depth map (CPU reference), the blocks
+//!   a depth map touches.
+//! - [`gpu_volume`]: the GPU pool and the integration kernel runner.
+//! - [`mc_table`]: the marching-cubes case table, generated from first principles.
+//! - [`marching`]: marching cubes over blocks (CPU reference); [`gpu_marching`] the kernel.
+//! - [`mesh`]: block meshes and the welded whole-scene mesh.
+//! - [`input`]: what is integrated per keyframe (depth, weight from the dense variance, colour).
+//! - [`fuser`]: one session's fusion: integration, re-integration on pose-graph moves, mesh
+//!   deltas; [`worker`] runs it on its own thread.
+
+pub mod block;
+pub mod config;
+pub mod fuser;
+pub mod gpu_marching;
+pub mod gpu_volume;
+pub mod input;
+pub mod integrate;
+pub mod marching;
+pub mod mc_table;
+pub mod mesh;
+pub mod voxels;
+pub mod worker;
+
+pub use block::{BLOCK_SIDE, BLOCK_VOXELS, BlockIndex, BlockTable, MeshJob};
+pub use config::FusionConfig;
+pub use fuser::{Fuser, FusionStats, MeshDelta};
+pub use mesh::{BlockMesh, EdgeKey, Mesh};
+pub use voxels::{CpuVoxels, VoxelBuffers};
