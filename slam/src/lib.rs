@@ -8,10 +8,12 @@
 //! - [`gpu`]: the wgpu context and one runner per WGSL kernel.
 //! - [`dense`]: the dense layer (depth prior runtime, scale/shift alignment, ...).
 //! - [`frame`]: an undistorted frame with its pyramid, shared by every stage.
+//! - [`fusion`]: TSDF fusion of the dense keyframes (sparse blocks, GPU kernels), marching
+//!   cubes, mesh deltas.
 //! - [`tracking`]: coarse-to-fine SE(3) direct image alignment against the keyframe.
 //! - [`mapping`]: the semi-dense inverse-depth filter of each keyframe, keyframe selection.
 //! - [`graph`]: keyframe-to-keyframe Sim(3) constraints and the pose graph.
-//! - [`export`]: PLY point clouds (and later meshes) for people to open.
+//! - [`export`]: PLY point clouds and meshes, glTF binary meshes, for people to open.
 //! - [`pipeline`]: `Pipeline::push(frame) -> events` over tracking, mapping and the back end.
 //! - [`npy`]: minimal NumPy `.npy` float32 reader/writer for depth maps and benchmarks.
 //!

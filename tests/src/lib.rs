@@ -72,3 +72,22 @@ pub fn temp_dir(tag: &str) -> PathBuf {
     std::fs::create_dir_all(&dir).expect("create temp dir");
     dir
 }
+
+/// Runs `relfusion ARGS`, asserts it succeeded and parses its JSON output (the last line, or
+/// the whole of stdout for pretty-printed reports).
+pub fn relfusion_json(args: &[&str]) -> serde_json::Value {
+    let out = Command::new(bin_path("relfusion"))
+        .args(args)
+        .output()
+        .expect("run relfusion");
+    assert!(
+        out.status.success(),
+        "relfusion {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let last = stdout.lines().last().unwrap_or_default().to_string();
+    serde_json::from_str(&last)
+        .or_else(|_| serde_json::from_str(&stdout))
+        .unwrap_or_else(|e| panic!("not JSON ({e}): {stdout}"))
+}

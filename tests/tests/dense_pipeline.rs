@@ -6,29 +6,11 @@
 //! (`no_model` mode).
 
 use std::path::Path;
-use std::process::Command;
 
 use relfusion_slam::dataset::shared_data_dir;
 use relfusion_slam::dense::runtime_library_path;
-use relfusion_tests::{bin_path, synth_sequence, temp_dir};
+use relfusion_tests::{relfusion_json, synth_sequence, temp_dir};
 use serde_json::Value;
-
-fn relfusion(args: &[&str]) -> Value {
-    let out = Command::new(bin_path("relfusion"))
-        .args(args)
-        .output()
-        .expect("run relfusion");
-    assert!(
-        out.status.success(),
-        "relfusion {args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let last = stdout.lines().last().unwrap_or_default().to_string();
-    serde_json::from_str(&last)
-        .or_else(|_| serde_json::from_str(&stdout))
-        .unwrap_or_else(|e| panic!("not JSON ({e}): {stdout}"))
-}
 
 fn run_sequence(seq: &Path, out: &Path, model: Option<&Path>) -> Value {
     // LSD-SLAM's random initialisation: PyDNet++ (trained on Matterport) inverts the depth
@@ -51,7 +33,7 @@ fn run_sequence(seq: &Path, out: &Path, model: Option<&Path>) -> Value {
         args.extend(["--model".into(), m.display().to_string()]);
     }
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
-    relfusion(&args)
+    relfusion_json(&args)
 }
 
 fn percent(report: &Value, stage: &str) -> f64 {
@@ -91,7 +73,7 @@ fn densified_depth_beats_the_prior_and_the_filter_cleans_the_semidense_map() {
     assert!(depth.data.iter().filter(|&&d| d > 0.0).count() > 320 * 240 / 2);
 
     let (seq_s, out_s) = (seq.display().to_string(), out.display().to_string());
-    let report = relfusion(&["eval", "depth", "--dataset", &seq_s, "--run", &out_s]);
+    let report = relfusion_json(&["eval", "depth", "--dataset", &seq_s, "--run", &out_s]);
     let (gt_fit, dense) = (percent(&report, "prior_gt_fit"), percent(&report, "dense"));
     let (raw, filtered) = (
         percent(&report, "semidense_raw"),
@@ -103,7 +85,7 @@ fn densified_depth_beats_the_prior_and_the_filter_cleans_the_semidense_map() {
     assert!(dense >= gt_fit + 10.0, "{report}");
     assert!(filtered > raw, "{report}");
 
-    let ablation = relfusion(&[
+    let ablation = relfusion_json(&[
         "eval",
         "ablation",
         "--dataset",
@@ -134,7 +116,7 @@ fn without_a_model_the_dense_layer_still_densifies() {
         "{summary}"
     );
     let (seq_s, out_s) = (seq.display().to_string(), out.display().to_string());
-    let report = relfusion(&["eval", "depth", "--dataset", &seq_s, "--run", &out_s]);
+    let report = relfusion_json(&["eval", "depth", "--dataset", &seq_s, "--run", &out_s]);
     assert!(report["stages"]["prior_aligned"].is_null(), "{report}");
     let dense = percent(&report, "dense");
     eprintln!("no model: densified {dense:.1} %");

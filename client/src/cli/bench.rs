@@ -124,7 +124,8 @@ fn time(
         .collect()
 }
 
-fn median_ms(samples: &mut [Duration]) -> f64 {
+/// Median in milliseconds (`samples` must be non-empty).
+pub(super) fn median_ms(samples: &mut [Duration]) -> f64 {
     samples.sort_unstable();
     let mid = samples.len() / 2;
     let m = if samples.len() % 2 == 1 {
@@ -133,6 +134,20 @@ fn median_ms(samples: &mut [Duration]) -> f64 {
         (samples[mid - 1] + samples[mid]) / 2
     };
     m.as_secs_f64() * 1e3
+}
+
+/// Median of per-item figures (the upper median; NaN for none).
+pub(super) fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Milliseconds since `t`.
+pub(super) fn ms(t: Instant) -> f64 {
+    1e3 * t.elapsed().as_secs_f64()
 }
 
 /// Deterministic uniform noise in [0, 255) (SplitMix64), so runs are comparable without a

@@ -15,6 +15,7 @@ use relfusion_slam::dense::store::DenseStore;
 use relfusion_slam::pipeline::Config;
 use serde_json::json;
 
+use super::bench::{median, ms};
 use super::gpu_info::adapter_json;
 
 #[derive(Debug, clap::Args)]
@@ -28,18 +29,6 @@ pub struct DenseArgs {
     /// Benchmark at most this many keyframes.
     #[arg(long, default_value_t = 10)]
     pub keyframes: usize,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn ms(t: Instant) -> f64 {
-    1e3 * t.elapsed().as_secs_f64()
 }
 
 pub fn dense(args: &DenseArgs) -> anyhow::Result<()> {

@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use anyhow::Context;
 use relfusion_slam::dense::densify::{DensifyProblem, densify_cpu, energy};
@@ -20,6 +20,8 @@ use relfusion_slam::image::ImageF32;
 use relfusion_slam::npy;
 use relfusion_slam::pipeline::Config;
 use serde_json::json;
+
+use super::bench::median_ms;
 
 #[derive(Debug, clap::Args)]
 pub struct DensifyArgs {
@@ -115,16 +117,4 @@ pub fn densify(args: &DensifyArgs) -> anyhow::Result<()> {
     });
     println!("{}", serde_json::to_string(&report)?);
     Ok(())
-}
-
-/// Median in milliseconds (`samples` is non-empty: `--runs` is positive).
-fn median_ms(samples: &mut [Duration]) -> f64 {
-    samples.sort_unstable();
-    let mid = samples.len() / 2;
-    let median = if samples.len() % 2 == 1 {
-        samples[mid]
-    } else {
-        (samples[mid - 1] + samples[mid]) / 2
-    };
-    median.as_secs_f64() * 1e3
 }

@@ -17,6 +17,7 @@ use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::Config;
 use serde_json::json;
 
+use super::bench::{median, ms};
 use super::gpu_info::adapter_json;
 
 #[derive(Debug, clap::Args)]
@@ -30,18 +31,6 @@ pub struct FusionArgs {
     /// Skip the CPU reference (it is slow on large volumes).
     #[arg(long)]
     pub gpu_only: bool,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn ms(t: Instant) -> f64 {
-    1e3 * t.elapsed().as_secs_f64()
 }
 
 /// Fuses every input, meshing after each (as the pipeline does), then moves every keyframe by
