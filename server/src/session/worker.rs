@@ -328,7 +328,7 @@ impl Runner<'_> {
                 "keyframes_not_densified": stats.keyframes_not_densified,
                 "dense_mode": stats.dense_mode,
                 "keyframes_fused": stats.keyframes_fused,
-                "mesh_revision": s.info().mesh_revision,
+                "mesh_revision": stats.mesh_revision,
             }),
         };
         match results.save(s.store.as_ref(), s.id()) {

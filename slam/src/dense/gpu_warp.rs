@@ -225,6 +225,7 @@ impl GpuWarp {
 
 #[cfg(test)]
 mod tests {
+    use super::super::two_view::tests::random_idepth;
     use super::super::two_view::warp_inverse_depth_cpu;
     use super::*;
     use crate::geometry::SO3;
@@ -238,20 +239,6 @@ mod tests {
             GpuContext::new(&GpuConfig::default())
                 .unwrap_or_else(|e| panic!("no GPU context: {e}")),
         )
-    }
-
-    /// Inverse depths in [0.3, 3] (the keyframe gauge has mean 1) with `holes` of them 0.
-    fn random_idepth(w: usize, h: usize, holes: f64, rng: &mut impl Rng) -> ImageF32 {
-        let data = (0..w * h)
-            .map(|_| {
-                if rng.random_bool(holes) {
-                    0.0
-                } else {
-                    rng.random_range(0.3f32..3.0)
-                }
-            })
-            .collect();
-        ImageF32::from_vec(w, h, data).expect("sizes match")
     }
 
     /// Small rotation (≤ ~0.1 rad), translation (≤ 0.2 of the mean depth), scale 0.8–1.25.

@@ -2,7 +2,7 @@
 
 use std::sync::Arc;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::align::ScaleShift;
 use crate::geometry::{PinholeCamera, Sim3};
@@ -39,8 +39,10 @@ pub struct DenseStages {
     pub filtered_var: ImageF32,
 }
 
-/// Wall times of one keyframe's dense stages (milliseconds).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+/// Wall times of one keyframe's dense stages (milliseconds). Also the `timings` record of
+/// `keyframes/index.json` (`dense::store`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct DenseTimings {
     pub prior_ms: f64,
     pub align_ms: f64,

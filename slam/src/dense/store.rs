@@ -125,7 +125,7 @@ pub fn write_dense_keyframes(dir: &Path, keyframes: &[(DenseKeyframe, Sim3)]) ->
             }),
             align_error: kf.align_error.clone(),
             consistent_pixels: kf.consistent_pixels,
-            timings: kf.timings.into(),
+            timings: kf.timings,
             maps: maps.iter().map(|(n, _)| n.to_string()).collect(),
         });
     }
@@ -247,40 +247,6 @@ struct AlignRecord {
     used: usize,
 }
 
-#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct TimingsRecord {
-    prior_ms: f64,
-    align_ms: f64,
-    filter_ms: f64,
-    densify_ms: f64,
-    two_view_ms: f64,
-}
-
-impl From<DenseTimings> for TimingsRecord {
-    fn from(t: DenseTimings) -> Self {
-        Self {
-            prior_ms: t.prior_ms,
-            align_ms: t.align_ms,
-            filter_ms: t.filter_ms,
-            densify_ms: t.densify_ms,
-            two_view_ms: t.two_view_ms,
-        }
-    }
-}
-
-impl From<TimingsRecord> for DenseTimings {
-    fn from(t: TimingsRecord) -> Self {
-        Self {
-            prior_ms: t.prior_ms,
-            align_ms: t.align_ms,
-            filter_ms: t.filter_ms,
-            densify_ms: t.densify_ms,
-            two_view_ms: t.two_view_ms,
-        }
-    }
-}
-
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct KeyframeRecord {
@@ -294,7 +260,7 @@ struct KeyframeRecord {
     align: Option<AlignRecord>,
     align_error: Option<String>,
     consistent_pixels: usize,
-    timings: TimingsRecord,
+    timings: DenseTimings,
     maps: Vec<String>,
 }
 
@@ -427,7 +393,7 @@ impl DenseStore {
                     }),
                     align_error: r.align_error,
                     consistent_pixels: r.consistent_pixels,
-                    timings: r.timings.into(),
+                    timings: r.timings,
                     maps: r.maps,
                 })
             })

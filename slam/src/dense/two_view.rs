@@ -401,7 +401,7 @@ pub fn to_depth_map(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::frame::Frame;
     use crate::geometry::SO3;
@@ -442,7 +442,8 @@ mod tests {
         rn / (dst_from_src.scale + rn.dot(&dst_from_src.translation))
     }
 
-    fn random_idepth(w: usize, h: usize, holes: f64, rng: &mut impl Rng) -> ImageF32 {
+    /// Inverse depths in [0.3, 3] (the keyframe gauge has mean 1) with `holes` of them 0.
+    pub(crate) fn random_idepth(w: usize, h: usize, holes: f64, rng: &mut impl Rng) -> ImageF32 {
         let data = (0..w * h)
             .map(|_| {
                 if rng.random_bool(holes) {

@@ -182,7 +182,6 @@ struct Fused {
     pose: Sim3,
     blocks: Vec<BlockIndex>,
     input: Option<Arc<FusionInput>>,
-    median_depth: f32,
 }
 
 /// TSDF volume, block table, keyframe records and the current block meshes of one session.
@@ -274,14 +273,13 @@ impl Fuser {
             self.remove_keyframe(id)?;
         }
         let input = Arc::new(input);
-        let blocks = self.integrate(&input, &pose, 1.0)?;
+        let blocks = self.integrate(&input, &pose)?;
         self.stats.keyframes_fused += 1;
         self.fused.insert(
             id,
             Fused {
                 pose,
                 blocks,
-                median_depth: input.median_depth,
                 input: Some(input.clone()),
             },
         );
@@ -310,9 +308,9 @@ impl Fuser {
             if displacement(&f.pose, pose, &input) <= limit {
                 continue;
             }
-            let old = f.pose;
-            self.integrate(&input, &old, -1.0)?;
-            let blocks = self.integrate(&input, pose, 1.0)?;
+            let (old, old_blocks) = (f.pose, f.blocks.clone());
+            self.deintegrate(&input, &old, &old_blocks)?;
+            let blocks = self.integrate(&input, pose)?;
             let f = self.fused.get_mut(id).expect("checked above");
             f.pose = *pose;
             f.blocks = blocks;
@@ -331,7 +329,7 @@ impl Fuser {
             return Ok(());
         };
         if let Some(input) = &f.input {
-            self.integrate(input, &f.pose, -1.0)?;
+            self.deintegrate(input, &f.pose, &f.blocks)?;
             self.kept.retain(|k| *k != id);
             self.kept_bytes -= input.bytes();
             self.free_empty_blocks()?;
@@ -339,32 +337,15 @@ impl Fuser {
         Ok(())
     }
 
-    /// Integrates (`sign` +1) or de-integrates (−1) one input at `pose`; returns the blocks
-    /// it touched that have a slot.
-    fn integrate(
-        &mut self,
-        input: &FusionInput,
-        pose: &Sim3,
-        sign: f32,
-    ) -> Result<Vec<BlockIndex>> {
+    /// Integrates one input at `pose` into the blocks it touches (allocating them); returns
+    /// those that received an observation (what [`Fuser::deintegrate`] needs to undo it).
+    fn integrate(&mut self, input: &FusionInput, pose: &Sim3) -> Result<Vec<BlockIndex>> {
         let t = Instant::now();
         let params = self.params();
-        let view = DepthView::new(
-            &input.camera,
-            pose,
-            &input.depth,
-            &input.weight,
-            &input.color,
-        )?;
+        let view = input_view(input, pose)?;
         let mut blocks = Vec::new();
         let mut fresh = Vec::new();
         for b in touched_blocks(&view, &params) {
-            if sign < 0.0 {
-                if let Some(slot) = self.table.get(&b) {
-                    blocks.push((b, slot));
-                }
-                continue;
-            }
             match self.table.get_or_alloc(b) {
                 Ok((slot, new)) => {
                     if new {
@@ -381,7 +362,7 @@ impl Fuser {
             }
         }
         self.store.prepare(&self.table, &fresh)?;
-        self.store.integrate(&blocks, &view, &params, sign)?;
+        self.store.integrate(&blocks, &view, &params, 1.0)?;
         if !fresh.is_empty() {
             // `touched_blocks` errs on the side of coverage (about 1.7× the blocks that get a
             // voxel in the truncation band): give back the new blocks that stayed empty.
@@ -403,6 +384,27 @@ impl Fuser {
         self.dirty.extend(blocks.iter().map(|(b, _)| *b));
         self.stats.integrate_ms += t.elapsed().as_secs_f64() * 1e3;
         Ok(blocks.into_iter().map(|(b, _)| b).collect())
+    }
+
+    /// Takes one input out again at the pose it went in at, over the blocks it went into
+    /// (those freed since hold none of it).
+    fn deintegrate(
+        &mut self,
+        input: &FusionInput,
+        pose: &Sim3,
+        blocks: &[BlockIndex],
+    ) -> Result<()> {
+        let t = Instant::now();
+        let params = self.params();
+        let view = input_view(input, pose)?;
+        let blocks: Vec<(BlockIndex, u32)> = blocks
+            .iter()
+            .filter_map(|b| self.table.get(b).map(|s| (*b, s)))
+            .collect();
+        self.store.integrate(&blocks, &view, &params, -1.0)?;
+        self.dirty.extend(blocks.iter().map(|(b, _)| *b));
+        self.stats.integrate_ms += t.elapsed().as_secs_f64() * 1e3;
+        Ok(())
     }
 
     /// Frees dirty blocks left without any observation (after de-integration).
@@ -502,11 +504,17 @@ impl Fuser {
     pub fn fused_poses(&self) -> Vec<(KeyframeId, Sim3)> {
         self.fused.iter().map(|(id, f)| (*id, f.pose)).collect()
     }
+}
 
-    /// Median depth of each fused keyframe (keyframe units).
-    pub fn median_depth(&self, id: KeyframeId) -> Option<f32> {
-        self.fused.get(&id).map(|f| f.median_depth)
-    }
+/// The integration view of an input at `pose`.
+fn input_view<'a>(input: &'a FusionInput, pose: &Sim3) -> Result<DepthView<'a>> {
+    DepthView::new(
+        &input.camera,
+        pose,
+        &input.depth,
+        &input.weight,
+        &input.color,
+    )
 }
 
 /// How far a keyframe's surface moves between two poses: the largest displacement of five
