@@ -41,6 +41,11 @@ fn create(agent: &ureq::Agent, url: &str, policy: &str) -> String {
     let body = json!({
         "camera": {"fx": 262.5, "fy": 262.5, "cx": 159.5, "cy": 119.5, "width": 320, "height": 240},
         "policy": policy,
+        // Mapping in step: with live sessions' mapping thread a frame costs little more than
+        // its tracking, and on a 2-core machine the test's own senders (PNG over HTTP) could
+        // not offer twice that. What is tested here — drop-oldest, counting, bounded memory —
+        // is the same either way.
+        "config": {"pipeline": {"mapping_thread": false}},
     });
     let (status, text) = call(
         agent

@@ -37,6 +37,15 @@ pub struct SlamArgs {
     /// Use only the first N frames.
     #[arg(long)]
     pub frames: Option<usize>,
+    /// Feed the frames at this rate, as a live camera does (default: unpaced, each frame as
+    /// soon as the previous one is done). Paced, the mapping thread has the time between
+    /// frames: the figure to read for how much of the stream a live session maps.
+    #[arg(long)]
+    pub fps: Option<f64>,
+    /// Map on the mapping thread (`pipeline.mapping_thread`, as live sessions do): tracking
+    /// never waits for the mapping, which observes the frames it has time for.
+    #[arg(long)]
+    pub mapping_thread: bool,
     /// Turn the dense layer off (compare tracking time with it on: it must not slow
     /// tracking down, issue 4).
     #[arg(long)]
@@ -45,12 +54,17 @@ pub struct SlamArgs {
 
 pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
     anyhow::ensure!(args.runs > 0, "--runs must be positive");
+    anyhow::ensure!(
+        args.fps.is_none_or(|f| f.is_finite() && f > 0.0),
+        "--fps must be positive"
+    );
     let mut config = match &args.config {
         Some(path) => Config::load(path)?,
         None => Config::default(),
     };
     config.pipeline.deterministic |= args.deterministic;
     config.dense.enabled &= !args.no_dense;
+    config.pipeline.mapping_thread |= args.mapping_thread;
     let seq = TumSequence::open(&args.dataset, None)
         .with_context(|| format!("opening {}", args.dataset.display()))?;
     let n = args.frames.unwrap_or(seq.len()).min(seq.len());
@@ -81,14 +95,24 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
         let mut pipeline = Pipeline::new(config.clone(), seq.camera, prior)?;
         let t0 = Instant::now();
         let mut per_frame = Vec::with_capacity(n);
-        for frame in &frames {
+        for (i, frame) in frames.iter().enumerate() {
+            if let Some(fps) = args.fps {
+                let due = t0 + std::time::Duration::from_secs_f64(i as f64 / fps);
+                std::thread::sleep(due.saturating_duration_since(Instant::now()));
+            }
             let tf = Instant::now();
             pipeline.push(frame.clone())?;
             per_frame.push(1e3 * tf.elapsed().as_secs_f64());
         }
-        let frames_s = t0.elapsed().as_secs_f64();
+        // Paced, the wall time per frame is the frame interval: the pipeline's own time is the
+        // sum of the per-frame times.
+        let frames_s = match args.fps {
+            Some(_) => per_frame.iter().sum::<f64>() / 1e3,
+            None => t0.elapsed().as_secs_f64(),
+        };
+        let t_finish = Instant::now();
         pipeline.finish()?;
-        let wall_s = t0.elapsed().as_secs_f64();
+        let finish_s = t_finish.elapsed().as_secs_f64();
         let stats = pipeline.stats().clone();
         per_frame.sort_by(f64::total_cmp);
         let ate_of = |poses: &[(f64, Sim3)]| -> Option<f64> {
@@ -100,9 +124,10 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
             "ms_per_frame": 1e3 * frames_s / n as f64,
             "ms_per_frame_p50": per_frame[n / 2],
             "ms_per_frame_p99": per_frame[(n * 99 / 100).min(n - 1)],
-            "final_optimisation_s": wall_s - frames_s,
+            "final_optimisation_s": finish_s,
             "tracking_ms_per_frame": 1e3 * stats.tracking_s / n as f64,
             "mapping_ms_per_frame": 1e3 * stats.mapping_s / n as f64,
+            "frames_not_mapped": stats.frames_not_mapped,
             "keyframes": stats.keyframes,
             "keyframes_densified": stats.keyframes_densified,
             "keyframes_not_densified": stats.keyframes_not_densified,
@@ -127,13 +152,20 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
             "width": seq.camera.width,
             "height": seq.camera.height,
             "mode": if config.pipeline.deterministic { "deterministic" } else { "threaded" },
+            "mapping": if config.pipeline.mapping_thread && !config.pipeline.deterministic {
+                "thread"
+            } else {
+                "in step"
+            },
             "dense": if config.dense.enabled { "on" } else { "off" },
             "build": if cfg!(debug_assertions) { "debug" } else { "release" },
+            "fps": args.fps,
             "image_decode_ms_per_frame": decode_ms,
             "runs": runs,
             "spread": {
                 "ms_per_frame": spread("ms_per_frame"),
                 "tracking_ms_per_frame": spread("tracking_ms_per_frame"),
+                "frames_not_mapped": spread("frames_not_mapped"),
                 "ate_trajectory_m": spread("ate_trajectory_m"),
                 "ate_keyframes_m": spread("ate_keyframes_m"),
             },

@@ -273,7 +273,11 @@ impl SessionManager {
     pub fn create(&self, req: CreateSession, owner: &Owner) -> Result<Arc<Session>, ApiError> {
         self.refuse_if_shutting_down()?;
         let camera = req.camera.to_camera()?;
-        let config = merge_config(&SlamConfig::default(), &req.config)?;
+        let mut base = SlamConfig::default();
+        // A live camera does not wait: tracking gives every frame its pose at frame rate and
+        // the mapping thread observes the frames it has time for (skipped, never queued).
+        base.pipeline.mapping_thread = true;
+        let config = merge_config(&base, &req.config)?;
         let model = self.resolve_model(req.model.as_deref())?;
         {
             let mut admission = lock(&self.admission);

@@ -28,7 +28,7 @@ mod real_tests;
 mod regularize;
 mod stereo;
 #[cfg(test)]
-mod test_scene;
+pub(crate) mod test_scene;
 
 pub use config::MappingConfig;
 pub use depth_map::{DepthMap, InverseDepth};

@@ -14,6 +14,7 @@
 
 pub mod config;
 pub mod events;
+mod mapper;
 #[cfg(test)]
 mod tests;
 
@@ -38,6 +39,7 @@ use crate::image::ImageF32;
 use crate::mapping::{DepthFilter, DepthMap, PriorFillParams, needs_new_keyframe};
 use crate::tracking::{SE3Tracker, TrackingReference};
 use crate::{Error, Result};
+use mapper::{KeyframeMapper, Observation};
 
 /// One input frame: a colour image (distorted as the camera delivers it) and its time.
 #[derive(Clone, Debug)]
@@ -73,17 +75,6 @@ struct KeyframeRecord {
     prior: Option<Arc<ImageF32>>,
 }
 
-/// The keyframe being mapped.
-#[derive(Debug)]
-struct CurrentKeyframe {
-    id: KeyframeId,
-    filter: DepthFilter,
-    reference: Arc<TrackingReference>,
-    /// Frames whose observations refined this keyframe (LSD-SLAM replaces a keyframe only
-    /// after a few, so that its depth had time to converge).
-    frames_mapped: usize,
-}
-
 /// Where the back end runs.
 #[derive(Debug)]
 enum BackendLink {
@@ -116,6 +107,9 @@ pub struct Stats {
     /// Accumulated wall time of tracking, mapping and keyframe creation (seconds).
     pub tracking_s: f64,
     pub mapping_s: f64,
+    /// Good frames the mapping thread did not observe because it was busy with an earlier one
+    /// (`pipeline.mapping_thread`; always 0 in step).
+    pub frames_not_mapped: usize,
     /// Keyframes the dense layer finished.
     pub keyframes_densified: usize,
     /// Keyframes it skipped (queue full) or failed on (reason logged).
@@ -151,7 +145,11 @@ pub struct Pipeline {
     /// next [`Pipeline::push`] or by [`Pipeline::take_events`].
     pending_events: Vec<Event>,
     keyframes: Vec<KeyframeRecord>,
-    current: Option<CurrentKeyframe>,
+    /// The keyframe being mapped; its depth filter is in `mapper`.
+    current: Option<KeyframeId>,
+    mapper: KeyframeMapper,
+    /// Seconds spent creating keyframes (propagation); the mapper adds its own.
+    keyframe_creation_s: f64,
     frames: Vec<FrameRecord>,
     /// Pose of the last good frame relative to the current keyframe (the tracking prior).
     last_frame_from_keyframe: SE3,
@@ -169,11 +167,15 @@ impl Pipeline {
     /// A pipeline for frames of `camera` (with its distortion, if any). `prior` initialises the
     /// first keyframe's depth when `config.pipeline.init` is `Prior`.
     pub fn new(
-        config: Config,
+        mut config: Config,
         camera: PinholeCamera,
         prior: Option<Box<dyn DepthPrior>>,
     ) -> Result<Self> {
         config.validate()?;
+        let mapping_thread = config.pipeline.mapping_thread && !config.pipeline.deterministic;
+        if mapping_thread {
+            config.mapping.threads = config.pipeline.mapping_thread_workers;
+        }
         let undistort = camera
             .distortion
             .is_some()
@@ -209,6 +211,7 @@ impl Pipeline {
                 config.fusion.clone(),
             )?)),
         };
+        let mapper = KeyframeMapper::new(mapping_thread)?;
         let dense_mode = match (&dense, &prior) {
             (None, _) => "off",
             (Some(_), Some(_)) => "prior",
@@ -227,6 +230,8 @@ impl Pipeline {
             pending_events: Vec::new(),
             keyframes: Vec::new(),
             current: None,
+            mapper,
+            keyframe_creation_s: 0.0,
             frames: Vec::new(),
             last_frame_from_keyframe: SE3::identity(),
             velocity: None,
@@ -256,8 +261,15 @@ impl Pipeline {
         let mut events = self.push_frame(input)?;
         self.poll_dense()?;
         self.poll_fusion();
+        self.update_mapping_stats();
         events.append(&mut self.pending_events);
         Ok(events)
+    }
+
+    fn update_mapping_stats(&mut self) {
+        let (mapping_s, not_mapped) = self.mapper.counters();
+        self.stats.mapping_s = self.keyframe_creation_s + mapping_s;
+        self.stats.frames_not_mapped = not_mapped;
     }
 
     /// Events produced since the last [`Pipeline::push`] outside a frame's processing: the
@@ -279,13 +291,14 @@ impl Pipeline {
     fn push_frame(&mut self, input: FrameInput) -> Result<Vec<Event>> {
         let frame = Arc::new(self.make_frame(input)?);
         self.stats.frames += 1;
-        let Some(current) = self.current.as_mut() else {
+        let Some(kf_id) = self.current else {
             return self.start(frame);
         };
+        let mapped = self.mapper.published()?;
         let t0 = std::time::Instant::now();
         let result = track_with_motion_model(
             &mut self.tracker,
-            &current.reference,
+            &mapped.reference,
             &frame,
             &self.last_frame_from_keyframe,
             self.velocity
@@ -304,22 +317,22 @@ impl Pipeline {
         self.velocity = Some(result.frame_from_keyframe * self.last_frame_from_keyframe.inverse());
         self.last_frame_from_keyframe = result.frame_from_keyframe;
 
-        let kf_id = current.id;
-        let mean_idepth = current.filter.mean_idepth().unwrap_or(1.0);
         let make_keyframe = needs_new_keyframe(
             &self.config.mapping,
             &keyframe_from_frame,
-            mean_idepth,
+            mapped.mean_idepth.unwrap_or(1.0),
             result.point_usage,
             self.keyframes.len(),
-            current.frames_mapped,
+            mapped.frames_mapped,
         );
+        // Let go of the reference, so that the mapping can rebuild it in place.
+        drop(mapped);
         if make_keyframe {
             let t1 = std::time::Instant::now();
-            let propagated = current
-                .filter
-                .propagate_to(frame.clone(), &result.frame_from_keyframe)?;
-            self.stats.mapping_s += t1.elapsed().as_secs_f64();
+            let propagated = self.mapper.with_filter(|filter| {
+                filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
+            })?;
+            self.keyframe_creation_s += t1.elapsed().as_secs_f64();
             return self.new_keyframe(
                 frame,
                 kf_id,
@@ -330,24 +343,11 @@ impl Pipeline {
             );
         }
 
-        let t1 = std::time::Instant::now();
-        let current = self
-            .current
-            .as_mut()
-            .ok_or_else(|| Error::Config("no keyframe".into()))?;
-        current
-            .filter
-            .observe_with_residual(&frame, &keyframe_from_frame, result.residual)?;
-        current.filter.regularize();
-        current.frames_mapped += 1;
-        let depth = current.filter.depth_map();
-        let kf_frame = &self.keyframes[kf_id].frame;
-        match Arc::get_mut(&mut current.reference) {
-            // Unshared (after the keyframe's first mapped frame): rebuild reusing its buffers.
-            Some(reference) => reference.rebuild(kf_frame, &depth)?,
-            None => current.reference = Arc::new(TrackingReference::new(kf_frame, &depth)?),
-        }
-        self.stats.mapping_s += t1.elapsed().as_secs_f64();
+        self.mapper.observe(Observation {
+            frame: frame.clone(),
+            keyframe_from_frame,
+            residual: result.residual,
+        })?;
 
         self.frames.push(FrameRecord {
             timestamp: frame.timestamp,
@@ -371,6 +371,7 @@ impl Pipeline {
     /// and returns the optimised pose of every keyframe.
     pub fn finish(&mut self) -> Result<Vec<(KeyframeId, Sim3)>> {
         self.finish_current()?;
+        self.update_mapping_stats();
         if let Some(DenseLink::Threaded(worker)) = &mut self.dense {
             let replies = worker.finish();
             self.apply_dense(replies)?;
@@ -550,11 +551,9 @@ impl Pipeline {
     pub fn semidense_points(&self) -> Vec<ColoredPoint> {
         let poses = self.keyframe_poses();
         let mut points = Vec::new();
-        for (kf, (_, world_from_kf)) in self.keyframes.iter().zip(poses) {
-            let depth = match &self.current {
-                Some(current) if std::ptr::eq(kf, &self.keyframes[current.id]) => {
-                    Arc::new(current.filter.depth_map())
-                }
+        for (id, (kf, (_, world_from_kf))) in self.keyframes.iter().zip(poses).enumerate() {
+            let depth = match self.mapper.published() {
+                Ok(mapped) if self.current == Some(id) => mapped.depth,
                 _ => kf.depth.clone(),
             };
             let camera = &kf.frame.camera;
@@ -714,7 +713,7 @@ impl Pipeline {
             prior,
             state,
         )?;
-        self.stats.mapping_s += t0.elapsed().as_secs_f64();
+        self.keyframe_creation_s += t0.elapsed().as_secs_f64();
         Ok(events)
     }
 
@@ -757,22 +756,16 @@ impl Pipeline {
         state: TrackingState,
     ) -> Result<Vec<Event>> {
         let id = self.keyframes.len();
-        let depth = Arc::new(filter.depth_map());
-        let reference = Arc::new(TrackingReference::new(&frame, &depth)?);
+        let mapped = self.mapper.begin(filter)?;
         self.keyframes.push(KeyframeRecord {
             frame: frame.clone(),
-            depth,
+            depth: mapped.depth,
             world_from_keyframe,
-            reference: reference.clone(),
+            reference: mapped.reference,
             parent,
             prior,
         });
-        self.current = Some(CurrentKeyframe {
-            id,
-            filter,
-            reference,
-            frames_mapped: 0,
-        });
+        self.current = Some(id);
         self.stats.keyframes = self.keyframes.len();
         self.frames.push(FrameRecord {
             timestamp: frame.timestamp,
@@ -808,14 +801,20 @@ impl Pipeline {
     /// Finishes the current keyframe: its final depth is published and it goes to the back
     /// end (constraint search and pose-graph optimisation; in step when deterministic).
     fn finish_current(&mut self) -> Result<()> {
-        let Some(current) = self.current.take() else {
+        let Some(id) = self.current.take() else {
             return Ok(());
         };
-        let record = &mut self.keyframes[current.id];
-        record.depth = Arc::new(current.filter.depth_map());
-        record.reference = Arc::new(TrackingReference::new(&record.frame, &record.depth)?);
+        // The final depth is what the mapping published last (its tracking reference serves
+        // relocalisation from now on).
+        let mapped = self
+            .mapper
+            .finish()?
+            .ok_or_else(|| Error::Config("the current keyframe has no depth filter".into()))?;
+        let record = &mut self.keyframes[id];
+        record.depth = mapped.depth;
+        record.reference = mapped.reference;
         let new = NewKeyframe {
-            id: current.id,
+            id,
             frame: record.frame.clone(),
             depth: record.depth.clone(),
             world_from_keyframe: record.world_from_keyframe,
@@ -826,7 +825,7 @@ impl Pipeline {
             .as_ref()
             .map_or_else(Matrix7::zeros, |p| covariance(&p.information));
         let job = DenseJob {
-            keyframe_id: current.id,
+            keyframe_id: id,
             frame: record.frame.clone(),
             depth: record.depth.clone(),
             poses: Vec::new(),
@@ -929,7 +928,7 @@ impl Pipeline {
     fn lost_or_relocalised(&mut self, frame: &Arc<Frame>) -> Result<Vec<Event>> {
         // The motion since the last good frame is unknown.
         self.velocity = None;
-        let current_id = self.current.as_ref().map_or(0, |c| c.id);
+        let current_id = self.current.unwrap_or(0);
         let n = self.config.pipeline.relocalisation_candidates;
         let candidates: Vec<KeyframeId> = std::iter::once(current_id)
             .chain(
@@ -954,10 +953,10 @@ impl Pipeline {
             let kf = candidates[i];
             self.lost = false;
             let t0 = std::time::Instant::now();
-            let propagated = match &self.current {
-                Some(current) if current.id == kf => current
-                    .filter
-                    .propagate_to(frame.clone(), &result.frame_from_keyframe)?,
+            let propagated = match self.current {
+                Some(current) if current == kf => self.mapper.with_filter(|filter| {
+                    filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
+                })?,
                 _ => DepthFilter::from_depth_map(
                     self.keyframes[kf].frame.clone(),
                     &self.keyframes[kf].depth,
@@ -965,7 +964,7 @@ impl Pipeline {
                 )?
                 .propagate_to(frame.clone(), &result.frame_from_keyframe)?,
             };
-            self.stats.mapping_s += t0.elapsed().as_secs_f64();
+            self.keyframe_creation_s += t0.elapsed().as_secs_f64();
             return self.new_keyframe(
                 frame.clone(),
                 kf,
