@@ -7,6 +7,7 @@
 //! - [`eval`]: ATE / RPE with Umeyama alignment, percentage of correct depth.
 //! - [`gpu`]: the wgpu context and one runner per WGSL kernel.
 //! - [`dense`]: the dense layer (depth prior runtime, scale/shift alignment, ...).
+//! - [`background`]: the dense and fusion threads at the lowest priority, so tracking runs first.
 //! - [`frame`]: an undistorted frame with its pyramid, shared by every stage.
 //! - [`fusion`]: TSDF fusion of the dense keyframes (sparse blocks, GPU kernels), marching
 //!   cubes, mesh deltas.
@@ -21,6 +22,7 @@
 //! `T_w_c`); Lie-group tangents are perturbed on the right (`T · exp(δ)`); SE(3) tangents are
 //! ordered (translation ρ, rotation φ), Sim(3) tangents (ρ, φ, σ) with scale `s = exp(σ)`.
 
+pub mod background;
 pub mod dataset;
 pub mod dense;
 pub mod error;

@@ -389,6 +389,7 @@ impl DenseWorker {
         let thread = std::thread::Builder::new()
             .name("relfusion-dense".into())
             .spawn(move || {
+                crate::background::lower_current_thread_priority();
                 let mut layer = match DenseLayer::new(config, prior) {
                     Ok(layer) => layer,
                     Err(e) => {

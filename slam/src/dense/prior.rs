@@ -336,6 +336,9 @@ fn build_session(env: &Environment, bytes: &[u8], threads: usize) -> ort::Result
     Session::builder(env)?
         .with_optimization_level(GraphOptimizationLevel::Level3)?
         .with_intra_threads(threads)?
+        // Idle pool threads sleep instead of spinning: a spinning thread takes a core from
+        // tracking between keyframes.
+        .with_intra_op_spinning(false)?
         .commit_from_memory(bytes)
 }
 
