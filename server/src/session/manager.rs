@@ -275,8 +275,9 @@ impl SessionManager {
         let camera = req.camera.to_camera()?;
         let mut base = SlamConfig::default();
         // A live camera does not wait: tracking gives every frame its pose at frame rate and
-        // the mapping thread observes the frames it has time for (skipped, never queued).
-        base.pipeline.mapping_thread = true;
+        // the mapping thread observes the frames it has time for (skipped, never queued). A
+        // replay that waits for room loses nothing, and maps every frame in step.
+        base.pipeline.mapping_thread = req.policy == FramePolicy::DropOldest;
         let config = merge_config(&base, &req.config)?;
         let model = self.resolve_model(req.model.as_deref())?;
         {
