@@ -44,6 +44,10 @@ pub enum Error {
     /// has stopped.
     #[error("back end: {0}")]
     Backend(String),
+    /// A keyframe has no pixel certain and near enough to integrate (`fusion` limits): it is
+    /// left out of the mesh, which goes on without it.
+    #[error("keyframe {0} has no depth to fuse")]
+    NothingToFuse(usize),
 }
 
 /// Shorthand used throughout the crate.

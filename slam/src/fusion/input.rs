@@ -157,9 +157,7 @@ impl FusionInput {
     ) -> Result<Self> {
         let mut valid: Vec<f32> = depth.iter().copied().filter(|&d| d > 0.0).collect();
         if valid.is_empty() {
-            return Err(Error::Shape(format!(
-                "keyframe {keyframe_id} has no depth to fuse"
-            )));
+            return Err(Error::NothingToFuse(keyframe_id));
         }
         let mid = valid.len() / 2;
         let median_depth = *valid.select_nth_unstable_by(mid, f32::total_cmp).1;
@@ -195,7 +193,7 @@ pub fn store_inputs(store: &DenseStore, config: &FusionConfig) -> Result<Vec<(Fu
         };
         let (idepth, variance) = (map("idepth")?, map("variance")?);
         let colors = store.read_map(kf, "intensity")?.map(|i| grey(&i));
-        let input = FusionInput::from_idepth(
+        let input = match FusionInput::from_idepth(
             kf.id,
             kf.timestamp,
             camera,
@@ -203,7 +201,13 @@ pub fn store_inputs(store: &DenseStore, config: &FusionConfig) -> Result<Vec<(Fu
             &variance,
             colors.as_deref(),
             config,
-        )?;
+        ) {
+            Err(Error::NothingToFuse(id)) => {
+                tracing::warn!(keyframe = id, "nothing to fuse: keyframe left out");
+                continue;
+            }
+            other => other?,
+        };
         inputs.push((input, kf.world_from_keyframe));
     }
     Ok(inputs)
