@@ -37,13 +37,15 @@ pub struct PipelineConfig {
     /// Map the current keyframe on its own thread (LSD-SLAM's mapping thread) unless
     /// `deterministic`: tracking never waits for stereo and regularisation, and when the
     /// mapping falls behind it observes the newest tracked frame (the others are counted in
-    /// `Stats::frames_not_mapped`). For live cameras, whose frames do not wait: the server
-    /// turns it on for live sessions. Default false, as LSD-SLAM runs a dataset
+    /// `Stats::frames_not_mapped`); new keyframes are propagated there too, while tracking
+    /// goes on against the previous one. For live cameras, whose frames do not wait: the
+    /// server turns it on for live sessions. Default false, as LSD-SLAM runs a dataset
     /// (`blockUntilMapped` when unpaced): every good frame is observed before the next one is
     /// tracked, which costs about 3× the tracking time per frame at 640×480 but maps every
-    /// frame. Measured on 7-Scenes redkitchen (release, 2 cores, no model): unpaced 11 ms per
-    /// frame with 24 % of the frames mapped (ATE 0.10–0.19 m over 5 runs) against 38 ms in
-    /// step (0.123 m); fed at 30 fps, 92 % mapped and ATE 0.09–0.13 m.
+    /// frame. Measured on 7-Scenes redkitchen (release, 2 cores, no model, `relfusion bench
+    /// slam`): unpaced 10.1–12.8 ms per frame with 35–42 % of the frames mapped (ATE
+    /// 0.09–0.21 m over 5 runs) against 33.6 ms in step (0.123 m); fed at 30 fps, 92–97 %
+    /// mapped and ATE 0.087–0.139 m over 3 runs.
     pub mapping_thread: bool,
     /// Row-band workers of the depth filter on the mapping thread (replaces `mapping.threads`
     /// there; 0 = all cores). Default 1: on a 2-core machine the other core stays with

@@ -82,6 +82,11 @@ struct Slot {
     filter: Option<DepthFilter>,
     /// The newest tracked frame waiting to be observed.
     pending: Option<Observation>,
+    /// A frame to become the next keyframe, with its pose `frame_from_keyframe`: the filter is
+    /// propagated into it on the thread (LSD-SLAM creates keyframes on its mapping thread).
+    propagate: Option<(Arc<Frame>, SE3)>,
+    /// The propagated filter, once the thread has it.
+    propagated: Option<Result<DepthFilter>>,
     busy: bool,
     published: Option<Published>,
     /// The previously published reference, rebuilt in place next time when unshared.
@@ -118,31 +123,46 @@ impl Shared {
 
     fn run(&self) {
         loop {
-            let (mut filter, obs, spare) = {
+            let (mut filter, work) = {
                 let mut slot = self.lock();
-                while !slot.shutdown && (slot.pending.is_none() || slot.filter.is_none()) {
+                while !slot.shutdown
+                    && (slot.filter.is_none()
+                        || (slot.pending.is_none() && slot.propagate.is_none()))
+                {
                     slot = self.changed.wait(slot).unwrap_or_else(|e| e.into_inner());
                 }
                 if slot.shutdown {
                     return;
                 }
                 slot.busy = true;
-                let (Some(filter), Some(obs)) = (slot.filter.take(), slot.pending.take()) else {
-                    unreachable!("waited for both");
+                let Some(filter) = slot.filter.take() else {
+                    unreachable!("waited for a filter");
                 };
-                (filter, obs, slot.spare.take())
+                let work = match slot.propagate.take() {
+                    Some(job) => Err(job),
+                    None => Ok(slot.pending.take().map(|obs| (obs, slot.spare.take()))),
+                };
+                (filter, work)
             };
             let t0 = Instant::now();
-            let result = map_one(&mut filter, &obs, spare);
+            let result = match work {
+                Ok(Some((obs, spare))) => Ok(Some(map_one(&mut filter, &obs, spare))),
+                Ok(None) => Ok(None),
+                Err((frame, frame_from_keyframe)) => {
+                    Err(filter.propagate_to(frame, &frame_from_keyframe))
+                }
+            };
             let mut slot = self.lock();
             slot.mapping_s += t0.elapsed().as_secs_f64();
             slot.busy = false;
             slot.filter = Some(filter);
             match result {
-                Ok(published) => {
+                Ok(Some(Ok(published))) => {
                     slot.spare = slot.published.replace(published).map(|p| p.reference);
                 }
-                Err(e) => slot.error = Some(e),
+                Ok(Some(Err(e))) => slot.error = Some(e),
+                Ok(None) => {}
+                Err(propagated) => slot.propagated = Some(propagated),
             }
             self.changed.notify_all();
         }
@@ -264,6 +284,40 @@ impl KeyframeMapper {
             }
         };
         published.ok_or_else(|| Error::Config("no keyframe being mapped".into()))
+    }
+
+    /// Whether the mapping runs on its own thread.
+    pub fn is_threaded(&self) -> bool {
+        matches!(self.mode, Mode::Threaded { .. })
+    }
+
+    /// On the thread: starts propagating the current keyframe's depth into `frame` (the next
+    /// keyframe, at `frame_from_keyframe`), after the observation in progress; the waiting one
+    /// is dropped. [`Self::take_propagated`] collects the result. In step there is nothing to
+    /// overlap: use [`Self::with_filter`].
+    pub fn propagate_on_thread(&mut self, frame: Arc<Frame>, frame_from_keyframe: SE3) {
+        if let Mode::Threaded { shared, .. } = &self.mode {
+            let mut slot = shared.lock();
+            if slot.pending.take().is_some() {
+                slot.not_mapped += 1;
+            }
+            slot.propagated = None;
+            slot.propagate = Some((frame, frame_from_keyframe));
+            shared.changed.notify_all();
+        }
+    }
+
+    /// The filter [`Self::propagate_on_thread`] produced: `None` while it is not ready (with
+    /// `wait`, it waits for it; `None` then means nothing was asked).
+    pub fn take_propagated(&mut self, wait: bool) -> Option<Result<DepthFilter>> {
+        let Mode::Threaded { shared, .. } = &self.mode else {
+            return None;
+        };
+        let mut slot = shared.lock();
+        while wait && slot.propagated.is_none() && (slot.propagate.is_some() || slot.busy) {
+            slot = shared.changed.wait(slot).unwrap_or_else(|e| e.into_inner());
+        }
+        slot.propagated.take()
     }
 
     /// Runs `f` on the current keyframe's filter once the thread is idle (a waiting frame is

@@ -75,6 +75,18 @@ struct KeyframeRecord {
     prior: Option<Arc<ImageF32>>,
 }
 
+/// A frame chosen as the next keyframe, with its tracking edge from the keyframe whose depth
+/// is propagated into it. On the mapping thread it waits as `Pipeline::pending_keyframe` while
+/// tracking goes on against the current keyframe (LSD-SLAM's `createNewKeyFrame`).
+#[derive(Debug)]
+struct KeyframeCandidate {
+    frame: Arc<Frame>,
+    source_id: KeyframeId,
+    frame_from_source: SE3,
+    information: Matrix6<f64>,
+    state: TrackingState,
+}
+
 /// Where the back end runs.
 #[derive(Debug)]
 enum BackendLink {
@@ -148,6 +160,8 @@ pub struct Pipeline {
     /// The keyframe being mapped; its depth filter is in `mapper`.
     current: Option<KeyframeId>,
     mapper: KeyframeMapper,
+    /// The next keyframe while the mapping thread propagates into it.
+    pending_keyframe: Option<KeyframeCandidate>,
     /// Seconds spent creating keyframes (propagation); the mapper adds its own.
     keyframe_creation_s: f64,
     frames: Vec<FrameRecord>,
@@ -231,6 +245,7 @@ impl Pipeline {
             keyframes: Vec::new(),
             current: None,
             mapper,
+            pending_keyframe: None,
             keyframe_creation_s: 0.0,
             frames: Vec::new(),
             last_frame_from_keyframe: SE3::identity(),
@@ -291,9 +306,11 @@ impl Pipeline {
     fn push_frame(&mut self, input: FrameInput) -> Result<Vec<Event>> {
         let frame = Arc::new(self.make_frame(input)?);
         self.stats.frames += 1;
-        let Some(kf_id) = self.current else {
+        if self.current.is_none() {
             return self.start(frame);
-        };
+        }
+        self.switch_to_pending_keyframe(false)?;
+        let kf_id = self.current.unwrap_or_default();
         let mapped = self.mapper.published()?;
         let t0 = std::time::Instant::now();
         let result = track_with_motion_model(
@@ -317,37 +334,50 @@ impl Pipeline {
         self.velocity = Some(result.frame_from_keyframe * self.last_frame_from_keyframe.inverse());
         self.last_frame_from_keyframe = result.frame_from_keyframe;
 
-        let make_keyframe = needs_new_keyframe(
-            &self.config.mapping,
-            &keyframe_from_frame,
-            mapped.mean_idepth.unwrap_or(1.0),
-            result.point_usage,
-            self.keyframes.len(),
-            mapped.frames_mapped,
-        );
+        // While the next keyframe is being made, frames are only tracked.
+        let keyframe_pending = self.pending_keyframe.is_some();
+        let make_keyframe = !keyframe_pending
+            && needs_new_keyframe(
+                &self.config.mapping,
+                &keyframe_from_frame,
+                mapped.mean_idepth.unwrap_or(1.0),
+                result.point_usage,
+                self.keyframes.len(),
+                mapped.frames_mapped,
+            );
         // Let go of the reference, so that the mapping can rebuild it in place.
         drop(mapped);
-        if make_keyframe {
+        if make_keyframe && self.mapper.is_threaded() {
+            self.mapper
+                .propagate_on_thread(frame.clone(), result.frame_from_keyframe);
+            self.pending_keyframe = Some(KeyframeCandidate {
+                frame: frame.clone(),
+                source_id: kf_id,
+                frame_from_source: result.frame_from_keyframe,
+                information: result.information,
+                state,
+            });
+        } else if make_keyframe {
             let t1 = std::time::Instant::now();
             let propagated = self.mapper.with_filter(|filter| {
                 filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
             })?;
             self.keyframe_creation_s += t1.elapsed().as_secs_f64();
-            return self.new_keyframe(
+            let candidate = KeyframeCandidate {
                 frame,
-                kf_id,
-                propagated,
-                &result.frame_from_keyframe,
-                &result.information,
+                source_id: kf_id,
+                frame_from_source: result.frame_from_keyframe,
+                information: result.information,
                 state,
-            );
+            };
+            return self.new_keyframe(candidate, propagated, None);
+        } else if !keyframe_pending {
+            self.mapper.observe(Observation {
+                frame: frame.clone(),
+                keyframe_from_frame,
+                residual: result.residual,
+            })?;
         }
-
-        self.mapper.observe(Observation {
-            frame: frame.clone(),
-            keyframe_from_frame,
-            residual: result.residual,
-        })?;
 
         self.frames.push(FrameRecord {
             timestamp: frame.timestamp,
@@ -370,6 +400,7 @@ impl Pipeline {
     /// Ends the session: finishes the last keyframe, runs the final pose-graph optimisation
     /// and returns the optimised pose of every keyframe.
     pub fn finish(&mut self) -> Result<Vec<(KeyframeId, Sim3)>> {
+        self.switch_to_pending_keyframe(true)?;
         self.finish_current()?;
         self.update_mapping_stats();
         if let Some(DenseLink::Threaded(worker)) = &mut self.dense {
@@ -668,22 +699,28 @@ impl Pipeline {
             Sim3::identity(),
             None,
             prior_depth,
-            TrackingState::Initializing,
+            Some(TrackingState::Initializing),
         )
     }
 
-    /// `frame` becomes the next keyframe, with `filter` (the depth of keyframe `source_id`
-    /// propagated into it) scale-normalised (mean inverse depth 1, LSD-SLAM's gauge); the
-    /// current keyframe is finished and goes to the back end.
+    /// The candidate's frame becomes the next keyframe, with `filter` (the depth of its source
+    /// keyframe propagated into it) scale-normalised (mean inverse depth 1, LSD-SLAM's gauge);
+    /// the current keyframe is finished and goes to the back end. `last_from_frame`: the pose
+    /// of the latest tracked frame relative to the candidate when frames were tracked after it
+    /// (a keyframe made on the mapping thread); the candidate's own frame was reported then.
     fn new_keyframe(
         &mut self,
-        frame: Arc<Frame>,
-        source_id: KeyframeId,
+        candidate: KeyframeCandidate,
         mut filter: DepthFilter,
-        frame_from_source: &SE3,
-        information: &Matrix6<f64>,
-        state: TrackingState,
+        last_from_frame: Option<SE3>,
     ) -> Result<Vec<Event>> {
+        let KeyframeCandidate {
+            frame,
+            source_id,
+            frame_from_source,
+            information,
+            state,
+        } = candidate;
         let t0 = std::time::Instant::now();
         let prior = self.fill_from_prior(&mut filter)?;
         // New inverse depths are multiplied by `factor`, so new-keyframe coordinates shrink by
@@ -711,10 +748,38 @@ impl Pipeline {
             world_from_source * source_from_new,
             Some(parent),
             prior,
-            state,
+            last_from_frame.is_none().then_some(state),
         )?;
+        if let Some(last_from_frame) = last_from_frame {
+            // The latest frame was tracked against the previous keyframe; in the new
+            // keyframe's scale, lengths are divided by `factor`.
+            self.last_frame_from_keyframe = SE3::new(
+                last_from_frame.rotation,
+                last_from_frame.translation / factor,
+            );
+        }
         self.keyframe_creation_s += t0.elapsed().as_secs_f64();
         Ok(events)
+    }
+
+    /// Makes the pending keyframe current once the mapping thread has propagated its depth
+    /// (with `wait`, waits for that); its events are returned with the next push. Frames were
+    /// tracked against the previous keyframe meanwhile: the latest one's pose is re-expressed
+    /// relative to the new keyframe.
+    fn switch_to_pending_keyframe(&mut self, wait: bool) -> Result<()> {
+        if self.pending_keyframe.is_none() {
+            return Ok(());
+        }
+        let Some(propagated) = self.mapper.take_propagated(wait) else {
+            return Ok(());
+        };
+        let Some(candidate) = self.pending_keyframe.take() else {
+            return Ok(());
+        };
+        let last_from_frame = self.last_frame_from_keyframe * candidate.frame_from_source.inverse();
+        let mut events = self.new_keyframe(candidate, propagated?, Some(last_from_frame))?;
+        self.pending_events.append(&mut events);
+        Ok(())
     }
 
     /// Fills the holes of a new keyframe's propagated depth from the depth prior
@@ -745,7 +810,8 @@ impl Pipeline {
         Ok(Some(Arc::new(prior_inv)))
     }
 
-    /// Registers `frame` as the current keyframe and reports it.
+    /// Registers `frame` as the current keyframe and reports it; with `report_frame`, also its
+    /// pose as a frame (already reported when the keyframe was made on the mapping thread).
     fn begin_keyframe(
         &mut self,
         frame: Arc<Frame>,
@@ -753,7 +819,7 @@ impl Pipeline {
         world_from_keyframe: Sim3,
         parent: Option<ParentEdge>,
         prior: Option<Arc<ImageF32>>,
-        state: TrackingState,
+        report_frame: Option<TrackingState>,
     ) -> Result<Vec<Event>> {
         let id = self.keyframes.len();
         let mapped = self.mapper.begin(filter)?;
@@ -767,29 +833,31 @@ impl Pipeline {
         });
         self.current = Some(id);
         self.stats.keyframes = self.keyframes.len();
-        self.frames.push(FrameRecord {
+        let mut events = vec![Event::Keyframe(KeyframeEvent {
+            keyframe_id: id,
+            frame_id: frame.id,
             timestamp: frame.timestamp,
-            keyframe: id,
-            keyframe_from_frame: SE3::identity(),
-            lost: false,
-        });
-        self.last_frame_from_keyframe = SE3::identity();
-        let mut events = vec![
-            Event::Keyframe(KeyframeEvent {
-                keyframe_id: id,
-                frame_id: frame.id,
+            world_from_keyframe,
+        })];
+        // A keyframe made on the mapping thread was reported (and recorded) as a tracked frame
+        // when it arrived.
+        if let Some(state) = report_frame {
+            self.frames.push(FrameRecord {
                 timestamp: frame.timestamp,
-                world_from_keyframe,
-            }),
-            Event::Pose(PoseEvent {
+                keyframe: id,
+                keyframe_from_frame: SE3::identity(),
+                lost: false,
+            });
+            self.last_frame_from_keyframe = SE3::identity();
+            events.push(Event::Pose(PoseEvent {
                 frame_id: frame.id,
                 timestamp: frame.timestamp,
                 world_from_camera: world_from_keyframe,
                 state,
                 keyframe_id: id,
                 is_keyframe: true,
-            }),
-        ];
+            }));
+        }
         if id > 0 && self.config.pipeline.deterministic {
             events.push(Event::KeyframePoses {
                 poses: self.keyframe_poses(),
@@ -928,6 +996,8 @@ impl Pipeline {
     fn lost_or_relocalised(&mut self, frame: &Arc<Frame>) -> Result<Vec<Event>> {
         // The motion since the last good frame is unknown.
         self.velocity = None;
+        // Relocalise against the newest keyframe, once it is made.
+        self.switch_to_pending_keyframe(true)?;
         let current_id = self.current.unwrap_or(0);
         let n = self.config.pipeline.relocalisation_candidates;
         let candidates: Vec<KeyframeId> = std::iter::once(current_id)
@@ -965,14 +1035,14 @@ impl Pipeline {
                 .propagate_to(frame.clone(), &result.frame_from_keyframe)?,
             };
             self.keyframe_creation_s += t0.elapsed().as_secs_f64();
-            return self.new_keyframe(
-                frame.clone(),
-                kf,
-                propagated,
-                &result.frame_from_keyframe,
-                &result.information,
-                TrackingState::Relocalized,
-            );
+            let candidate = KeyframeCandidate {
+                frame: frame.clone(),
+                source_id: kf,
+                frame_from_source: result.frame_from_keyframe,
+                information: result.information,
+                state: TrackingState::Relocalized,
+            };
+            return self.new_keyframe(candidate, propagated, None);
         }
         self.lost = true;
         self.stats.frames_lost += 1;

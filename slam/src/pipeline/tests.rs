@@ -139,6 +139,61 @@ fn threaded_back_end_tracks_the_sequence_too() {
     );
 }
 
+/// Live use: frames arrive at the sequence's 30 fps and the mapping runs on its own thread,
+/// keyframes made there while tracking goes on. Every frame still gets exactly one pose,
+/// every keyframe one keyframe event, and the trajectory stays within the threaded bound.
+#[test]
+fn mapping_thread_tracks_a_live_stream() {
+    let (camera, frames, gt) = sequence();
+    let mut config = deterministic();
+    config.pipeline.deterministic = false;
+    config.pipeline.mapping_thread = true;
+    let mut pipeline = Pipeline::new(config, *camera, None).expect("pipeline");
+    let mut events = Vec::new();
+    let t0 = std::time::Instant::now();
+    for frame in frames {
+        let due = t0 + std::time::Duration::from_secs_f64(frame.timestamp);
+        std::thread::sleep(due.saturating_duration_since(std::time::Instant::now()));
+        events.extend(pipeline.push(frame.clone()).expect("push"));
+    }
+    pipeline.finish().expect("finish");
+    events.extend(pipeline.take_events());
+    let stats = pipeline.stats().clone();
+    let mut frame_ids: Vec<u64> = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Pose(p) => Some(p.frame_id),
+            _ => None,
+        })
+        .collect();
+    let reported = frame_ids.len();
+    frame_ids.dedup();
+    assert_eq!(frame_ids.len(), reported, "a frame reported twice");
+    assert_eq!(reported, frames.len(), "one pose event per frame");
+    let keyframe_events = events
+        .iter()
+        .filter(|e| matches!(e, Event::Keyframe(_)))
+        .count();
+    assert_eq!(keyframe_events, stats.keyframes, "one event per keyframe");
+    assert!(stats.keyframes >= 3, "{stats:?}");
+    assert_eq!(stats.frames_lost, 0, "{stats:?}");
+    let traj = ate(gt, &stamped(&pipeline.trajectory()), AlignMode::Sim3).expect("ate");
+    assert_eq!(traj.matched, frames.len(), "every frame has a pose");
+    let path = path_length(&gt.iter().map(|p| p.world_from_camera).collect::<Vec<_>>());
+    println!(
+        "mapping thread at 30 fps: {} of {} frames not mapped, {} keyframes, ATE {:.4} m",
+        stats.frames_not_mapped,
+        frames.len(),
+        stats.keyframes,
+        traj.rmse
+    );
+    assert!(
+        traj.rmse <= 0.05 * path,
+        "ATE {} > 5% of {path} m",
+        traj.rmse
+    );
+}
+
 #[test]
 fn a_frame_of_the_wrong_size_is_refused_and_nothing_is_lost() {
     let (camera, frames, _) = sequence();
