@@ -7,9 +7,12 @@
 //! frame whenever it is free. When it falls behind, a waiting frame is replaced by a newer one
 //! (latest wins, counted as not mapped), so the queue cannot grow — LSD-SLAM likewise maps its
 //! backlog of tracked frames in one update. Tracking always uses the latest published depth.
+//! A new keyframe's depth is propagated on the thread as well
+//! ([`KeyframeMapper::propagate_on_thread`]); tracking goes on against the previous keyframe
+//! until it is ready.
 //!
 //! In step (deterministic mode, or `pipeline.mapping_thread = false`) every good frame is
-//! observed before the next one is tracked, as before.
+//! observed before the next one is tracked.
 
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Instant;
@@ -318,6 +321,17 @@ impl KeyframeMapper {
             slot = shared.changed.wait(slot).unwrap_or_else(|e| e.into_inner());
         }
         slot.propagated.take()
+    }
+
+    /// The current keyframe's latest published depth, if any (errors are left for the next
+    /// call that reports them).
+    pub fn latest_depth(&self) -> Option<Arc<DepthMap>> {
+        match &self.mode {
+            Mode::InStep { published, .. } => published.as_ref().map(|p| p.depth.clone()),
+            Mode::Threaded { shared, .. } => {
+                shared.lock().published.as_ref().map(|p| p.depth.clone())
+            }
+        }
     }
 
     /// Runs `f` on the current keyframe's filter once the thread is idle (a waiting frame is

@@ -582,9 +582,10 @@ impl Pipeline {
     pub fn semidense_points(&self) -> Vec<ColoredPoint> {
         let poses = self.keyframe_poses();
         let mut points = Vec::new();
+        let current_depth = self.current.zip(self.mapper.latest_depth());
         for (id, (kf, (_, world_from_kf))) in self.keyframes.iter().zip(poses).enumerate() {
-            let depth = match self.mapper.published() {
-                Ok(mapped) if self.current == Some(id) => mapped.depth,
+            let depth = match &current_depth {
+                Some((current, depth)) if *current == id => depth.clone(),
                 _ => kf.depth.clone(),
             };
             let camera = &kf.frame.camera;
