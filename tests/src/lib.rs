@@ -65,6 +65,18 @@ pub fn bin_path(name: &str) -> PathBuf {
 /// The shared real data folder: `RELFUSION_DATA`, else `../shared/data` beside the checkout.
 pub use relfusion_slam::dataset::shared_data_dir as data_dir;
 
+/// The shared PyDNet++ stand-in model, when it and ONNX Runtime are present; `None` (with a
+/// SKIP line saying why) otherwise, for the tests that need a real depth prior.
+pub fn pydnet_model() -> Option<PathBuf> {
+    let model =
+        data_dir().join("models/pydnet_pp_matterport/pydnet_pp_matterport_448x640_nchw_fp32.onnx");
+    if relfusion_slam::dense::runtime_library_path().is_err() || !model.exists() {
+        eprintln!("SKIP: no ONNX Runtime or no {}", model.display());
+        return None;
+    }
+    Some(model)
+}
+
 /// A fresh, empty temporary directory unique to this test process and `tag`.
 pub fn temp_dir(tag: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("relfusion-test-{tag}-{}", std::process::id()));

@@ -7,9 +7,7 @@
 
 use std::path::Path;
 
-use relfusion_slam::dataset::shared_data_dir;
-use relfusion_slam::dense::runtime_library_path;
-use relfusion_tests::{relfusion_json, synth_sequence, temp_dir};
+use relfusion_tests::{pydnet_model, relfusion_json, synth_sequence, temp_dir};
 use serde_json::Value;
 
 fn run_sequence(seq: &Path, out: &Path, model: Option<&Path>) -> Value {
@@ -44,12 +42,9 @@ fn percent(report: &Value, stage: &str) -> f64 {
 
 #[test]
 fn densified_depth_beats_the_prior_and_the_filter_cleans_the_semidense_map() {
-    let model = shared_data_dir()
-        .join("models/pydnet_pp_matterport/pydnet_pp_matterport_448x640_nchw_fp32.onnx");
-    if runtime_library_path().is_err() || !model.exists() {
-        eprintln!("SKIP: no ONNX Runtime or no {}", model.display());
+    let Some(model) = pydnet_model() else {
         return;
-    }
+    };
     let seq = synth_sequence("dense", 120, 1);
     let out = temp_dir("dense-prior");
     let summary = run_sequence(&seq, &out, Some(&model));

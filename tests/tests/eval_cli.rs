@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use relfusion_slam::image::ImageF32;
-use relfusion_tests::{bin_path, data_dir, temp_dir};
+use relfusion_tests::{bin_path, data_dir, relfusion_json, temp_dir};
 use serde_json::Value;
 
 /// The brief's tolerance against evo (measured differences are ~1e-15).
@@ -22,24 +22,9 @@ fn expected() -> Value {
     serde_json::from_str(&text).expect("expected.json parses")
 }
 
-/// Runs `relfusion eval ARGS`, asserts success, parses stdout as one JSON object.
+/// Runs `relfusion eval ARGS`, asserts success, parses its JSON report.
 fn relfusion_eval(args: &[&str]) -> Value {
-    let out = Command::new(bin_path("relfusion"))
-        .arg("eval")
-        .args(args)
-        .output()
-        .expect("run relfusion");
-    assert!(
-        out.status.success(),
-        "relfusion eval {args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
-        panic!(
-            "stdout is not JSON ({e}): {}",
-            String::from_utf8_lossy(&out.stdout)
-        )
-    })
+    relfusion_json(&[&["eval"], args].concat())
 }
 
 fn num(v: &Value, key: &str) -> f64 {

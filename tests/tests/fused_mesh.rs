@@ -7,9 +7,7 @@
 
 use std::path::Path;
 
-use relfusion_slam::dataset::shared_data_dir;
-use relfusion_slam::dense::runtime_library_path;
-use relfusion_tests::{relfusion_json, synth_sequence, temp_dir};
+use relfusion_tests::{pydnet_model, relfusion_json, synth_sequence, temp_dir};
 
 /// Vertex count, and whether every vertex has a unit normal and a colour, of `mesh.glb`.
 fn read_glb(path: &Path) -> (usize, usize) {
@@ -63,12 +61,9 @@ fn read_ply(path: &Path) -> (usize, usize) {
 
 #[test]
 fn the_fused_mesh_lies_on_the_surface_and_opens_in_other_tools() {
-    let model = shared_data_dir()
-        .join("models/pydnet_pp_matterport/pydnet_pp_matterport_448x640_nchw_fp32.onnx");
-    if runtime_library_path().is_err() || !model.exists() {
-        eprintln!("SKIP: no ONNX Runtime or no {}", model.display());
+    let Some(model) = pydnet_model() else {
         return;
-    }
+    };
     let seq = synth_sequence("mesh", 120, 1);
     let out = temp_dir("fused-mesh");
     let (seq_s, out_s) = (seq.display().to_string(), out.display().to_string());
