@@ -1,23 +1,44 @@
-//! Background threads (the dense layer, the fusion, the server's GPU pool) give way to the
-//! frame path.
+//! Background threads give way to the frame path.
 //!
 //! Bounded queues make sure tracking never *waits* for the dense layer (issue 4: "the depth
 //! prior never blocks tracking"), but on a machine with few cores the network, the lavapipe
-//! kernels and the fusion still take CPU time from it. At the lowest priority (Linux nice 19)
-//! the scheduler gives tracking the CPU first and the background work takes what is left; a
-//! dense layer that falls too far behind skips keyframes through its bounded queue (counted),
-//! it never delays frames. Measured on 7-Scenes redkitchen (release, 2 cores, PyDNet++,
-//! `relfusion bench slam --runs 2`): tracking 6.5–6.9 ms per frame with the dense layer off,
-//! 13.0–13.5 with it on at normal priority, 8.2–9.2 at nice 19 (23–24 of 24 keyframes
-//! densified). What remains is the network's second ONNX Runtime thread, created with the
-//! session at normal priority, and the back end's extra constraint work for refined depth.
+//! kernels, the fusion and the back end's constraint work still take CPU time from it. Linux
+//! nice values order them: the frame path (tracking, mapping) at normal priority, the back end
+//! (keyframe constraints, pose graph) at [`Priority::Graph`], and the dense layer, the network
+//! and the fusion at [`Priority::Dense`], the lowest, so that a keyframe's constraints are
+//! ready before its densification competes with them. A dense layer that falls too far behind
+//! skips keyframes through its bounded queue (counted); it never delays frames.
+//!
+//! Measured on 7-Scenes redkitchen (release, 2 cores, PyDNet++, `relfusion bench slam`, runs
+//! alternating with and without the dense layer): tracking took +31 % with the dense layer on
+//! when everything ran at normal priority (6.4 → 8.4 ms per frame); +24 % with only the dense
+//! and fusion threads lowered (the network's pool thread was still started at normal priority);
+//! +4.5 % with the back end at nice 19 too, whose backlog at `finish` then grew from 2.5 to 6 s;
+//! and +3 % over six pairs of runs (6.59 → 6.79 ms) with the back end at nice 10 (backlog 3.3 s,
+//! 19–20 of 24 keyframes densified while the frames run unpaced).
 
-/// Nice value of background threads: the lowest priority.
-const BACKGROUND_NICE: i32 = 19;
+/// How far a background thread steps back from the frame path.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Priority {
+    /// The back end: asynchronous, but its poses and loop closures are wanted within a few
+    /// keyframes (nice 10).
+    Graph,
+    /// The dense layer, the depth network and the fusion: the lowest priority (nice 19).
+    Dense,
+}
+
+impl Priority {
+    fn nice(self) -> i32 {
+        match self {
+            Self::Graph => 10,
+            Self::Dense => 19,
+        }
+    }
+}
 
 /// Lowers the calling thread's scheduling priority (and that of threads it starts later). Where
 /// that is not possible the thread keeps its priority; that is logged, not an error.
-pub fn lower_current_thread_priority() {
+pub fn lower_current_thread_priority(priority: Priority) {
     #[cfg(target_os = "linux")]
     {
         // On Linux `setpriority(PRIO_PROCESS, 0, …)` sets the nice value of the calling thread
@@ -25,7 +46,7 @@ pub fn lower_current_thread_priority() {
         // BUGS), and threads they create inherit it.
         #[allow(unsafe_code)]
         // SAFETY: a system call with integer arguments only; no memory is passed or shared.
-        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, BACKGROUND_NICE) };
+        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, priority.nice()) };
         if rc != 0 {
             tracing::debug!(
                 error = %std::io::Error::last_os_error(),
@@ -33,12 +54,14 @@ pub fn lower_current_thread_priority() {
             );
         }
     }
+    #[cfg(not(target_os = "linux"))]
+    let _ = priority;
 }
 
 #[cfg(all(test, target_os = "linux"))]
 mod tests {
     #[test]
-    fn background_threads_run_at_the_lowest_priority_and_others_do_not() {
+    fn background_threads_run_at_their_priority_and_others_do_not() {
         let nice = |path: &str| -> i64 {
             // Field 19 of /proc/…/stat is the nice value; the command name (field 2) is in
             // parentheses and may hold spaces, so count from the last ')'.
@@ -51,17 +74,23 @@ mod tests {
                 .expect("number")
         };
         let before = nice("/proc/thread-self/stat");
-        let inside = std::thread::spawn(move || {
-            super::lower_current_thread_priority();
-            let own = nice("/proc/thread-self/stat");
-            let child = std::thread::spawn(move || nice("/proc/thread-self/stat"))
-                .join()
-                .expect("child");
-            (own, child)
-        })
-        .join()
-        .expect("thread");
-        assert_eq!(inside, (19, 19), "lowered, and inherited by its threads");
+        for (priority, expected) in [(super::Priority::Graph, 10), (super::Priority::Dense, 19)] {
+            let inside = std::thread::spawn(move || {
+                super::lower_current_thread_priority(priority);
+                let own = nice("/proc/thread-self/stat");
+                let child = std::thread::spawn(move || nice("/proc/thread-self/stat"))
+                    .join()
+                    .expect("child");
+                (own, child)
+            })
+            .join()
+            .expect("thread");
+            assert_eq!(
+                inside,
+                (expected, expected),
+                "{priority:?}: lowered, and inherited by its threads"
+            );
+        }
         assert_eq!(
             nice("/proc/thread-self/stat"),
             before,

@@ -389,7 +389,9 @@ impl DenseWorker {
         let thread = std::thread::Builder::new()
             .name("relfusion-dense".into())
             .spawn(move || {
-                crate::background::lower_current_thread_priority();
+                crate::background::lower_current_thread_priority(
+                    crate::background::Priority::Dense,
+                );
                 let mut layer = match DenseLayer::new(config, prior) {
                     Ok(layer) => layer,
                     Err(e) => {

@@ -332,7 +332,24 @@ impl DepthPrior for OnnxDepthPrior {
     }
 }
 
+/// Builds the session on a background-priority thread: ONNX Runtime starts its intra-op pool
+/// threads here and they inherit the creating thread's priority, so inference (always
+/// background work: the dense layer, the server's GPU pool) never outranks tracking.
 fn build_session(env: &Environment, bytes: &[u8], threads: usize) -> ort::Result<Session> {
+    std::thread::scope(|scope| {
+        scope
+            .spawn(|| {
+                crate::background::lower_current_thread_priority(
+                    crate::background::Priority::Dense,
+                );
+                session_builder(env, bytes, threads)
+            })
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+    })
+}
+
+fn session_builder(env: &Environment, bytes: &[u8], threads: usize) -> ort::Result<Session> {
     Session::builder(env)?
         .with_optimization_level(GraphOptimizationLevel::Level3)?
         .with_intra_threads(threads)?

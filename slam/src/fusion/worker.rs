@@ -76,7 +76,9 @@ impl FusionWorker {
         let thread = std::thread::Builder::new()
             .name("relfusion-fusion".into())
             .spawn(move || {
-                crate::background::lower_current_thread_priority();
+                crate::background::lower_current_thread_priority(
+                    crate::background::Priority::Dense,
+                );
                 let mut fuser = match Fuser::new(config.clone(), None) {
                     Ok(f) => f,
                     Err(e) => {

@@ -530,7 +530,12 @@ impl Backend {
         let thread_shared = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
             .name("relfusion-backend".into())
-            .spawn(move || run(backend, receiver, &thread_shared))
+            .spawn(move || {
+                crate::background::lower_current_thread_priority(
+                    crate::background::Priority::Graph,
+                );
+                run(backend, receiver, &thread_shared)
+            })
             .map_err(|e| Error::Backend(format!("cannot start the back-end thread: {e}")))?;
         Ok(BackendHandle {
             sender: Some(sender),
