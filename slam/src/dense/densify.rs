@@ -7,7 +7,7 @@
 //!
 //! by Adam from the aligned prior, as the paper does with PyTorch autograd — here with the
 //! gradient written out analytically (checked against numeric differences of [`energy`] in the
-//! tests) so that one GPU invocation per pixel can compute it (`densify_adam.wgsl`,
+//! tests) so that the GPU kernel can compute it pixel by pixel (`densify_adam.wgsl`,
 //! [`super::gpu_densify`]).
 //!
 //! # One energy for every variant
@@ -40,7 +40,7 @@
 //! `D −= step_size · m / denom`, see [`adam_step_constants`]), then `D = max(D, min_idepth)`
 //! so that `ln D` exists (the projection PyTorch's users add with `clamp_`). Every pixel's
 //! gradient is taken at the previous iterate before any pixel moves (a Jacobi sweep, as
-//! autograd does), which is what lets the GPU run one invocation per pixel.
+//! autograd does), which is what lets the GPU update every pixel independently.
 
 use super::config::DensifyParams;
 use super::gpu_densify::GpuDensifier;
