@@ -117,8 +117,13 @@ pub struct BackendConfig {
     /// Huber width on `sqrt(rᵀΩr)` of a pose-graph edge; `None` disables it. Default
     /// `5·sqrt(6000·loop_closure_strictness)` ≈ 474 (`kernelDelta` of `testConstraint`).
     pub pose_graph_huber: Option<f64>,
-    /// Capacity of the command channel of a spawned back end. Default 16 (keyframes arrive at a
-    /// few Hz; a full channel means the back end is far behind and the sender waits).
+    /// Capacity of the command channel of a spawned back end; a full channel makes the frame
+    /// path wait. Default 256. The back end runs below the frame path's priority
+    /// ([`crate::background::Priority::Graph`]), so under overload (four sessions on two cores)
+    /// it falls tens of keyframes behind and catches up when the load eases; with 16 the
+    /// sessions' frame paths then stalled for seconds. The commands are keyframes, which the
+    /// graph keeps anyway, and shared depth maps, so a long queue costs no memory beyond the
+    /// map's own.
     pub channel_capacity: usize,
 }
 
@@ -156,7 +161,7 @@ impl Default for BackendConfig {
             retry_min_change: 0.1,
             max_optimization_iterations: 100,
             pose_graph_huber: Some(5.0 * (6000.0f64 * 1.5).sqrt()),
-            channel_capacity: 16,
+            channel_capacity: 256,
         }
     }
 }
