@@ -152,7 +152,7 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
             "width": seq.camera.width,
             "height": seq.camera.height,
             "mode": if config.pipeline.deterministic { "deterministic" } else { "threaded" },
-            "mapping": if config.pipeline.mapping_thread && !config.pipeline.deterministic {
+            "mapping": if config.pipeline.maps_on_thread() {
                 "thread"
             } else {
                 "in step"

@@ -91,6 +91,14 @@ pub struct PipelineConfig {
     pub prior_fill_max_coverage: f32,
 }
 
+impl PipelineConfig {
+    /// Whether the current keyframe is mapped on its own thread: `mapping_thread`, except in
+    /// deterministic mode, which always maps in step.
+    pub fn maps_on_thread(&self) -> bool {
+        self.mapping_thread && !self.deterministic
+    }
+}
+
 impl Default for PipelineConfig {
     fn default() -> Self {
         Self {

@@ -100,6 +100,25 @@ struct Slot {
     shutdown: bool,
 }
 
+impl Slot {
+    /// The error the thread met since the last call, if any.
+    fn check(&mut self) -> Result<()> {
+        self.error.take().map_or(Ok(()), Err)
+    }
+
+    /// Drops the frame waiting to be observed (counted as not mapped).
+    fn drop_pending(&mut self) {
+        if self.pending.take().is_some() {
+            self.not_mapped += 1;
+        }
+    }
+}
+
+/// Asked for the keyframe's state when none is being mapped.
+fn no_keyframe() -> Error {
+    Error::Config("no keyframe being mapped".into())
+}
+
 #[derive(Debug, Default)]
 struct Shared {
     slot: Mutex<Slot>,
@@ -115,9 +134,7 @@ impl Shared {
     /// a keyframe that is about to change) and counted.
     fn idle(&self) -> MutexGuard<'_, Slot> {
         let mut slot = self.lock();
-        if slot.pending.take().is_some() {
-            slot.not_mapped += 1;
-        }
+        slot.drop_pending();
         while slot.busy {
             slot = self.changed.wait(slot).unwrap_or_else(|e| e.into_inner());
         }
@@ -251,9 +268,7 @@ impl KeyframeMapper {
                 published,
                 mapping_s,
             } => {
-                let filter = (**filter)
-                    .as_mut()
-                    .ok_or_else(|| Error::Config("no keyframe being mapped".into()))?;
+                let filter = (**filter).as_mut().ok_or_else(no_keyframe)?;
                 let t0 = Instant::now();
                 let spare = published.take().map(|p| p.reference);
                 *published = Some(map_one(filter, &obs, spare)?);
@@ -262,9 +277,7 @@ impl KeyframeMapper {
             }
             Mode::Threaded { shared, .. } => {
                 let mut slot = shared.lock();
-                if let Some(e) = slot.error.take() {
-                    return Err(e);
-                }
+                slot.check()?;
                 if slot.pending.replace(obs).is_some() {
                     slot.not_mapped += 1;
                 }
@@ -280,13 +293,11 @@ impl KeyframeMapper {
             Mode::InStep { published, .. } => published.clone(),
             Mode::Threaded { shared, .. } => {
                 let mut slot = shared.lock();
-                if let Some(e) = slot.error.take() {
-                    return Err(e);
-                }
+                slot.check()?;
                 slot.published.clone()
             }
         };
-        published.ok_or_else(|| Error::Config("no keyframe being mapped".into()))
+        published.ok_or_else(no_keyframe)
     }
 
     /// Whether the mapping runs on its own thread.
@@ -301,9 +312,7 @@ impl KeyframeMapper {
     pub fn propagate_on_thread(&mut self, frame: Arc<Frame>, frame_from_keyframe: SE3) {
         if let Mode::Threaded { shared, .. } = &self.mode {
             let mut slot = shared.lock();
-            if slot.pending.take().is_some() {
-                slot.not_mapped += 1;
-            }
+            slot.drop_pending();
             slot.propagated = None;
             slot.propagate = Some((frame, frame_from_keyframe));
             shared.changed.notify_all();
@@ -338,18 +347,11 @@ impl KeyframeMapper {
     /// dropped: the keyframe is about to change).
     pub fn with_filter<R>(&mut self, f: impl FnOnce(&DepthFilter) -> Result<R>) -> Result<R> {
         match &mut self.mode {
-            Mode::InStep { filter, .. } => f((**filter)
-                .as_ref()
-                .ok_or_else(|| Error::Config("no keyframe being mapped".into()))?),
+            Mode::InStep { filter, .. } => f((**filter).as_ref().ok_or_else(no_keyframe)?),
             Mode::Threaded { shared, .. } => {
                 let mut slot = shared.idle();
-                if let Some(e) = slot.error.take() {
-                    return Err(e);
-                }
-                f(slot
-                    .filter
-                    .as_ref()
-                    .ok_or_else(|| Error::Config("no keyframe being mapped".into()))?)
+                slot.check()?;
+                f(slot.filter.as_ref().ok_or_else(no_keyframe)?)
             }
         }
     }
@@ -363,9 +365,7 @@ impl KeyframeMapper {
             } => Ok(filter.take().and(published.take())),
             Mode::Threaded { shared, .. } => {
                 let mut slot = shared.idle();
-                if let Some(e) = slot.error.take() {
-                    return Err(e);
-                }
+                slot.check()?;
                 Ok(slot.filter.take().and(slot.published.take()))
             }
         }

@@ -186,7 +186,7 @@ impl Pipeline {
         prior: Option<Box<dyn DepthPrior>>,
     ) -> Result<Self> {
         config.validate()?;
-        let mapping_thread = config.pipeline.mapping_thread && !config.pipeline.deterministic;
+        let mapping_thread = config.pipeline.maps_on_thread();
         if mapping_thread {
             config.mapping.threads = config.pipeline.mapping_thread_workers;
         }
@@ -347,30 +347,25 @@ impl Pipeline {
             );
         // Let go of the reference, so that the mapping can rebuild it in place.
         drop(mapped);
-        if make_keyframe && self.mapper.is_threaded() {
-            self.mapper
-                .propagate_on_thread(frame.clone(), result.frame_from_keyframe);
-            self.pending_keyframe = Some(KeyframeCandidate {
+        if make_keyframe {
+            let candidate = KeyframeCandidate {
                 frame: frame.clone(),
                 source_id: kf_id,
                 frame_from_source: result.frame_from_keyframe,
                 information: result.information,
                 state,
-            });
-        } else if make_keyframe {
-            let t1 = std::time::Instant::now();
-            let propagated = self.mapper.with_filter(|filter| {
-                filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
-            })?;
-            self.keyframe_creation_s += t1.elapsed().as_secs_f64();
-            let candidate = KeyframeCandidate {
-                frame,
-                source_id: kf_id,
-                frame_from_source: result.frame_from_keyframe,
-                information: result.information,
-                state,
             };
-            return self.new_keyframe(candidate, propagated, None);
+            if !self.mapper.is_threaded() {
+                let t1 = std::time::Instant::now();
+                let propagated = self.mapper.with_filter(|filter| {
+                    filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
+                })?;
+                self.keyframe_creation_s += t1.elapsed().as_secs_f64();
+                return self.new_keyframe(candidate, propagated, None);
+            }
+            self.mapper
+                .propagate_on_thread(frame.clone(), result.frame_from_keyframe);
+            self.pending_keyframe = Some(candidate);
         } else if !keyframe_pending {
             self.mapper.observe(Observation {
                 frame: frame.clone(),
