@@ -44,6 +44,11 @@ pub struct FusionConfig {
     /// Pixels farther than this many median depths are not integrated (sky, far walls seen at
     /// grazing angles). Default 4.
     pub max_depth_factor: f64,
+    /// Pixels whose surface normal (from their neighbours' depth) is more than
+    /// `acos(min_view_cosine)` from the viewing ray are not integrated: a smoothed dense map
+    /// ramps across occlusion edges, and those ramp pixels span large skins in 3-D between
+    /// foreground and background. 0 turns the test off. Default 0.15 (81°).
+    pub min_view_cosine: f32,
     /// A cell is meshed only where all eight corners have more than this weight. Default 0.5:
     /// one confident observation (relative σ below `weight_sigma`) or two uncertain ones, so
     /// surfaces that a single uncertain keyframe put in free space are not meshed. On the
@@ -78,6 +83,7 @@ impl Default for FusionConfig {
             weight_sigma: 0.05,
             max_relative_sigma: 0.5,
             max_depth_factor: 4.0,
+            min_view_cosine: 0.15,
             min_mesh_weight: 0.5,
             max_blocks: 65536,
             keyframe_memory_mb: 512.0,
@@ -109,6 +115,11 @@ impl FusionConfig {
         positive(self.max_depth_factor, "max_depth_factor")?;
         positive(self.keyframe_memory_mb, "keyframe_memory_mb")?;
         positive(self.reintegrate_voxels, "reintegrate_voxels")?;
+        if !(self.min_view_cosine.is_finite() && (0.0..1.0).contains(&self.min_view_cosine)) {
+            return Err(Error::Config(
+                "fusion.min_view_cosine must be in [0, 1)".into(),
+            ));
+        }
         if !(self.min_mesh_weight.is_finite() && self.min_mesh_weight >= 0.0) {
             return Err(Error::Config("fusion.min_mesh_weight must be ≥ 0".into()));
         }

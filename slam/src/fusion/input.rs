@@ -162,8 +162,9 @@ impl FusionInput {
         let mid = valid.len() / 2;
         let median_depth = *valid.select_nth_unstable_by(mid, f32::total_cmp).1;
         let far = median_depth * config.max_depth_factor as f32;
-        for (d, w) in depth.iter_mut().zip(weight.iter_mut()) {
-            if *d > far || *w <= 0.0 {
+        let grazing = grazing_pixels(&camera, &depth, config.min_view_cosine);
+        for ((d, w), g) in depth.iter_mut().zip(weight.iter_mut()).zip(grazing) {
+            if *d > far || *w <= 0.0 || g {
                 *d = 0.0;
                 *w = 0.0;
             }
@@ -213,6 +214,69 @@ pub fn store_inputs(store: &DenseStore, config: &FusionConfig) -> Result<Vec<(Fu
     Ok(inputs)
 }
 
+/// Pixels whose surface, as the depth map's own neighbours span it, is seen at a grazing angle:
+/// `|cos|` between the viewing ray and the surface normal below `min_cosine`. A smoothed
+/// densified map ramps across an occlusion edge instead of jumping; back-projected, the few
+/// ramp pixels span a skin between foreground and background that is large in 3-D (it grows
+/// with the depth gap, not with the pixel count), and no later keyframe carves it away because
+/// it lies inside the truncation band of the surfaces it joins. The normal comes from central
+/// differences where both neighbours are valid, one-sided otherwise; pixels without a valid
+/// neighbour in x or in y are kept.
+fn grazing_pixels(camera: &PinholeCamera, depth: &[f32], min_cosine: f32) -> Vec<bool> {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let mut out = vec![false; depth.len()];
+    if min_cosine <= 0.0 || depth.len() != w * h {
+        return out;
+    }
+    let point = |x: usize, y: usize| -> Option<[f32; 3]> {
+        let d = depth[y * w + x];
+        (d > 0.0).then(|| {
+            [
+                d * ((x as f64 - camera.cx) / camera.fx) as f32,
+                d * ((y as f64 - camera.cy) / camera.fy) as f32,
+                d,
+            ]
+        })
+    };
+    let sub = |a: [f32; 3], b: [f32; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    // Difference of the valid neighbours along one axis (central, else one-sided).
+    let span =
+        |before: Option<[f32; 3]>, p: [f32; 3], after: Option<[f32; 3]>| match (before, after) {
+            (Some(b), Some(a)) => Some(sub(a, b)),
+            (None, Some(a)) => Some(sub(a, p)),
+            (Some(b), None) => Some(sub(p, b)),
+            (None, None) => None,
+        };
+    for y in 0..h {
+        for x in 0..w {
+            let Some(p) = point(x, y) else { continue };
+            let dx = span(
+                x.checked_sub(1).and_then(|x| point(x, y)),
+                p,
+                (x + 1 < w).then(|| point(x + 1, y)).flatten(),
+            );
+            let dy = span(
+                y.checked_sub(1).and_then(|y| point(x, y)),
+                p,
+                (y + 1 < h).then(|| point(x, y + 1)).flatten(),
+            );
+            let (Some(a), Some(b)) = (dx, dy) else {
+                continue;
+            };
+            let n = [
+                a[1] * b[2] - a[2] * b[1],
+                a[2] * b[0] - a[0] * b[2],
+                a[0] * b[1] - a[1] * b[0],
+            ];
+            let dot = (n[0] * p[0] + n[1] * p[1] + n[2] * p[2]).abs();
+            let norms = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt()
+                * (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+            out[y * w + x] = dot < min_cosine * norms;
+        }
+    }
+    out
+}
+
 /// Grey RGB from an intensity image (0..255).
 pub fn grey(intensity: &ImageF32) -> Vec<[u8; 3]> {
     intensity
@@ -230,5 +294,82 @@ fn pack(colors: Option<&[[u8; 3]]>, n: usize) -> Vec<u32> {
     match colors {
         Some(c) => c.iter().map(|&rgb| pack_rgb(rgb)).collect(),
         None => vec![pack_rgb([180, 180, 180]); n],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera() -> PinholeCamera {
+        PinholeCamera::new(100.0, 100.0, 31.5, 23.5, 64, 48).expect("camera")
+    }
+
+    /// Depth of the plane `n·X = 1` along each pixel's ray.
+    fn plane_depth(camera: &PinholeCamera, n: [f64; 3]) -> Vec<f32> {
+        let mut depth = Vec::new();
+        for y in 0..camera.height {
+            for x in 0..camera.width {
+                let ray = [
+                    (f64::from(x) - camera.cx) / camera.fx,
+                    (f64::from(y) - camera.cy) / camera.fy,
+                    1.0,
+                ];
+                let dot = n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2];
+                depth.push((1.0 / dot) as f32);
+            }
+        }
+        depth
+    }
+
+    #[test]
+    fn grazing_test_keeps_planes_seen_head_on_and_at_60_degrees() {
+        let camera = camera();
+        let head_on = plane_depth(&camera, [0.0, 0.0, 0.5]);
+        assert!(!grazing_pixels(&camera, &head_on, 0.15).contains(&true));
+        // Tilted 60° about the y axis: cos to the central ray 0.5.
+        let (s, c) = 60f64.to_radians().sin_cos();
+        let tilted = plane_depth(&camera, [0.5 * s, 0.0, 0.5 * c]);
+        assert!(!grazing_pixels(&camera, &tilted, 0.15).contains(&true));
+        // The same plane is grazing for a bound above its cosine.
+        let strict = grazing_pixels(&camera, &tilted, 0.6);
+        assert!(strict.iter().filter(|&&g| g).count() > strict.len() / 2);
+    }
+
+    #[test]
+    fn grazing_test_drops_the_ramp_of_a_smoothed_occlusion_edge() {
+        let camera = camera();
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        // Foreground at depth 1 left of x = 30, background at 3 from x = 34, a linear ramp
+        // between (what a smoothed dense map puts across the edge); one pixel has no depth.
+        let mut depth = vec![0f32; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let t = ((x as f32 - 30.0) / 4.0).clamp(0.0, 1.0);
+                depth[y * w + x] = 1.0 + 2.0 * t;
+            }
+        }
+        depth[10 * w + 5] = 0.0;
+        let grazing = grazing_pixels(&camera, &depth, 0.15);
+        for y in 0..h {
+            // The ramp's end pixels (30 and 34) straddle the corner; the rest is decided.
+            for x in (0..w).filter(|x| !(30..=34).contains(x)) {
+                assert!(!grazing[y * w + x], "flat pixel ({x}, {y}) dropped");
+            }
+            assert!((31..=33).all(|x| grazing[y * w + x]), "ramp row {y} kept");
+        }
+        // Off: nothing is dropped.
+        assert!(!grazing_pixels(&camera, &depth, 0.0).contains(&true));
+        // The input drops them too, and keeps the rest.
+        let config = FusionConfig::default();
+        let image = ImageF32::filled(w, h, 0.0);
+        let mut idepth = image.clone();
+        for (v, d) in idepth.data.iter_mut().zip(&depth) {
+            *v = if *d > 0.0 { 1.0 / d } else { 0.0 };
+        }
+        let input = FusionInput::from_idepth(1, 0.0, camera, &idepth, &image, None, &config)
+            .expect("input");
+        assert_eq!(input.depth[10 * w + 32], 0.0);
+        assert!(input.depth[10 * w + 20] > 0.0 && input.depth[10 * w + 50] > 0.0);
     }
 }
