@@ -130,10 +130,18 @@ impl SE3Tracker {
             self.frame_levels[level].fill(frame.level(level));
             let image = &self.frame_levels[level];
             let points = reference.level(level);
-            let min_warped = cfg.min_good_per_all_absmin * (image.width * image.height) as f32;
+            // Level 0 uses every `level0_point_step`-th point; the pixel-count thresholds below
+            // then count each used point for `point_step` pixels.
+            let point_step = if level == 0 {
+                cfg.level0_point_step.max(1)
+            } else {
+                1
+            };
+            let pixels = (image.width * image.height) as f32 / point_step as f32;
+            let min_warped = cfg.min_good_per_all_absmin * pixels;
 
             let params = WarpParams::new(&pose, &camera, affine);
-            evaluate(points, image, &params, &cfg, &mut self.current);
+            evaluate(points, image, &params, &cfg, point_step, &mut self.current);
             if (self.current.len() as f32) < min_warped || self.current.is_empty() {
                 return TrackingResult::lost(initial_frame_from_keyframe, iterations);
             }
@@ -159,7 +167,7 @@ impl SE3Tracker {
                     };
                     let candidate = SE3::exp(&step) * pose;
                     let params = WarpParams::new(&candidate, &camera, affine);
-                    evaluate(points, image, &params, &cfg, &mut self.trial);
+                    evaluate(points, image, &params, &cfg, point_step, &mut self.trial);
                     if (self.trial.len() as f32) < min_warped || self.trial.is_empty() {
                         return TrackingResult::lost(initial_frame_from_keyframe, iterations);
                     }
@@ -198,11 +206,11 @@ impl SE3Tracker {
                 let good = buffers.good as f32;
                 let total = (buffers.good + buffers.bad) as f32;
                 let good_ratio = if total > 0.0 { good / total } else { 0.0 };
-                let pixels = (image.width * image.height) as f32;
+                let used = points.len().div_ceil(point_step);
                 let point_usage = if points.is_empty() {
                     0.0
                 } else {
-                    (buffers.usage / points.len() as f64) as f32
+                    (buffers.usage / used as f64) as f32
                 };
                 let (h_left, _) = normal_equations(buffers);
                 let correlation = buffers.correlation();

@@ -246,6 +246,7 @@ fn tracking_reference_pyramid_fuses_children_by_inverse_variance() {
 fn tracking_config_defaults_roundtrip_and_validate() {
     let config = TrackingConfig::default();
     assert_eq!((config.min_level, config.max_level), (1, 4));
+    assert_eq!(config.level0_point_step, 4);
     assert_eq!(config.max_iterations, [5, 20, 50, 100, 100]);
     let text = toml::to_string(&config).expect("serialise");
     let back: TrackingConfig = toml::from_str(&text).expect("parse");
@@ -257,6 +258,11 @@ fn tracking_config_defaults_roundtrip_and_validate() {
     let bad = TrackingConfig {
         min_level: 3,
         max_level: 2,
+        ..TrackingConfig::default()
+    };
+    assert!(SE3Tracker::new(bad).is_err());
+    let bad = TrackingConfig {
+        level0_point_step: 0,
         ..TrackingConfig::default()
     };
     assert!(SE3Tracker::new(bad).is_err());
@@ -363,50 +369,59 @@ fn mean_depth(map: &DepthMap) -> f64 {
     1.0 / map.mean_idepth().expect("estimates")
 }
 
+/// Both finest levels: level 1 (the default) and level 0 on every 4th point.
 #[test]
 fn tracking_follows_synthetic_orbit_against_first_frame() {
     let views = orbit_views();
     let map = ground_truth_map(&views[0], 5.0);
     let scene_depth = mean_depth(&map);
     let reference = TrackingReference::new(&views[0].frame, &map).expect("reference");
-    let mut tracker = SE3Tracker::new(TrackingConfig::default()).expect("tracker");
-    let mut guess = SE3::identity();
-    let (mut worst_t, mut worst_r) = (0.0f64, 0.0f64);
-    for i in 1..views.len() {
-        let result = tracker.track(&reference, &views[i].frame, &guess);
-        let truth = frame_from_keyframe(views, 0, i);
-        let (et, er) = pose_error(&result.frame_from_keyframe, &truth);
-        let (mt, mr) = pose_error(&SE3::identity(), &truth);
+    let full_resolution = TrackingConfig {
+        min_level: 0,
+        ..TrackingConfig::default()
+    };
+    for config in [TrackingConfig::default(), full_resolution] {
+        let min_level = config.min_level;
+        let mut tracker = SE3Tracker::new(config).expect("tracker");
+        let mut guess = SE3::identity();
+        let (mut worst_t, mut worst_r) = (0.0f64, 0.0f64);
+        for i in 1..views.len() {
+            let result = tracker.track(&reference, &views[i].frame, &guess);
+            let truth = frame_from_keyframe(views, 0, i);
+            let (et, er) = pose_error(&result.frame_from_keyframe, &truth);
+            let (mt, mr) = pose_error(&SE3::identity(), &truth);
+            eprintln!(
+                "level {min_level} frame {i:2}: motion {mt:.3} m {mr:.2}°, error {et:.4} m {er:.3}°, good {} ({:.2}), usage {:.2}, residual {:.2}, correlation {:.3}, its {}",
+                result.good,
+                result.good_ratio,
+                result.point_usage,
+                result.residual,
+                result.correlation,
+                result.iterations
+            );
+            assert!(result.good, "level {min_level}: frame {i} lost");
+            // Usage is a share of the points used (every 4th at level 0).
+            assert!(result.point_usage > 0.3 && result.point_usage <= 1.0);
+            worst_t = worst_t.max(et);
+            worst_r = worst_r.max(er);
+            guess = result.frame_from_keyframe;
+        }
         eprintln!(
-            "frame {i:2}: motion {:.3} m {:.2}°, error {:.4} m {:.3}°, good {} ({:.2}), usage {:.2}, residual {:.2}, correlation {:.3}, its {}",
-            mt,
-            mr,
-            et,
-            er,
-            result.good,
-            result.good_ratio,
-            result.point_usage,
-            result.residual,
-            result.correlation,
-            result.iterations
+            "level {min_level}: scene depth {scene_depth:.2} m, {} points; worst error {:.4} m ({:.2} %), {:.3}°",
+            reference.num_points(min_level),
+            worst_t,
+            100.0 * worst_t / scene_depth,
+            worst_r
         );
-        assert!(result.good, "frame {i} lost");
-        worst_t = worst_t.max(et);
-        worst_r = worst_r.max(er);
-        guess = result.frame_from_keyframe;
+        assert!(
+            worst_t < 0.01 * scene_depth,
+            "level {min_level}: translation error {worst_t} m"
+        );
+        assert!(
+            worst_r < 0.2,
+            "level {min_level}: rotation error {worst_r}°"
+        );
     }
-    eprintln!(
-        "scene depth {scene_depth:.2} m, {} points; worst error {:.4} m ({:.2} %), {:.3}°",
-        reference.num_points(0),
-        worst_t,
-        100.0 * worst_t / scene_depth,
-        worst_r
-    );
-    assert!(
-        worst_t < 0.01 * scene_depth,
-        "translation error {worst_t} m"
-    );
-    assert!(worst_r < 0.2, "rotation error {worst_r}°");
 }
 
 #[test]
@@ -578,12 +593,13 @@ fn tracking_benchmark_640x480() {
                     })
                     .fold(f64::INFINITY, f64::min)
             };
-            let eval_ns =
-                best(&mut || super::warp::evaluate(points, &image, &params, &config, &mut buffers))
-                    * 1e9
-                    / points.len() as f64;
+            let eval_ns = best(&mut || {
+                super::warp::evaluate(points, &image, &params, &config, 1, &mut buffers)
+            }) * 1e9
+                / points.len() as f64;
             let warp_ns =
-                best(&mut || super::warp::warp_points(points, &image, &params, &mut buffers)) * 1e9
+                best(&mut || super::warp::warp_points(points, &image, &params, 1, &mut buffers))
+                    * 1e9
                     / points.len() as f64;
             let weigh_ns = best(&mut || super::warp::weigh(&params, &config, &mut buffers)) * 1e9
                 / points.len() as f64;

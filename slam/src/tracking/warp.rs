@@ -211,22 +211,28 @@ pub(crate) fn evaluate(
     frame: &InterleavedLevel,
     params: &WarpParams,
     config: &TrackingConfig,
+    step: usize,
     out: &mut WarpBuffers,
 ) {
-    warp_points(reference, frame, params, out);
+    warp_points(reference, frame, params, step, out);
     weigh(params, config, out);
 }
 
 /// Pass 1: warp, project, keep the points inside the image (compacted), sample the frame.
+/// Only every `step`-th reference point is used (1 = all; see
+/// [`TrackingConfig::level0_point_step`]).
 pub(crate) fn warp_points(
     reference: &ReferenceLevel,
     frame: &InterleavedLevel,
     params: &WarpParams,
+    step: usize,
     out: &mut WarpBuffers,
 ) {
     let n = reference.len();
+    let step = step.max(1);
+    let used = n.div_ceil(step);
     for v in out.columns() {
-        v.resize(n, 0.0); // no allocation once the buffers have grown
+        v.resize(used, 0.0); // no allocation once the buffers have grown
     }
     let [r0, r1, r2, r3, r4, r5, r6, r7, r8] = params.r;
     let [tx, ty, tz] = params.t;
@@ -234,12 +240,16 @@ pub(crate) fn warp_points(
     let (a, b) = (params.affine_a, params.affine_b);
     let (xs, ys, zs) = (&reference.x[..n], &reference.y[..n], &reference.z[..n]);
     let (intensity, idepth_var) = (&reference.intensity[..n], &reference.idepth_var[..n]);
-    let (o_px, o_py, o_pz) = (&mut out.px[..n], &mut out.py[..n], &mut out.pz[..n]);
-    let (o_gx, o_gy) = (&mut out.gx[..n], &mut out.gy[..n]);
-    let (o_res, o_c2) = (&mut out.residual[..n], &mut out.frame_intensity[..n]);
-    let (o_z, o_var) = (&mut out.ref_depth[..n], &mut out.idepth_var[..n]);
+    let (o_px, o_py, o_pz) = (
+        &mut out.px[..used],
+        &mut out.py[..used],
+        &mut out.pz[..used],
+    );
+    let (o_gx, o_gy) = (&mut out.gx[..used], &mut out.gy[..used]);
+    let (o_res, o_c2) = (&mut out.residual[..used], &mut out.frame_intensity[..used]);
+    let (o_z, o_var) = (&mut out.ref_depth[..used], &mut out.idepth_var[..used]);
     let mut idx = 0usize;
-    for i in 0..n {
+    for i in (0..n).step_by(step) {
         let (x, y, z) = (xs[i], ys[i], zs[i]);
         let px = r0 * x + r1 * y + r2 * z + tx;
         let py = r3 * x + r4 * y + r5 * z + ty;
