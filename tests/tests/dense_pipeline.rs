@@ -66,6 +66,30 @@ fn densified_depth_beats_the_prior_and_the_filter_cleans_the_semidense_map() {
         .expect("depth.npy");
     assert_eq!((depth.width, depth.height), (320, 240));
     assert!(depth.data.iter().filter(|&&d| d > 0.0).count() > 320 * 240 / 2);
+    // The published variance grows away from the semi-dense support (`dense.support_variance`
+    // per pixel of distance): the relative variance of dense pixels ≥ 8 px from any filtered
+    // semi-dense pixel exceeds that of the semi-dense pixels by at least half of 8 κ.
+    let map = |name: &str| {
+        relfusion_slam::npy::read_f32(&out.join(format!("keyframes/{stem}.{name}.npy")))
+            .expect(name)
+    };
+    let (idepth, variance, filtered) = (map("idepth"), map("variance"), map("filtered"));
+    let distance = relfusion_slam::dense::support::distance_to_support(&filtered);
+    let median_sigma = |keep: &dyn Fn(f32) -> bool| {
+        let mut rel: Vec<f32> = (0..idepth.data.len())
+            .filter(|&i| idepth.data[i] > 0.0 && keep(distance[i]))
+            .map(|i| variance.data[i].sqrt() / idepth.data[i])
+            .collect();
+        assert!(rel.len() > 100, "too few pixels");
+        let mid = rel.len() / 2;
+        *rel.select_nth_unstable_by(mid, f32::total_cmp).1
+    };
+    let (on, far) = (median_sigma(&|d| d == 0.0), median_sigma(&|d| d >= 8.0));
+    let kappa = relfusion_slam::dense::DenseConfig::default().support_variance;
+    assert!(
+        far * far - on * on > 0.5 * 8.0 * kappa,
+        "relative σ {far} at ≥ 8 px vs {on} on semi-dense pixels"
+    );
 
     let (seq_s, out_s) = (seq.display().to_string(), out.display().to_string());
     let report = relfusion_json(&["eval", "depth", "--dataset", &seq_s, "--run", &out_s]);

@@ -63,7 +63,8 @@ pub struct DenseKeyframe {
     /// Dense inverse depth `D_opt` in the keyframe's gauge (0 = invalid).
     pub idepth: Arc<ImageF32>,
     /// Its variance: the filtered semi-dense variance on semi-dense pixels, the pose-uncertainty
-    /// propagation (eq. 16) elsewhere.
+    /// propagation (eq. 16) elsewhere, plus the growth with the distance to the semi-dense
+    /// pixels (`dense.support_variance`, `dense::support`).
     pub variance: Arc<ImageF32>,
     pub mode: DenseMode,
     /// The scale/shift of eq. (3), when the prior was aligned.

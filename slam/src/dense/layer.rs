@@ -19,7 +19,7 @@ use super::keyframe::{DenseKeyframe, DenseMode, DenseStages, DenseTimings};
 use super::prior::DepthPrior;
 use super::resample::{box_downsample, downsample_depth, working_camera, working_size};
 use super::two_view::{TwoViewInputs, pose_variance, to_depth_map, two_view_consistency};
-use super::{DenseCompute, DenseConfig, ScaleShift, densify, fit_scale_shift_robust};
+use super::{DenseCompute, DenseConfig, ScaleShift, densify, fit_scale_shift_robust, support};
 use crate::frame::Frame;
 use crate::geometry::{Matrix7, Sim3};
 use crate::graph::KeyframeId;
@@ -242,6 +242,9 @@ impl DenseLayer {
             }
         }
         timings.two_view_ms = ms(t);
+        // The published variance (what the fusion weighs by) also grows away from the
+        // semi-dense support; the back end's constraints above keep the paper's V_c.
+        support::grow_with_distance(&mut variance, &dense, &filtered, cfg.support_variance);
 
         let stages = cfg.keep_stages.then(|| {
             Arc::new(DenseStages {

@@ -16,6 +16,8 @@
 //!   CPU reference and kernel.
 //! - [`two_view`] / [`gpu_warp`]: two-view consistency and pose-uncertainty propagation
 //!   (eqs. 14–16).
+//! - [`support`]: the variance a densified pixel gains with its distance to the semi-dense
+//!   depth that supports it.
 //! - [`layer`]: the per-keyframe orchestration and its worker thread.
 //! - [`store`]: the on-disk layout of densified keyframes (`OUT/keyframes/`).
 
@@ -32,6 +34,7 @@ pub mod model_config;
 pub mod prior;
 pub mod resample;
 pub mod store;
+pub mod support;
 pub mod two_view;
 
 pub use align::{
