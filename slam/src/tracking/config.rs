@@ -14,7 +14,8 @@ pub struct TrackingConfig {
     /// Finest pyramid level optimised. Default 1 (`SE3TRACKING_MIN_LEVEL`): LSD-SLAM skips full
     /// resolution for frame-to-keyframe tracking because it costs four times level 1. 0 adds
     /// a full-resolution refinement on every `level0_point_step`-th point, measured on
-    /// 7-Scenes redkitchen (deterministic, PyDNet++, with `max_iterations[0] = 1`): ATE
+    /// 7-Scenes redkitchen (deterministic, PyDNet++, with `max_iterations[0] = 1`, before
+    /// `mapping.propagation_var_inc` was introduced): ATE
     /// 0.097 → 0.076 m, tracking 6.0 → 8.2–9.0 ms per frame (on the mapping thread 11.5 →
     /// 14.6 ms per frame unpaced, past issue 3's 13 ms); but the translation gets shorter
     /// still against the map's depth in the rotation-heavy middle, so densified depth scored
