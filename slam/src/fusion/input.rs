@@ -2,6 +2,8 @@
 //! a colour per pixel, at the dense working resolution. Built from a densified keyframe (the
 //! pipeline) or from a metric ground-truth depth map (the upper-bound mesh of `eval mesh`).
 
+use nalgebra::{Vector2, Vector3};
+
 use crate::dense::DenseKeyframe;
 use crate::dense::store::DenseStore;
 use crate::geometry::{PinholeCamera, Sim3};
@@ -228,50 +230,39 @@ fn grazing_pixels(camera: &PinholeCamera, depth: &[f32], min_cosine: f32) -> Vec
     if min_cosine <= 0.0 || depth.len() != w * h {
         return out;
     }
-    let point = |x: usize, y: usize| -> Option<[f32; 3]> {
-        let d = depth[y * w + x];
-        (d > 0.0).then(|| {
-            [
-                d * ((x as f64 - camera.cx) / camera.fx) as f32,
-                d * ((y as f64 - camera.cy) / camera.fy) as f32,
-                d,
-            ]
+    // Each valid pixel back-projected once.
+    let points: Vec<Option<Vector3<f64>>> = depth
+        .iter()
+        .enumerate()
+        .map(|(i, &d)| {
+            let uv = Vector2::new((i % w) as f64, (i / w) as f64);
+            (d > 0.0).then(|| camera.unproject(&uv, f64::from(d)))
         })
-    };
-    let sub = |a: [f32; 3], b: [f32; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+        .collect();
     // Difference of the valid neighbours along one axis (central, else one-sided).
-    let span =
-        |before: Option<[f32; 3]>, p: [f32; 3], after: Option<[f32; 3]>| match (before, after) {
-            (Some(b), Some(a)) => Some(sub(a, b)),
-            (None, Some(a)) => Some(sub(a, p)),
-            (Some(b), None) => Some(sub(p, b)),
+    let span = |before: Option<usize>, i: usize, after: Option<usize>| {
+        let (b, a) = (
+            before.and_then(|j| points[j]),
+            after.and_then(|j| points[j]),
+        );
+        match (b, a) {
+            (Some(b), Some(a)) => Some(a - b),
+            (None, Some(a)) => points[i].map(|p| a - p),
+            (Some(b), None) => points[i].map(|p| p - b),
             (None, None) => None,
-        };
+        }
+    };
     for y in 0..h {
         for x in 0..w {
-            let Some(p) = point(x, y) else { continue };
-            let dx = span(
-                x.checked_sub(1).and_then(|x| point(x, y)),
-                p,
-                (x + 1 < w).then(|| point(x + 1, y)).flatten(),
-            );
-            let dy = span(
-                y.checked_sub(1).and_then(|y| point(x, y)),
-                p,
-                (y + 1 < h).then(|| point(x, y + 1)).flatten(),
-            );
+            let i = y * w + x;
+            let Some(p) = points[i] else { continue };
+            let dx = span((x > 0).then(|| i - 1), i, (x + 1 < w).then(|| i + 1));
+            let dy = span((y > 0).then(|| i - w), i, (y + 1 < h).then(|| i + w));
             let (Some(a), Some(b)) = (dx, dy) else {
                 continue;
             };
-            let n = [
-                a[1] * b[2] - a[2] * b[1],
-                a[2] * b[0] - a[0] * b[2],
-                a[0] * b[1] - a[1] * b[0],
-            ];
-            let dot = (n[0] * p[0] + n[1] * p[1] + n[2] * p[2]).abs();
-            let norms = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt()
-                * (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
-            out[y * w + x] = dot < min_cosine * norms;
+            let n = a.cross(&b);
+            out[i] = n.dot(&p).abs() < f64::from(min_cosine) * n.norm() * p.norm();
         }
     }
     out

@@ -132,11 +132,7 @@ impl SE3Tracker {
             let points = reference.level(level);
             // Level 0 uses every `level0_point_step`-th point; the pixel-count thresholds below
             // then count each used point for `point_step` pixels.
-            let point_step = if level == 0 {
-                cfg.level0_point_step.max(1)
-            } else {
-                1
-            };
+            let point_step = if level == 0 { cfg.level0_point_step } else { 1 };
             let pixels = (image.width * image.height) as f32 / point_step as f32;
             let min_warped = cfg.min_good_per_all_absmin * pixels;
 
