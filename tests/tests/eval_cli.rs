@@ -160,6 +160,17 @@ fn eval_cli_traj_rpe_delta_matches_evo() {
         num(&out, "rpe_trans_rmse_m"),
         num(&entry["results"]["rpe_trans_d5"], "rmse"),
     );
+    // The per-axis rotation gain of the ground truth against itself is 1 on every turning axis.
+    let gt = fx.join("synthetic_gt.txt");
+    let gt = gt.to_str().expect("utf-8");
+    let same = relfusion_eval(&["traj", "--gt", gt, "--est", gt]);
+    assert_eq!(same["rotation_gain_delta"], 10);
+    let gains = same["rotation_gain_xyz"].as_array().expect("three gains");
+    assert_eq!(gains.len(), 3);
+    assert!(gains.iter().any(|g| g.is_number()), "{same}");
+    for g in gains.iter().filter_map(|g| g.as_f64()) {
+        assert!((g - 1.0).abs() < 1e-9, "{same}");
+    }
 }
 
 #[test]

@@ -18,7 +18,7 @@ use relfusion_slam::eval::ablation::{run_ablation, table_ii_rows};
 use relfusion_slam::eval::dense_depth::evaluate_dense_depth;
 use relfusion_slam::eval::{
     self, AlignMode, DEFAULT_DEPTH_THRESHOLD, DEFAULT_MAX_DT, associate_poses, ate_matched,
-    percent_correct_depth, read_depth_map, rpe_matched,
+    percent_correct_depth, read_depth_map, rotation_gain, rpe_matched,
 };
 use relfusion_slam::pipeline::Config;
 use serde_json::json;
@@ -85,6 +85,11 @@ pub struct TrajArgs {
     /// RPE frame offset Δ, in matched poses (`evo_rpe --delta Δ --delta_unit f`).
     #[arg(long, default_value_t = 1)]
     pub rpe_delta: usize,
+    /// Frame offset of the per-axis rotation gain (`relfusion_slam::eval::rotation_gain`):
+    /// gains below 1 about x and y with z near 1 mean the focal length is set too long.
+    /// Default 10: long enough that the rotation outweighs per-frame noise.
+    #[arg(long, default_value_t = 10)]
+    pub rotation_gain_delta: usize,
 }
 
 #[derive(Debug, clap::Args)]
@@ -164,6 +169,10 @@ fn traj(args: &TrajArgs) -> anyhow::Result<serde_json::Value> {
     let matched = associate_poses(&gt, &est, args.max_dt)?;
     let ate = ate_matched(&matched, args.align)?;
     let rpe = rpe_matched(&matched, args.rpe_delta, args.align)?;
+    // A trajectory shorter than the offset (a few keyframes) simply has no gain.
+    let gain = (matched.len() > args.rotation_gain_delta)
+        .then(|| rotation_gain(&matched, args.rotation_gain_delta))
+        .transpose()?;
     Ok(json!({
         "align": args.align,
         "max_dt_s": args.max_dt,
@@ -185,6 +194,9 @@ fn traj(args: &TrajArgs) -> anyhow::Result<serde_json::Value> {
         "rpe_rot_rmse_deg": rpe.rot_rmse_deg,
         "rpe_rot_mean_deg": rpe.rot_deg.mean,
         "rpe_rot_max_deg": rpe.rot_deg.max,
+        "rotation_gain_delta": args.rotation_gain_delta,
+        "rotation_gain_xyz": gain.as_ref().map(|g| g.gain),
+        "rotation_gt_rms_deg_xyz": gain.as_ref().map(|g| g.gt_rms_deg),
     }))
 }
 

@@ -9,6 +9,8 @@
 //! - [`ate`]: absolute trajectory error on translations after alignment (`evo_ape`; Sturm et al.
 //!   IROS 2012 §VI.B).
 //! - [`rpe`]: relative pose error over a fixed frame offset (`evo_rpe`; Sturm et al. §VI.A).
+//! - [`rotation_gain`]: per-axis share of the ground truth's rotation recovered (a calibration
+//!   diagnostic).
 //! - [`depth`]: the paper's reconstruction accuracy (§V.A, after CNN-SLAM).
 //! - [`dense_depth`]: that accuracy per dense-layer stage over a run's stored keyframes.
 //! - [`ablation`]: Table II, re-densifying the stored keyframes with each energy.
@@ -21,6 +23,7 @@ pub mod dense_depth;
 pub mod depth;
 pub mod fused_mesh;
 pub mod mesh;
+pub mod rotation_gain;
 pub mod rpe;
 pub mod umeyama;
 
@@ -31,6 +34,7 @@ pub use associate::{DEFAULT_MAX_DT, Matched, associate, associate_poses};
 pub use ate::{AlignMode, AteResult, align, ate, ate_matched};
 pub use depth::{DEFAULT_DEPTH_THRESHOLD, DepthAccuracy, percent_correct_depth, read_depth_map};
 pub use mesh::{MeshScores, PointGrid, ground_truth_points, score_surface, transform_vertices};
+pub use rotation_gain::{RotationGain, rotation_gain};
 pub use rpe::{RpeResult, rpe, rpe_matched};
 pub use umeyama::umeyama;
 
