@@ -215,10 +215,11 @@ pub struct DenseConfig {
     /// [`super::DenseKeyframe::variance`] that the fusion weighs by (`dense::support`). Eq.
     /// (16)'s variance is flat across the image while the densified error grows away from
     /// the semi-dense depth (synthetic orbit: 2 % rms on it, 6.6 % at 3–4 px, 12 % beyond
-    /// 20 px). Default 0.001, fitted to that growth; 0 publishes the paper's variance. On
-    /// the synthetic orbit's mesh (no model) it took accuracy / completeness from 0.618 / 0.749
-    /// to 0.746 / 0.731; on 7-Scenes redkitchen, where the scale drift dominates, from
-    /// 0.088 / 0.180 to 0.109 / 0.121.
+    /// 20 px). Default 0.001, fitted to that growth; 0 publishes the paper's variance.
+    /// Measured before `mapping.propagation_var_inc` existed: on the synthetic orbit's mesh
+    /// (no model) it took accuracy / completeness from 0.618 / 0.749 to 0.746 / 0.731; on
+    /// 7-Scenes redkitchen, where the scale drift dominated, from 0.088 / 0.180 to
+    /// 0.109 / 0.121.
     pub support_variance: f32,
     pub align: AlignParams,
     pub filter: FilterParams,
