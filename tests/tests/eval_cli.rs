@@ -171,6 +171,16 @@ fn eval_cli_traj_rpe_delta_matches_evo() {
     for g in gains.iter().filter_map(|g| g.as_f64()) {
         assert!((g - 1.0).abs() < 1e-9, "{same}");
     }
+    // Against itself every window keeps the global scale: no drift, no window error.
+    let windowed = relfusion_eval(&["traj", "--gt", gt, "--est", gt, "--scale-window", "20"]);
+    assert_eq!(windowed["scale_window"], 20);
+    let windows = windowed["scale_windows"].as_array().expect("windows");
+    assert!(windows.len() >= 2, "{windowed}");
+    assert!(
+        (num(&windowed, "scale_drift") - 1.0).abs() < 1e-6,
+        "{windowed}"
+    );
+    assert!(num(&windowed, "window_ate_rmse_max_m") < 1e-6, "{windowed}");
 }
 
 #[test]

@@ -18,7 +18,7 @@ use relfusion_slam::eval::ablation::{run_ablation, table_ii_rows};
 use relfusion_slam::eval::dense_depth::evaluate_dense_depth;
 use relfusion_slam::eval::{
     self, AlignMode, DEFAULT_DEPTH_THRESHOLD, DEFAULT_MAX_DT, associate_poses, ate_matched,
-    percent_correct_depth, read_depth_map, rotation_gain, rpe_matched,
+    percent_correct_depth, read_depth_map, rotation_gain, rpe_matched, scale_drift,
 };
 use relfusion_slam::pipeline::Config;
 use serde_json::json;
@@ -90,6 +90,11 @@ pub struct TrajArgs {
     /// Default 10: long enough that the rotation outweighs per-frame noise.
     #[arg(long, default_value_t = 10)]
     pub rotation_gain_delta: usize,
+    /// Poses per window of the scale-drift report (`relfusion_slam::eval::scale_drift`): each
+    /// window is Sim(3)-aligned on its own, which separates scale drift from shape error.
+    /// Default 60 (2 s at 30 Hz). Reported with `--align sim3` only.
+    #[arg(long, default_value_t = 60)]
+    pub scale_window: usize,
 }
 
 #[derive(Debug, clap::Args)]
@@ -173,6 +178,12 @@ fn traj(args: &TrajArgs) -> anyhow::Result<serde_json::Value> {
     let gain = (matched.len() > args.rotation_gain_delta)
         .then(|| rotation_gain(&matched, args.rotation_gain_delta))
         .transpose()?;
+    // Too short a trajectory for two windows (a few keyframes) has no drift figure.
+    let drift = (args.align == AlignMode::Sim3
+        && args.scale_window >= 3
+        && matched.len() >= 2 * args.scale_window)
+        .then(|| scale_drift(&matched, args.scale_window))
+        .transpose()?;
     Ok(json!({
         "align": args.align,
         "max_dt_s": args.max_dt,
@@ -197,6 +208,10 @@ fn traj(args: &TrajArgs) -> anyhow::Result<serde_json::Value> {
         "rotation_gain_delta": args.rotation_gain_delta,
         "rotation_gain_xyz": gain.as_ref().map(|g| g.gain),
         "rotation_gt_rms_deg_xyz": gain.as_ref().map(|g| g.gt_rms_deg),
+        "scale_window": args.scale_window,
+        "scale_drift": drift.as_ref().and_then(|d| d.drift),
+        "window_ate_rmse_max_m": drift.as_ref().map(|d| d.window_ate_rmse_max),
+        "scale_windows": drift.as_ref().map(|d| &d.windows),
     }))
 }
 

@@ -11,6 +11,8 @@
 //! - [`rpe`]: relative pose error over a fixed frame offset (`evo_rpe`; Sturm et al. §VI.A).
 //! - [`rotation_gain`]: per-axis share of the ground truth's rotation recovered (a calibration
 //!   diagnostic).
+//! - [`scale_drift`]: Sim(3) scale and ATE of consecutive windows (how much of a monocular ATE
+//!   is scale drift).
 //! - [`depth`]: the paper's reconstruction accuracy (§V.A, after CNN-SLAM).
 //! - [`dense_depth`]: that accuracy per dense-layer stage over a run's stored keyframes.
 //! - [`ablation`]: Table II, re-densifying the stored keyframes with each energy.
@@ -25,6 +27,7 @@ pub mod fused_mesh;
 pub mod mesh;
 pub mod rotation_gain;
 pub mod rpe;
+pub mod scale_drift;
 pub mod umeyama;
 
 #[cfg(test)]
@@ -36,6 +39,7 @@ pub use depth::{DEFAULT_DEPTH_THRESHOLD, DepthAccuracy, percent_correct_depth, r
 pub use mesh::{MeshScores, PointGrid, ground_truth_points, score_surface, transform_vertices};
 pub use rotation_gain::{RotationGain, rotation_gain};
 pub use rpe::{RpeResult, rpe, rpe_matched};
+pub use scale_drift::{ScaleDrift, ScaleWindow, scale_drift};
 pub use umeyama::umeyama;
 
 use serde::Serialize;
