@@ -96,7 +96,7 @@ pub struct BackendConfig {
     /// (`loopclosureStrictness`). Why: at 1.5 the test rejects most constraints between
     /// keyframes 4–15 apart on real hand-held sequences (consistencies of 9,000–30,000 for
     /// pairs that, once accepted, lower the ATE), so without loops the graph is a
-    /// chain of short links and drifts in scale. Measured, 5 default threaded runs each
+    /// chain of short links whose errors add up. Measured, 5 default threaded runs each
     /// (trajectory / keyframe ATE, m): 7-Scenes redkitchen 0.052–0.053 / 0.044–0.045 at 1.5,
     /// 0.046–0.049 / 0.040–0.042 at 3, 0.044–0.048 / 0.037–0.041 at 6; TUM fr1/rpy
     /// 0.036–0.039 / 0.036–0.038 at 1.5, 0.034–0.036 / 0.034–0.035 at 3, 0.035–0.039 /
