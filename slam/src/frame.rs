@@ -25,6 +25,10 @@ pub struct Frame {
     pub pyramid: Pyramid,
     /// The colour image (undistorted), kept for the dense layer, colouring and the depth prior.
     pub rgb: Option<Arc<::image::RgbImage>>,
+    /// Metric depth registered to this (undistorted) image, in metres (0 = none), from an
+    /// RGB-D dataset. Only the ground-truth refinement baseline reads it
+    /// (`dense.two_view.ground_truth_depth`); the pipeline keeps it only then.
+    pub sensor_depth: Option<Arc<ImageF32>>,
 }
 
 impl Frame {
@@ -54,6 +58,7 @@ impl Frame {
             camera,
             pyramid,
             rgb,
+            sensor_depth: None,
         })
     }
 

@@ -272,6 +272,30 @@ fn eval_dense_depth_scores_each_stage_as_constructed() {
     // The raw semi-dense stage is neither all right nor all wrong: the mask matters.
     assert!(semi_mean > 30.0 && semi_mean < 70.0, "{semi_mean}");
 
+    // Depth-range slopes, one entry per scored keyframe: the semi-dense map is the truth up to
+    // a factor 2 unrelated to depth (slope ≈ 1); the prior 3ρ + 0.7 is compressed (slope < 1);
+    // the keyframe without a model has no prior.
+    let slopes = out["depth_range_slopes"]
+        .as_array()
+        .expect("depth_range_slopes");
+    assert_eq!(slopes.len(), n, "{out}");
+    for (k, s) in slopes.iter().enumerate() {
+        let semi = num(s, "semidense");
+        assert!(
+            (semi - 1.0).abs() < 0.05,
+            "keyframe {k}: semi-dense slope {semi}"
+        );
+        if k == 1 {
+            assert!(s["prior"].is_null(), "{s}");
+        } else {
+            let prior = num(s, "prior");
+            assert!(
+                prior > 0.3 && prior < 0.95,
+                "keyframe {k}: prior slope {prior}"
+            );
+        }
+    }
+
     // A tighter threshold cannot make more pixels right; 25 % accepts the aligned prior
     // (every depth 1/1.2 of the truth, 16.7 % short).
     let loose = json_of(

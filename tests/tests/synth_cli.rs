@@ -138,3 +138,35 @@ fn synth_cli_rejects_bad_arguments() {
     assert!(!status.status.success(), "zero frames must fail");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn run_refuses_the_sensor_depth_baseline_on_a_sequence_without_depth() {
+    let seq = temp_dir("no-depth");
+    synth(
+        &seq,
+        &[
+            "--frames", "3", "--seed", "1", "--width", "160", "--height", "120",
+        ],
+    );
+    std::fs::remove_file(seq.join("depth.txt")).expect("remove depth.txt");
+    let config = seq.join("gt.toml");
+    std::fs::write(&config, "[dense.two_view]\nground_truth_depth = true\n").expect("config");
+    let out = seq.join("out");
+    let output = Command::new(bin_path("relfusion"))
+        .arg("run")
+        .arg(&seq)
+        .arg("--out")
+        .arg(&out)
+        .arg("--config")
+        .arg(&config)
+        .args(["--deterministic", "--quiet"])
+        .output()
+        .expect("run relfusion");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "must fail without depth images");
+    assert!(
+        stderr.contains("ground_truth_depth") && stderr.contains("depth.txt"),
+        "unclear error: {stderr}"
+    );
+    let _ = std::fs::remove_dir_all(&seq);
+}

@@ -74,6 +74,7 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
             Ok(FrameInput {
                 timestamp: seq.frames[i].timestamp,
                 rgb: seq.load_rgb(i)?,
+                depth: None,
             })
         })
         .collect::<anyhow::Result<_>>()?;

@@ -144,6 +144,13 @@ pub fn run_sequence(
     prior: Option<Box<dyn DepthPrior>>,
     progress: bool,
 ) -> anyhow::Result<RunOutcome> {
+    let sensor_depth = config.dense.two_view.ground_truth_depth;
+    if sensor_depth && seq.frames.iter().take(n).all(|f| f.depth.is_none()) {
+        anyhow::bail!(
+            "dense.two_view.ground_truth_depth needs the sequence's depth images, and {} lists none",
+            seq.root.join("depth.txt").display()
+        );
+    }
     let mut pipeline = Pipeline::new(config, seq.camera, prior)?;
     let bar = progress.then(|| progress_bar(n as u64));
     let t0 = Instant::now();
@@ -151,10 +158,16 @@ pub fn run_sequence(
     for (i, frame) in seq.frames.iter().enumerate().take(n) {
         let tl = Instant::now();
         let rgb = seq.load_rgb(i)?;
+        let depth = if sensor_depth {
+            seq.load_depth(i)?
+        } else {
+            None
+        };
         load_s += tl.elapsed().as_secs_f64();
         pipeline.push(FrameInput {
             timestamp: frame.timestamp,
             rgb,
+            depth,
         })?;
         if let Some(bar) = &bar {
             bar.inc(1);

@@ -239,6 +239,7 @@ impl Runner<'_> {
             .push(FrameInput {
                 timestamp: frame.timestamp,
                 rgb: frame.rgb,
+                depth: None,
             })
             .map_err(|e| format!("pipeline, frame {}: {e}", frame.frame_id))?;
         let stats = self.pipeline.stats().clone();

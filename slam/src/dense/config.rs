@@ -180,6 +180,13 @@ pub struct TwoViewParams {
     /// constraints. Default 500 (a converged semi-dense keyframe has a few thousand pixels at
     /// 320×240).
     pub min_pixels: usize,
+    /// The paper's Table III baseline "*" (pose-graph refinement with ground-truth depth): the
+    /// back end gets the keyframe's sensor depth (`Frame::sensor_depth`, RGB-D datasets only)
+    /// instead of the two-view consistent estimate, brought to the keyframe's gauge by the
+    /// median ratio to its semi-dense map ([`super::two_view::sensor_depth_map`]). It bounds
+    /// what better dense depth can give the trajectory. Default false; keyframes without a
+    /// sensor depth keep the normal refinement.
+    pub ground_truth_depth: bool,
 }
 
 impl Default for TwoViewParams {
@@ -188,6 +195,7 @@ impl Default for TwoViewParams {
             enabled: true,
             tau_e: 0.001,
             min_pixels: 500,
+            ground_truth_depth: false,
         }
     }
 }

@@ -18,7 +18,9 @@ use super::gpu_warp::GpuWarp;
 use super::keyframe::{DenseKeyframe, DenseMode, DenseStages, DenseTimings};
 use super::prior::DepthPrior;
 use super::resample::{box_downsample, downsample_depth, working_camera, working_size};
-use super::two_view::{TwoViewInputs, pose_variance, to_depth_map, two_view_consistency};
+use super::two_view::{
+    TwoViewInputs, pose_variance, sensor_depth_map, to_depth_map, two_view_consistency,
+};
 use super::{DenseCompute, DenseConfig, ScaleShift, densify, fit_scale_shift_robust, support};
 use crate::frame::Frame;
 use crate::geometry::{Matrix7, Sim3};
@@ -239,6 +241,15 @@ impl DenseLayer {
                 let consistent =
                     to_depth_map(&result.idepth, &consistent_var, full.width, full.height)?;
                 refined_depth = Some(Arc::new(keep_semidense(&job.depth, consistent)));
+            }
+        }
+        if let (true, Some(sensor)) = (cfg.two_view.ground_truth_depth, &frame.sensor_depth) {
+            match sensor_depth_map(&job.depth, sensor)? {
+                Some(map) => refined_depth = Some(Arc::new(map)),
+                None => tracing::warn!(
+                    keyframe = job.keyframe_id,
+                    "ground-truth refinement: too few semi-dense pixels with a sensor depth"
+                ),
             }
         }
         timings.two_view_ms = ms(t);

@@ -36,6 +36,7 @@ use serde::Serialize;
 use super::associate::{DEFAULT_MAX_DT, associate_poses};
 use super::ate::{AlignMode, AteResult, ate_matched};
 use super::depth::{DepthAccuracy, percent_correct_depth};
+use super::depth_slope::{KeyframeSlopes, depth_range_slope};
 use crate::dataset::trajectory::read_tum_trajectory;
 use crate::dataset::tum::TumSequence;
 use crate::dense::align::{aligned_depth, fit_scale_shift_unconstrained, inverse_depth_target};
@@ -301,6 +302,9 @@ pub struct DenseDepthReport {
     /// too few pixels); scored as 0 % in `prior_gt_fit`.
     pub prior_gt_fit_failures: usize,
     pub stages: StageScores,
+    /// Per scored keyframe, the depth-range slopes of its raw semi-dense map and raw prior
+    /// ([`super::depth_slope`]; 1 = depth ratios right).
+    pub depth_range_slopes: Vec<KeyframeSlopes>,
 }
 
 /// Scores every stage of a run's stored keyframes; see the module docs for the protocol.
@@ -318,6 +322,7 @@ pub fn evaluate_dense_depth(
     let s = run.trajectory_scale();
     let mut tally: [StageTally; 5] = Default::default();
     let (mut evaluated, mut without_gt, mut fit_failures) = (0, 0, 0);
+    let mut slopes = Vec::new();
     for kf in &run.store.keyframes {
         let Some(gt) = run.ground_truth_depth(kf)? else {
             without_gt += 1;
@@ -325,8 +330,14 @@ pub fn evaluate_dense_depth(
         };
         evaluated += 1;
         let store = &run.store;
+        let mut kf_slopes = KeyframeSlopes {
+            timestamp: kf.timestamp,
+            semidense: None,
+            prior: None,
+        };
 
         if let Some(prior) = store.read_map(kf, "prior")? {
+            kf_slopes.prior = depth_range_slope(&prior, &gt)?;
             // Table III baseline: the best scale/shift for this frame, metric by construction.
             let (target, mask) = inverse_depth_target(&gt, GT_FIT_MIN_DEPTH);
             let est = match fit_scale_shift_unconstrained(&prior, &target, Some(&mask)) {
@@ -344,6 +355,9 @@ pub fn evaluate_dense_depth(
         }
         for (stage, name) in [(2, "semidense"), (3, "filtered")] {
             if let Some(semi) = store.read_map(kf, name)? {
+                if stage == 2 {
+                    kf_slopes.semidense = depth_range_slope(&semi, &gt)?;
+                }
                 let est = run.map_depth(kf, &semi);
                 let mask = has_value(&semi);
                 add(
@@ -355,6 +369,7 @@ pub fn evaluate_dense_depth(
         if let Some(dense) = store.read_map(kf, "depth")? {
             add(&mut tally[4], score_depth(&dense, &gt, s, threshold, None)?);
         }
+        slopes.push(kf_slopes);
     }
     let [
         prior_gt_fit,
@@ -385,6 +400,7 @@ pub fn evaluate_dense_depth(
             semidense_filtered,
             dense,
         },
+        depth_range_slopes: slopes,
     })
 }
 

@@ -15,6 +15,7 @@
 //!   is scale drift).
 //! - [`depth`]: the paper's reconstruction accuracy (§V.A, after CNN-SLAM).
 //! - [`dense_depth`]: that accuracy per dense-layer stage over a run's stored keyframes.
+//! - [`depth_slope`]: whether a map's depth ratios are right, compressed or stretched.
 //! - [`ablation`]: Table II, re-densifying the stored keyframes with each energy.
 //! - [`mesh`]: surface accuracy and completeness of a fused mesh against ground-truth depth.
 
@@ -23,6 +24,7 @@ pub mod associate;
 pub mod ate;
 pub mod dense_depth;
 pub mod depth;
+pub mod depth_slope;
 pub mod fused_mesh;
 pub mod mesh;
 pub mod rotation_gain;

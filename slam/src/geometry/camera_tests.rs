@@ -291,3 +291,57 @@ fn apply_rgb_matches_gray() {
         .fold(0.0, f32::max);
     assert!(worst <= 1.0, "rgb vs gray undistortion differ by {worst}");
 }
+
+#[test]
+fn apply_nearest_moves_depths_without_blending_them() {
+    let cam = fr1();
+    // Two depth planes in 8×8 blocks with holes: any blend would create a value in between.
+    let depth = ImageF32::from_vec(
+        640,
+        480,
+        (0..640 * 480)
+            .map(|i| {
+                let (x, y) = (i % 640, i / 640);
+                if (x + y) % 13 == 0 {
+                    0.0
+                } else if (x / 8 + y / 8) % 2 == 0 {
+                    1.0
+                } else {
+                    3.0
+                }
+            })
+            .collect(),
+    )
+    .expect("size");
+    let map = UndistortMap::new(&cam);
+    let out = map.apply_nearest(&depth).expect("same size");
+    let mut checked = 0;
+    for y in 0..480u32 {
+        for x in 0..640u32 {
+            let v = out.at(x as usize, y as usize);
+            assert!(
+                v == 0.0 || v == 1.0 || v == 3.0,
+                "blended depth {v} at ({x}, {y})"
+            );
+            if let Some(s) = map.source(x, y) {
+                let (sx, sy) = ((s.x + 0.5).floor() as usize, (s.y + 0.5).floor() as usize);
+                if sx < 640 && sy < 480 {
+                    assert_eq!(v, depth.at(sx, sy), "({x}, {y}) from ({sx}, {sy})");
+                    checked += 1;
+                }
+            }
+        }
+    }
+    assert!(checked > 600 * 440, "only {checked} pixels had a source");
+    let undistorted = cam.undistorted();
+    assert_eq!(
+        UndistortMap::new(&undistorted)
+            .apply_nearest(&depth)
+            .expect("same size"),
+        depth
+    );
+    assert!(matches!(
+        map.apply_nearest(&ImageF32::filled(320, 240, 1.0)),
+        Err(Error::Shape(_))
+    ));
+}

@@ -76,6 +76,30 @@ impl UndistortMap {
         ImageF32::from_vec(image.width, image.height, data)
     }
 
+    /// Undistorts a depth image by taking the nearest source pixel (0 where the source is
+    /// outside): depths must not be blended across the edges of surfaces, and a blend with a
+    /// missing measurement (0) would invent a depth.
+    pub fn apply_nearest(&self, image: &ImageF32) -> Result<ImageF32> {
+        self.check_size(image.width, image.height)?;
+        let (w, h) = (image.width as f32, image.height as f32);
+        let data = self
+            .source
+            .iter()
+            .map(|s| match *s {
+                Some([u, v]) => {
+                    let (x, y) = ((u + 0.5).floor(), (v + 0.5).floor());
+                    if x >= 0.0 && y >= 0.0 && x < w && y < h {
+                        image.at(x as usize, y as usize)
+                    } else {
+                        0.0
+                    }
+                }
+                None => 0.0,
+            })
+            .collect();
+        ImageF32::from_vec(image.width, image.height, data)
+    }
+
     /// Undistorts an 8-bit RGB image by bilinear interpolation per channel (black outside).
     pub fn apply_rgb(&self, image: &::image::RgbImage) -> Result<::image::RgbImage> {
         let (w, h) = image.dimensions();

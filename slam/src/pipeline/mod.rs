@@ -46,6 +46,10 @@ use mapper::{KeyframeMapper, Observation};
 pub struct FrameInput {
     pub timestamp: f64,
     pub rgb: ::image::RgbImage,
+    /// Metric depth registered to `rgb` (same size, distorted alike; metres, 0 = none), from
+    /// an RGB-D dataset: used only by the ground-truth refinement baseline
+    /// (`dense.two_view.ground_truth_depth`) and dropped otherwise.
+    pub depth: Option<ImageF32>,
 }
 
 /// Where each frame ended up, kept so that the final trajectory follows the optimised
@@ -653,6 +657,21 @@ impl Pipeline {
                 self.camera.width, self.camera.height
             )));
         }
+        let sensor_depth = match input.depth {
+            Some(depth) if self.config.dense.two_view.ground_truth_depth => {
+                if (depth.width, depth.height) != (w as usize, h as usize) {
+                    return Err(Error::Shape(format!(
+                        "depth is {}x{} but the frame is {w}x{h}",
+                        depth.width, depth.height
+                    )));
+                }
+                Some(Arc::new(match &self.undistort {
+                    Some(map) => map.apply_nearest(&depth)?,
+                    None => depth,
+                }))
+            }
+            _ => None,
+        };
         let rgb = match &self.undistort {
             Some(map) => map.apply_rgb(&input.rgb)?,
             None => input.rgb,
@@ -660,13 +679,15 @@ impl Pipeline {
         let gray = ImageF32::from_rgb8(&rgb);
         let id = self.next_frame_id;
         self.next_frame_id += 1;
-        Frame::new(
+        let mut frame = Frame::new(
             id,
             input.timestamp,
             self.camera.undistorted(),
             &gray,
             Some(Arc::new(rgb)),
-        )
+        )?;
+        frame.sensor_depth = sensor_depth;
+        Ok(frame)
     }
 
     /// The first frame becomes the first keyframe, its depth initialised from the prior (or
