@@ -263,6 +263,9 @@ impl DenseConfig {
         if self.queue == 0 {
             return bad("queue must be ≥ 1");
         }
+        if self.two_view.ground_truth_depth && !self.enabled {
+            return bad("two_view.ground_truth_depth needs the dense layer (dense.enabled = true)");
+        }
         if !(self.support_variance.is_finite() && self.support_variance >= 0.0) {
             return bad("support_variance must be ≥ 0");
         }

@@ -268,4 +268,13 @@ fn invalid_config_is_refused() {
     let mut config = Config::default();
     config.pipeline.prior_init_var = -1.0;
     assert!(Pipeline::new(config, *camera, None).is_err());
+    // The sensor-depth baseline refines through the dense layer: asking for it without one
+    // would silently do nothing.
+    let mut config = Config::default();
+    config.dense.enabled = false;
+    config.dense.two_view.ground_truth_depth = true;
+    assert!(matches!(
+        Pipeline::new(config, *camera, None),
+        Err(Error::Config(m)) if m.contains("ground_truth_depth")
+    ));
 }
