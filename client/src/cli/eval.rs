@@ -86,7 +86,8 @@ pub struct TrajArgs {
     #[arg(long, default_value_t = 1)]
     pub rpe_delta: usize,
     /// Frame offset of the per-axis rotation gain (`relfusion_slam::eval::rotation_gain`):
-    /// gains below 1 about x and y with z near 1 mean the focal length is set too long.
+    /// gains below 1 about x and y with z near 1 mean the focal length is set too long, or
+    /// rotation taken for translation (on 7-Scenes: a compressed depth map).
     /// Default 10: long enough that the rotation outweighs per-frame noise.
     #[arg(long, default_value_t = 10)]
     pub rotation_gain_delta: usize,

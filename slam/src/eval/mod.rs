@@ -9,8 +9,8 @@
 //! - [`ate`]: absolute trajectory error on translations after alignment (`evo_ape`; Sturm et al.
 //!   IROS 2012 §VI.B).
 //! - [`rpe`]: relative pose error over a fixed frame offset (`evo_rpe`; Sturm et al. §VI.A).
-//! - [`rotation_gain`]: per-axis share of the ground truth's rotation recovered (a calibration
-//!   diagnostic).
+//! - [`rotation_gain`]: per-axis share of the ground truth's rotation recovered (focal length,
+//!   or rotation taken for translation).
 //! - [`scale_drift`]: Sim(3) scale and ATE of consecutive windows (how much of a monocular ATE
 //!   is scale drift).
 //! - [`depth`]: the paper's reconstruction accuracy (§V.A, after CNN-SLAM).

@@ -1,5 +1,6 @@
 //! Per-axis rotation gain: the share of the ground truth's relative rotation that the estimate
-//! recovers about each camera axis. A calibration diagnostic, not an accuracy metric.
+//! recovers about each camera axis. A diagnostic of the focal length and of the depth map's
+//! shape, not an accuracy metric.
 //!
 //! For the same non-overlapping pose pairs (i, i+Δ) as [`super::rpe`], let aᵢ = log(Qᵢ⁻¹·Q_{i+Δ})
 //! and bᵢ = log(Pᵢ⁻¹·P_{i+Δ}) be the relative rotations (rotation vectors in camera axes) of
