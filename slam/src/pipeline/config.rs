@@ -65,8 +65,8 @@ pub struct PipelineConfig {
     /// the initial guess (fr1/rpy turns 2–4° per frame, within the coarse levels' basin).
     pub constant_velocity: bool,
     /// Fill the holes of each new keyframe's propagated depth from the depth prior, aligned to
-    /// the propagated estimates with eq. (3) (`DepthFilter::fill_from_prior`), when a prior is
-    /// loaded. Default true: under rotation the propagated map thins out keyframe after
+    /// the propagated estimates with eq. (3) (`DepthFilter::fill_from_prior`; at their median
+    /// where the prior's depth order contradicts them), when a prior is loaded. Default true: under rotation the propagated map thins out keyframe after
     /// keyframe until tracking fails on a correct pose; the prior is the information the
     /// paper's dense layer adds (IROS 2021 §III).
     pub prior_fill: bool,
