@@ -106,7 +106,8 @@ impl DepthFilter {
         let fit = match fit_scale_shift(prior_inv, &target, None) {
             Ok(fit) => fit,
             // The affine fit inverts the depth order or is singular (a nearly fronto-parallel
-            // map gives the prior's noise the upper hand): the depth level only.
+            // map gives the prior's noise the upper hand). The least-squares fit constrained
+            // to a ≥ 0 then has a = 0: the depth level only (its robust form, the median).
             Err(_) => match median_level(&target) {
                 Some(fit) => fit,
                 None => return Ok(None),
