@@ -355,7 +355,7 @@ pub fn evaluate_dense_depth(
         }
         for (stage, name) in [(2, "semidense"), (3, "filtered")] {
             if let Some(semi) = store.read_map(kf, name)? {
-                if stage == 2 {
+                if name == "semidense" {
                     kf_slopes.semidense = depth_range_slope(&semi, &gt)?;
                 }
                 let est = run.map_depth(kf, &semi);
