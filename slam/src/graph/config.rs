@@ -113,21 +113,24 @@ pub struct BackendConfig {
     /// both the path and depths whose shape the prior compressed; the old default's chain
     /// happened to match them on redkitchen.
     pub skip_initial_keyframes: usize,
-    /// Multiplier on the reciprocal-consistency thresholds. Default 3, twice LSD-SLAM's 1.5
-    /// (`loopclosureStrictness`). Why: at 1.5 the test rejects most constraints between
+    /// Multiplier on the reciprocal-consistency thresholds. Default 4.5, three times LSD-SLAM's
+    /// 1.5 (`loopclosureStrictness`). Why: at 1.5 the test rejects most constraints between
     /// keyframes 4–15 apart on real hand-held sequences (consistencies of 9,000–30,000 for
-    /// pairs that, once accepted, lower the ATE), so without loops the graph is a
-    /// chain of short links whose errors add up. Measured when `skip_initial_keyframes` was
-    /// still 5, 5 default threaded runs each
-    /// (trajectory / keyframe ATE, m): 7-Scenes redkitchen 0.052–0.053 / 0.044–0.045 at 1.5,
-    /// 0.046–0.049 / 0.040–0.042 at 3, 0.044–0.048 / 0.037–0.041 at 6; TUM fr1/rpy
-    /// 0.036–0.039 / 0.036–0.038 at 1.5, 0.034–0.036 / 0.034–0.035 at 3, 0.035–0.039 /
-    /// 0.032–0.038 at 6; the synthetic orbit unchanged. Unrelated views still fail at stage 0
-    /// (the alignment diverges or is not good), before the threshold matters. The cost, same
-    /// redkitchen runs, 1.5 → 3: densified depth 49.0–49.7 → 47.3–48.6 % correct, fused mesh
-    /// accuracy / completeness 0.41–0.43 / 0.31–0.37 → 0.38–0.42 / 0.29–0.35 (presumably
-    /// keyframes placed to agree with distant ones agree a little less with their neighbours,
-    /// which fusion notices); 6 costs more (47.1 %, 0.35 / 0.34 deterministic).
+    /// pairs that, once accepted, lower the ATE), so without loops the graph is a chain of
+    /// short links whose errors add up. Unrelated views still fail at stage 0 (the alignment
+    /// diverges or is not good), before the threshold matters. Measured with
+    /// `skip_initial_keyframes` = 0 (trajectory / keyframe ATE, m; deterministic, then 5
+    /// default threaded runs one at a time): 7-Scenes redkitchen 0.0334 / 0.0303 and
+    /// 0.028–0.044 / 0.026–0.037 at 3 (three of the five near 0.043), 0.0297 / 0.0274 and
+    /// 0.029–0.030 / 0.027–0.028 at 4.5, 0.029–0.032 / 0.027–0.029 threaded at 6; TUM fr1/rpy
+    /// 0.0285 / 0.0263 and 0.024–0.025 / 0.020–0.021 at 3, 0.0244 / 0.0221 and 0.023–0.030 /
+    /// 0.019–0.024 at 4.5, 0.0311 / 0.0272 deterministic at 10; the synthetic orbit's keyframes
+    /// (seeds 0, 1, 2) 4.0 / 4.0 / 17.2 mm at 3, 4.5 / 3.5 / 18.8 at 4.5. The cost: keyframes
+    /// placed to agree with distant ones sit further from the path's scale (see
+    /// `skip_initial_keyframes`), redkitchen's densified depth 43.5 → 40.1 % correct and fused
+    /// mesh accuracy / completeness 0.28 / 0.30 → 0.25 / 0.27 (deterministic, 3 → 4.5). Earlier,
+    /// with the skip at 5: redkitchen 0.052–0.053 / 0.044–0.045 at 1.5, 0.046–0.049 /
+    /// 0.040–0.042 at 3, 0.044–0.048 / 0.037–0.041 at 6 (5 threaded runs each).
     pub loop_closure_strictness: f64,
     /// Strictness used for the new keyframe's tracking parent, whose constraint is forced.
     /// Default 100 (`testConstraint(parent, …, 100)`).
@@ -189,7 +192,7 @@ impl Default for BackendConfig {
             max_far_candidates: 5,
             min_far_graph_distance: 4,
             skip_initial_keyframes: 0,
-            loop_closure_strictness: 3.0,
+            loop_closure_strictness: 4.5,
             parent_strictness: 100.0,
             stage_levels: [3, 2, 1],
             stage_thresholds: [3000.0, 4000.0, 6000.0],
