@@ -96,22 +96,24 @@ pub struct BackendConfig {
     /// traverse that cannot link them to the keyframes that follow carries their scale error
     /// forward as drift; the pose graph repairs a poor early depth better than the skip
     /// protects against it, with the prior initialisation (the default) and with the random
-    /// one alike. Measured, deterministic / 5 default threaded runs (trajectory / keyframe
-    /// ATE, m), 5 → 0: 7-Scenes redkitchen 0.0461 / 0.0393 → 0.0334 / 0.0303, threaded
-    /// 0.047–0.050 / 0.040–0.043 → 0.027–0.042 / 0.026–0.035; TUM fr1/rpy 0.0313 / 0.0289 →
-    /// 0.0285 / 0.0263, threaded 0.031–0.037 / 0.030–0.035 → 0.025–0.027 / 0.021–0.026; the
-    /// synthetic orbit (640×480, random initialisation, keyframes) 18.4 → 4.0 mm on seed 0,
-    /// 10.9 → 4.0 on seed 1, 35.1 → 17.2 on seed 2. Values 1–4 land in between, unevenly
-    /// (redkitchen 0.0489, 0.0308, 0.0417, 0.0446 deterministic). The cost, on the real
-    /// sequences only: depth scored at the trajectory's scale (`eval depth`, `eval mesh`)
-    /// drops — redkitchen densified 48.3 → 43.5 % correct, fused mesh accuracy / completeness
-    /// 0.39 / 0.37 → 0.28 / 0.30; fr1/rpy densified 21.2 → 11.1 % — while the synthetic orbit
-    /// gains (mesh 0.76 / 0.78 → 0.79 / 0.82). The keyframes agree better with one another (the
-    /// spread over keyframes of the median log ratio of sensor to estimated depth: redkitchen
-    /// 0.030 → 0.023, fr1/rpy 0.37 → 0.30), but as a whole their depths now sit off the path's
-    /// scale (that median: −0.006 → −0.056 and 0.23 → 0.33). Presumably no single scale fits
-    /// both the path and depths whose shape the prior compressed; the old default's chain
-    /// happened to match them on redkitchen.
+    /// one alike. Measured at a `loop_closure_strictness` of 3, deterministic / 5 default
+    /// threaded runs two at a time (trajectory / keyframe ATE, m), 5 → 0: 7-Scenes redkitchen
+    /// 0.0461 / 0.0393 → 0.0334 / 0.0303, threaded 0.047–0.050 / 0.040–0.043 → 0.027–0.042 /
+    /// 0.026–0.035; TUM fr1/rpy 0.0313 / 0.0289 → 0.0285 / 0.0263, threaded 0.031–0.037 /
+    /// 0.030–0.035 → 0.025–0.027 / 0.021–0.026; the synthetic orbit (640×480, random
+    /// initialisation, keyframes) 18.4 → 4.0 mm on seed 0, 10.9 → 4.0 on seed 1, 35.1 → 17.2
+    /// on seed 2. Values 1–4 land in between, unevenly (redkitchen 0.0489, 0.0308, 0.0417,
+    /// 0.0446 deterministic). The cost, on the real sequences only: depth scored at the
+    /// trajectory's scale (`eval depth`, `eval mesh`) drops — redkitchen densified 48.3 →
+    /// 43.5 % correct, fused mesh accuracy / completeness 0.39 / 0.37 → 0.28 / 0.30; fr1/rpy
+    /// densified 21.2 → 11.1 % — while the synthetic orbit gains (mesh 0.76 / 0.78 → 0.79 /
+    /// 0.82). The keyframes agree better with one another (the spread over keyframes of the
+    /// median log ratio of sensor to estimated depth: redkitchen 0.030 → 0.023, fr1/rpy 0.37 →
+    /// 0.30), but as a whole their depths now sit off the path's scale (that median: −0.006 →
+    /// −0.056 and 0.23 → 0.33). Presumably no single scale fits both the path and depths whose
+    /// shape the prior compressed; the old default's chain happened to match them on
+    /// redkitchen. At the default strictness of 4.5 the offset grows on redkitchen (−0.071;
+    /// densified 40.1 %, mesh 0.25 / 0.27) and shrinks on fr1/rpy (0.18; densified 24.5 %).
     pub skip_initial_keyframes: usize,
     /// Multiplier on the reciprocal-consistency thresholds. Default 4.5, three times LSD-SLAM's
     /// 1.5 (`loopclosureStrictness`). Why: at 1.5 the test rejects most constraints between
