@@ -66,9 +66,10 @@ pub struct PipelineConfig {
     pub constant_velocity: bool,
     /// Fill the holes of each new keyframe's propagated depth from the depth prior, aligned to
     /// the propagated estimates with eq. (3) (`DepthFilter::fill_from_prior`; at their median
-    /// where the prior's depth order contradicts them), when a prior is loaded. Default true: under rotation the propagated map thins out keyframe after
-    /// keyframe until tracking fails on a correct pose; the prior is the information the
-    /// paper's dense layer adds (IROS 2021 §III).
+    /// where the prior's depth order contradicts them), when a prior is loaded. Default true:
+    /// under rotation the propagated map thins out keyframe after keyframe until tracking
+    /// fails on a correct pose; the prior is the information the paper's dense layer adds
+    /// (IROS 2021 §III).
     pub prior_fill: bool,
     /// Variance of prior-filled inverse depths (normalised scale). Default 0.1, the variance of
     /// the prior initialisation (`prior_init_var`): the aligned prior is about as reliable as
