@@ -10,10 +10,16 @@ DEMO_OUT ?= out/demo
 # prints "XDG_RUNTIME_DIR is invalid" on headless machines: switch it off.
 export NODEVICE_SELECT ?= 1
 
-.PHONY: help setup test demo
+# Fuzzing (fuzz/): every target for FUZZ_SECONDS, seeds from fuzz/corpus, finds kept in
+# fuzz/target/corpus (ignored); a crash stops it and leaves its input in fuzz/artifacts.
+FUZZ_SECONDS ?= 60
+FUZZ_TARGETS := frame_decode proto_messages archive_extract tum_text
+
+.PHONY: help setup test demo fuzz
 help:
 	@echo "make demo   # set up, build, stream a sequence through relfusiond, fetch the results into $(DEMO_OUT)"
 	@echo "make test   # set up and run the whole test suite"
+	@echo "make fuzz   # fuzz the parsers of untrusted input, FUZZ_SECONDS (default 60) per target"
 
 setup:
 	@bash scripts/setup.sh >/dev/null
@@ -26,3 +32,14 @@ demo:
 	@env_lines=$$(bash scripts/setup.sh); eval "$$env_lines"; \
 	 cargo build --release -p relfusion-client -p relfusion-server; \
 	 DEMO_OUT=$(DEMO_OUT) bash scripts/demo.sh
+
+fuzz:
+	@command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz --locked
+	@rustup toolchain list | grep -q '^nightly' || rustup toolchain install nightly --profile minimal
+	@cd fuzz && for t in $(FUZZ_TARGETS); do \
+	   mkdir -p target/corpus/$$t; \
+	   echo "fuzz: $$t for $(FUZZ_SECONDS) s"; \
+	   cargo +nightly fuzz run -O $$t target/corpus/$$t corpus/$$t -- \
+	     -max_total_time=$(FUZZ_SECONDS) -rss_limit_mb=2048 -print_final_stats=1 2>&1 \
+	     | grep -E '^(Done|stat::number_of_executed_units|stat::peak_rss_mb)|ERROR|SUMMARY|panicked'; \
+	 done

@@ -127,6 +127,8 @@ struct Created {
 pub struct Client {
     base: Url,
     token: Option<String>,
+    /// The token's name: the Zenoh user and tenant (HTTP does not need it).
+    user: Option<String>,
     http: reqwest::Client,
 }
 
@@ -156,6 +158,7 @@ impl Client {
         Ok(Self {
             base: url,
             token: token.filter(|t| !t.is_empty()),
+            user: None,
             http,
         })
     }
@@ -168,6 +171,20 @@ impl Client {
     /// The bearer token, if any.
     pub fn token(&self) -> Option<&str> {
         self.token.as_deref()
+    }
+
+    /// The same client as the token's `user` (its name on the server): Zenoh logs in with it.
+    pub fn with_user(mut self, user: Option<String>) -> Self {
+        self.user = user;
+        self
+    }
+
+    /// Who the client is on Zenoh (user, token).
+    pub fn zenoh_identity(&self) -> crate::zenoh_transport::Identity {
+        crate::zenoh_transport::Identity {
+            user: self.user.clone(),
+            token: self.token.clone(),
+        }
     }
 
     /// `base` joined with the relative `path` (no leading `/`).

@@ -82,14 +82,13 @@ pub async fn open_session(
     }
 }
 
-/// The Zenoh transport ([`crate::zenoh_transport`]); the client's bearer token goes with the
-/// create query.
+/// The Zenoh transport ([`crate::zenoh_transport`]) as the client's user and token.
 async fn open_zenoh(
     client: &Client,
     endpoint: &str,
     req: &CreateSessionRequest,
 ) -> Result<SessionLink, ClientError> {
-    crate::zenoh_transport::open(endpoint, client.token(), req).await
+    crate::zenoh_transport::open(endpoint, &client.zenoh_identity(), req).await
 }
 
 /// Image formats the server accepts, told apart by their magic bytes.

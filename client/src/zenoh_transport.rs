@@ -3,9 +3,11 @@
 //!
 //! The client opens a Zenoh session in client mode connected to one endpoint (a relfusiond
 //! listening with `--zenoh-listen`, or a Zenoh router the nodes join), with multicast and gossip
-//! scouting off so it talks to exactly what it was told. It creates the session through the
-//! `relfusion/sessions/create` queryable (payload `SessionConfig`, attachment = bearer token),
-//! then subscribes to the session's keys, publishes `Frame`s on `frames` (congestion control
+//! scouting off so it talks to exactly what it was told. On a server with tokens it logs in as
+//! its token's name with the token as password ([`Identity`]) and may then use only its
+//! tenant's keys (`relfusion/tenants/<name>/…`). It creates the session through its tenant's
+//! `create` queryable (payload `SessionConfig`, attachment = bearer token), then subscribes to
+//! the session's keys, publishes `Frame`s on `frames` (congestion control
 //! `block`: with the `wait` policy the server's back-pressure reaches the sender) and `end`
 //! after the last. Updates arrive on `poses` (`ServerMessage`) and `mesh` (`MeshUpdate`);
 //! `finished` (`SessionFinished`) closes the stream, so a [`SessionLink`] over Zenoh behaves
@@ -22,7 +24,8 @@ use relfusion_proto::v1::{
     SessionFinished, client_message, server_message,
 };
 use relfusion_proto::zenoh_keys::{
-    CREATE, END, FINISHED, FRAMES, MAP, MESH, POSES, session_key, session_wildcard,
+    END, FINISHED, FRAMES, MAP, MESH, POSES, PUBLIC_TENANT, create_key, session_key,
+    session_wildcard,
 };
 use tokio::sync::mpsc;
 use zenoh::Session;
@@ -45,29 +48,55 @@ fn transport(what: &str, e: impl std::fmt::Display) -> ClientError {
     ClientError::Transport(format!("Zenoh {what}: {e}"))
 }
 
+/// Who the client is on Zenoh: its token's name (the Zenoh user and its tenant) and the token
+/// (password and query attachment). Both empty on a server without tokens (public tenant).
+#[derive(Clone, Debug, Default)]
+pub struct Identity {
+    pub user: Option<String>,
+    pub token: Option<String>,
+}
+
+impl Identity {
+    /// The tenant whose keys the client uses.
+    pub fn tenant(&self) -> &str {
+        self.user.as_deref().unwrap_or(PUBLIC_TENANT)
+    }
+}
+
 /// The Zenoh configuration of a client connected to `endpoint` (e.g. `tcp/127.0.0.1:7447`):
-/// client mode, that one endpoint, no scouting.
-pub fn client_config(endpoint: &str) -> Result<zenoh::Config, ClientError> {
+/// client mode, that one endpoint, no scouting; with a user, Zenoh's user/password login.
+pub fn client_config(endpoint: &str, identity: &Identity) -> Result<zenoh::Config, ClientError> {
     let mut config = zenoh::Config::default();
     let endpoints = serde_json::Value::from(vec![endpoint.to_string()]).to_string();
     let timeout = CONNECT_TIMEOUT.as_millis().to_string();
-    for (key, value) in [
-        ("mode", "\"client\""),
-        ("connect/endpoints", endpoints.as_str()),
-        ("connect/timeout_ms", timeout.as_str()),
-        ("scouting/multicast/enabled", "false"),
-        ("scouting/gossip/enabled", "false"),
-    ] {
+    let mut settings = vec![
+        ("mode", "\"client\"".to_string()),
+        ("connect/endpoints", endpoints),
+        ("connect/timeout_ms", timeout),
+        ("scouting/multicast/enabled", "false".to_string()),
+        ("scouting/gossip/enabled", "false".to_string()),
+    ];
+    if let (Some(user), Some(token)) = (&identity.user, &identity.token) {
+        settings.push((
+            "transport/auth/usrpwd/user",
+            serde_json::Value::from(user.as_str()).to_string(),
+        ));
+        settings.push((
+            "transport/auth/usrpwd/password",
+            serde_json::Value::from(token.as_str()).to_string(),
+        ));
+    }
+    for (key, value) in settings {
         config
-            .insert_json5(key, value)
-            .map_err(|e| ClientError::InvalidOption(format!("Zenoh {key} = {value}: {e}")))?;
+            .insert_json5(key, &value)
+            .map_err(|e| ClientError::InvalidOption(format!("Zenoh {key}: {e}")))?;
     }
     Ok(config)
 }
 
-/// A Zenoh session connected to `endpoint`.
-pub async fn connect(endpoint: &str) -> Result<Session, ClientError> {
-    zenoh::open(client_config(endpoint)?)
+/// A Zenoh session connected to `endpoint` as `identity`.
+pub async fn connect(endpoint: &str, identity: &Identity) -> Result<Session, ClientError> {
+    zenoh::open(client_config(endpoint, identity)?)
         .await
         .map_err(|e| transport(&format!("connecting to {endpoint}"), e))
 }
@@ -158,20 +187,22 @@ async fn query(
     Ok(Err(first_error))
 }
 
-/// Creates a session through `relfusion/sessions/create`; returns its id. A server that is
-/// still starting may not have declared the queryable yet: a query nobody answers is retried
-/// for up to [`QUERY_TIMEOUT`].
+/// Creates a session through the tenant's `create` queryable; returns its id. A server that
+/// is still starting may not have declared the queryable yet: a query nobody answers is
+/// retried for up to [`QUERY_TIMEOUT`].
 pub async fn create_session(
     zenoh: &Session,
-    token: Option<&str>,
+    identity: &Identity,
     config: &SessionConfig,
 ) -> Result<String, ClientError> {
     let deadline = Instant::now() + QUERY_TIMEOUT;
+    let key = create_key(identity.tenant());
+    let token = identity.token.as_deref();
     loop {
-        match query(zenoh, CREATE, Some(config.encode_to_vec()), token).await? {
+        match query(zenoh, &key, Some(config.encode_to_vec()), token).await? {
             Ok(bytes) => {
                 let reply = CreateSessionReply::decode(bytes.as_slice()).map_err(|e| {
-                    ClientError::Protocol(format!("{CREATE} replied something else: {e}"))
+                    ClientError::Protocol(format!("{key} replied something else: {e}"))
                 })?;
                 if let Some(error) = &reply.error {
                     return Err(api_error(error));
@@ -193,21 +224,22 @@ pub async fn create_session(
             }
             Err(None) => {
                 return Err(ClientError::Transport(format!(
-                    "no relfusiond answered {CREATE} (is Zenoh enabled on the server?)"
+                    "no relfusiond answered {key} (is Zenoh enabled on the server, and are the \
+                     user and token right?)"
                 )));
             }
         }
     }
 }
 
-/// The whole current map of a session (`relfusion/sessions/<id>/map`).
+/// The whole current map of a session (`…/sessions/<id>/map`).
 pub async fn map_snapshot(
     zenoh: &Session,
-    token: Option<&str>,
+    identity: &Identity,
     session_id: &str,
 ) -> Result<MapSnapshot, ClientError> {
-    let key = session_key(session_id, MAP);
-    match query(zenoh, &key, None, token).await? {
+    let key = session_key(identity.tenant(), session_id, MAP);
+    match query(zenoh, &key, None, identity.token.as_deref()).await? {
         Ok(bytes) => MapSnapshot::decode(bytes.as_slice())
             .map_err(|e| ClientError::Protocol(format!("{key} replied something else: {e}"))),
         Err(Some(bytes)) => Err(match v1::Error::decode(bytes.as_slice()) {
@@ -224,27 +256,31 @@ pub async fn map_snapshot(
 /// [`SessionLink`] (frames in, updates out), like the WebSocket transport.
 pub async fn open(
     endpoint: &str,
-    token: Option<&str>,
+    identity: &Identity,
     req: &CreateSessionRequest,
 ) -> Result<SessionLink, ClientError> {
-    let zenoh = connect(endpoint).await?;
-    let session_id = create_session(&zenoh, token, &session_config(req)).await?;
-    attach(zenoh, session_id).await
+    let zenoh = connect(endpoint, identity).await?;
+    let session_id = create_session(&zenoh, identity, &session_config(req)).await?;
+    attach(zenoh, identity.tenant(), session_id).await
 }
 
-/// Streams to an existing session `session_id` over `zenoh` (see [`open`]).
-pub async fn attach(zenoh: Session, session_id: String) -> Result<SessionLink, ClientError> {
+/// Streams to an existing session `session_id` of `tenant` over `zenoh` (see [`open`]).
+pub async fn attach(
+    zenoh: Session,
+    tenant: &str,
+    session_id: String,
+) -> Result<SessionLink, ClientError> {
     // Subscribe before the first frame goes out, so no update is missed. Only remote
     // publications: our own frames are not updates.
     let subscriber = zenoh
-        .declare_subscriber(session_wildcard(&session_id))
+        .declare_subscriber(session_wildcard(tenant, &session_id))
         .allowed_origin(Locality::Remote)
         .with(FifoChannel::new(UPDATE_CHANNEL))
         .await
         .map_err(|e| transport("subscribing to the session", e))?;
     let declare = |leaf: &'static str| {
         zenoh
-            .declare_publisher(session_key(&session_id, leaf))
+            .declare_publisher(session_key(tenant, &session_id, leaf))
             .congestion_control(CongestionControl::Block)
     };
     let frames_pub = declare(FRAMES)
@@ -360,14 +396,15 @@ pub struct IngestRate {
 /// would only measure the client's buffers). The session is ended afterwards.
 pub async fn ingest_rate<B: AsRef<[u8]>>(
     endpoint: &str,
-    token: Option<&str>,
+    identity: &Identity,
     req: &CreateSessionRequest,
     frames: &[(f64, B)],
 ) -> Result<IngestRate, ClientError> {
-    let zenoh = connect(endpoint).await?;
-    let id = create_session(&zenoh, token, &session_config(req)).await?;
+    let zenoh = connect(endpoint, identity).await?;
+    let id = create_session(&zenoh, identity, &session_config(req)).await?;
+    let tenant = identity.tenant();
     let publisher = zenoh
-        .declare_publisher(session_key(&id, FRAMES))
+        .declare_publisher(session_key(tenant, &id, FRAMES))
         .congestion_control(CongestionControl::Block)
         .await
         .map_err(|e| transport("declaring the frames publisher", e))?;
@@ -388,7 +425,7 @@ pub async fn ingest_rate<B: AsRef<[u8]>>(
     let n = frames.len() as u64;
     let deadline = Instant::now() + QUERY_TIMEOUT;
     let received = loop {
-        let snapshot = map_snapshot(&zenoh, token, &id).await?;
+        let snapshot = map_snapshot(&zenoh, identity, &id).await?;
         if snapshot.frames_received >= n || Instant::now() > deadline {
             break snapshot.frames_received;
         }
@@ -396,7 +433,10 @@ pub async fn ingest_rate<B: AsRef<[u8]>>(
     };
     let wall_s = t0.elapsed().as_secs_f64();
     let _ = zenoh
-        .put(session_key(&id, END), EndOfStream {}.encode_to_vec())
+        .put(
+            session_key(tenant, &id, END),
+            EndOfStream {}.encode_to_vec(),
+        )
         .congestion_control(CongestionControl::Block)
         .await;
     let _ = zenoh.close().await;
@@ -454,12 +494,24 @@ mod tests {
 
     #[test]
     fn client_config_is_client_mode_without_scouting() {
-        let c = client_config("tcp/127.0.0.1:7447").expect("valid");
+        let anonymous = Identity::default();
+        let c = client_config("tcp/127.0.0.1:7447", &anonymous).expect("valid");
         assert_eq!(c.get_json("mode").expect("mode"), "\"client\"");
         assert_eq!(
             c.get_json("scouting/multicast/enabled").expect("multicast"),
             "false"
         );
-        assert!(client_config("nonsense").is_err());
+        assert!(client_config("nonsense", &anonymous).is_err());
+        let alice = Identity {
+            user: Some("alice".into()),
+            token: Some("tok".into()),
+        };
+        let c = client_config("tcp/127.0.0.1:7447", &alice).expect("valid");
+        assert_eq!(
+            c.get_json("transport/auth/usrpwd/user").expect("user"),
+            "\"alice\""
+        );
+        assert_eq!(alice.tenant(), "alice");
+        assert_eq!(anonymous.tenant(), PUBLIC_TENANT);
     }
 }

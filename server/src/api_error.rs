@@ -15,7 +15,8 @@ pub struct ApiError {
 }
 
 impl ApiError {
-    fn new(status: u16, code: &'static str, message: impl Into<String>) -> Self {
+    /// An error of any status (prefer the named constructors).
+    pub fn new(status: u16, code: &'static str, message: impl Into<String>) -> Self {
         Self {
             status,
             code,
@@ -41,6 +42,21 @@ impl ApiError {
     /// 404: no such session (or it belongs to another token), no such result.
     pub fn not_found(message: impl Into<String>) -> Self {
         Self::new(404, "not_found", message)
+    }
+
+    /// 408: the request did not arrive in time (`http.body_timeout_s`).
+    pub fn request_timeout(message: impl Into<String>) -> Self {
+        Self::new(408, "request_timeout", message)
+    }
+
+    /// 410: the session existed but its data expired (`retention.finished_ttl_s`).
+    pub fn gone(message: impl Into<String>) -> Self {
+        Self::new(410, "gone", message)
+    }
+
+    /// 429: the caller's quota (`[quotas]`) is used up; others are not affected.
+    pub fn quota(message: impl Into<String>) -> Self {
+        Self::new(429, "quota_exceeded", message)
     }
 
     /// 409: the request does not fit the resource's state (frames after end of stream, ...).
@@ -73,8 +89,8 @@ impl ApiError {
         use relfusion_proto::v1::ErrorCode;
         match self.status {
             401 => ErrorCode::Unauthenticated,
-            404 => ErrorCode::NotFound,
-            503 => ErrorCode::ResourceExhausted,
+            404 | 410 => ErrorCode::NotFound,
+            429 | 503 => ErrorCode::ResourceExhausted,
             500..=599 => ErrorCode::Internal,
             _ => ErrorCode::InvalidArgument,
         }

@@ -111,6 +111,16 @@ impl GpuPool {
         self.count
     }
 
+    /// Worker threads still running (fewer than [`Self::workers`] means one died: health).
+    pub fn alive_workers(&self) -> usize {
+        self.workers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .filter(|h| !h.is_finished())
+            .count()
+    }
+
     /// Jobs waiting now (all clients).
     pub fn queued(&self) -> usize {
         self.shared.lock().queued

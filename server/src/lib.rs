@@ -12,6 +12,7 @@ pub mod convert;
 pub mod error;
 pub mod gpu_pool;
 pub mod http;
+pub mod memory;
 pub mod metrics;
 pub mod session;
 pub mod storage;
@@ -30,6 +31,8 @@ pub struct AppState {
     pub config: Config,
     pub sessions: Arc<session::SessionManager>,
     pub metrics: Arc<metrics::Metrics>,
+    /// Request bodies buffered at once ([`http::body`]).
+    pub body_budget: http::body::BodyBudget,
 }
 
 impl AppState {
@@ -38,6 +41,7 @@ impl AppState {
         let metrics = Arc::new(metrics::Metrics::new());
         let sessions = session::SessionManager::open(&config, metrics.clone())?;
         Ok(Self {
+            body_budget: http::body::BodyBudget::new(config.limits.max_buffered_body_mb),
             config,
             sessions,
             metrics,
@@ -62,43 +66,31 @@ pub async fn run(
     // Zenoh (when enabled) serves the same sessions; it closes after them so that their last
     // updates still go out.
     let zenoh = match state.config.zenoh.enabled {
-        true => Some(zenoh_api::start(&state.config.zenoh, state.sessions.clone()).await?),
+        true => Some(zenoh_api::start(&state.config, state.sessions.clone()).await?),
         false => None,
     };
+    let janitor = state.sessions.spawn_janitor();
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let server = axum::serve(listener, app(state.clone()))
-        .with_graceful_shutdown(async move {
+    let router = app(state.clone());
+    let limits = state.config.http.clone();
+    let mut server = tokio::spawn(async move {
+        http::serve::serve(listener, router, &limits, async move {
             let _ = stop_rx.await;
         })
-        .into_future();
-    let mut server = tokio::spawn(server);
-    tokio::select! {
-        () = shutdown => {}
-        result = &mut server => {
-            state.sessions.shutdown().await;
-            if let Some(zenoh) = zenoh {
-                zenoh.close().await;
-            }
-            return result
-                .map_err(|e| ServerError::Serve(std::io::Error::other(e)))?
-                .map_err(ServerError::Serve);
-        }
-    }
+        .await;
+    });
+    shutdown.await;
     tracing::info!("shutting down: no new connections; finishing sessions");
     let _ = stop_tx.send(());
+    janitor.abort();
     state.sessions.shutdown().await;
     if let Some(zenoh) = zenoh {
         zenoh.close().await;
     }
     let grace = std::time::Duration::from_secs(state.config.limits.shutdown_grace_s);
-    match tokio::time::timeout(grace, &mut server).await {
-        Ok(result) => result
-            .map_err(|e| ServerError::Serve(std::io::Error::other(e)))?
-            .map_err(ServerError::Serve),
-        Err(_) => {
-            tracing::warn!("open connections did not close within {grace:?}; closing them");
-            server.abort();
-            Ok(())
-        }
+    if tokio::time::timeout(grace, &mut server).await.is_err() {
+        tracing::warn!("open connections did not close within {grace:?}; closing them");
+        server.abort();
     }
+    Ok(())
 }

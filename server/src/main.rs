@@ -31,6 +31,17 @@ struct Args {
     /// Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable; enables Zenoh).
     #[arg(long)]
     zenoh_listen: Vec<String>,
+    /// Print a zenohd router configuration (JSON5) with this server's Zenoh protection (user
+    /// login, per-tenant access rules from the configured tokens) and exit; the router
+    /// listens on ENDPOINT and reads its users from --zenoh-users-file.
+    #[arg(long, value_name = "ENDPOINT")]
+    print_zenoh_router_config: Option<String>,
+    /// The users file the printed router configuration names (see --print-zenoh-users).
+    #[arg(long, default_value = "/etc/zenoh/users")]
+    zenoh_users_file: String,
+    /// Print the router's users file (`name:token` lines, and the node user) and exit.
+    #[arg(long)]
+    print_zenoh_users: bool,
 }
 
 /// Resolves on SIGTERM (container stop, `kill`) or Ctrl-C.
@@ -78,6 +89,24 @@ async fn main() -> anyhow::Result<()> {
         zenoh_listen: args.zenoh_listen,
     };
     let config = Config::resolve(args.config.as_deref(), |k| std::env::var(k).ok(), &flags)?;
+    if let Some(listen) = &args.print_zenoh_router_config {
+        println!(
+            "{}",
+            relfusion_server::zenoh_api::setup::router_config(
+                &config,
+                listen,
+                &args.zenoh_users_file
+            )
+        );
+        return Ok(());
+    }
+    if args.print_zenoh_users {
+        print!(
+            "{}",
+            relfusion_server::zenoh_api::setup::users_text(&config)
+        );
+        return Ok(());
+    }
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("binding {}", config.listen))?;

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::process::Command;
 use std::sync::{Mutex, OnceLock};
 
+pub mod attacks;
 pub mod server;
 pub use server::{Relfusiond, synth_sequence};
 

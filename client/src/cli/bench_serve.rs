@@ -269,9 +269,9 @@ async fn zenoh_ingest(
         model: None,
         policy: FramePolicy::DropOldest,
     };
+    let identity = client.zenoh_identity();
     let rate =
-        relfusion_client::zenoh_transport::ingest_rate(endpoint, client.token(), &req, &items)
-            .await?;
+        relfusion_client::zenoh_transport::ingest_rate(endpoint, &identity, &req, &items).await?;
     Ok(serde_json::to_value(rate)?)
 }
 

@@ -14,6 +14,10 @@ pub struct ConnectArgs {
     /// Bearer token, when the server has auth on [default: $RELFUSION_TOKEN].
     #[arg(long)]
     pub token: Option<String>,
+    /// The token's name on the server, which Zenoh logs in with (`--zenoh` on a server with
+    /// tokens) [default: $RELFUSION_USER].
+    #[arg(long)]
+    pub user: Option<String>,
 }
 
 impl ConnectArgs {
@@ -25,13 +29,18 @@ impl ConnectArgs {
             .unwrap_or_else(|| DEFAULT_SERVER.to_string())
     }
 
-    /// A client for the server, with the flag's token or `RELFUSION_TOKEN`.
+    /// A client for the server, with the flag's token or `RELFUSION_TOKEN` (and user, or
+    /// `RELFUSION_USER`).
     pub fn client(&self) -> anyhow::Result<Client> {
         let token = self
             .token
             .clone()
             .or_else(|| std::env::var("RELFUSION_TOKEN").ok());
-        Ok(Client::new(&self.server(), token)?)
+        let user = self
+            .user
+            .clone()
+            .or_else(|| std::env::var("RELFUSION_USER").ok());
+        Ok(Client::new(&self.server(), token)?.with_user(user))
     }
 }
 

@@ -90,6 +90,7 @@ mod tests {
         };
         let tokens = &AuthConfig {
             tokens: vec![entry("alice", "tok-a"), entry("bob", "tok-b")],
+            required: true,
         };
         assert_eq!(
             authenticate(tokens, Some("tok-b")),

@@ -57,6 +57,7 @@ fn no_mesh(id: &str) -> ApiError {
         (status = 200, description = "TUM trajectory (world_from_camera)", body = String, content_type = "text/plain"),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]
@@ -78,6 +79,7 @@ pub async fn trajectory(
         (status = 200, description = "TUM keyframe trajectory", body = String, content_type = "text/plain"),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]
@@ -99,6 +101,7 @@ pub async fn keyframes(
         (status = 200, description = "PLY point cloud", body = Binary, content_type = "application/octet-stream"),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]

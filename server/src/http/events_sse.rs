@@ -58,14 +58,27 @@ fn event_stream(phase: Phase) -> impl Stream<Item = Result<Event, Infallible>> {
     })
 }
 
+/// One server-sent event as the OpenAPI document describes it (never built: the stream is
+/// written by axum's `Sse`).
+#[derive(Debug, utoipa::ToSchema)]
+#[allow(dead_code)]
+pub struct SseEvent {
+    /// The event's type: `pose`, `keyframe`, `keyframe_poses`, `keyframe_densified`, `mesh`,
+    /// `dropped`, `lagged`, `finished` or `failed`.
+    pub event: String,
+    /// The `SessionEvent` as JSON.
+    pub data: String,
+}
+
 /// Follows a session's events (server-sent events, JSON data).
 #[utoipa::path(
     get, path = "/v1/sessions/{id}/events", tag = "streams",
     params(("id" = String, Path, description = "Session id")),
     responses(
-        (status = 200, description = "text/event-stream of JSON SessionEvents; `event:` is the event's type; ends after `finished` or `failed`", content_type = "text/event-stream", body = String),
+        (status = 200, description = "text/event-stream of JSON SessionEvents; `event:` is the event's type; ends after `finished` or `failed`", content_type = "text/event-stream", body = SseEvent),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]
@@ -84,7 +97,9 @@ pub async fn events(
                 message: info.error.clone().unwrap_or_default(),
             }
         } else {
-            SessionEvent::Finished { info }
+            SessionEvent::Finished {
+                info: Box::new(info),
+            }
         };
         Phase::AlreadyEnded(Some(to_sse(&event)))
     } else {

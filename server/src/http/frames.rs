@@ -50,9 +50,12 @@ const IMAGE_TYPES: [&str; 3] = ["image/jpeg", "image/png", "application/octet-st
         (status = 400, description = "Corrupt image, size not matching the camera, bad timestamp or frame id", body = ErrorBody),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
         (status = 409, description = "The session's stream has ended", body = ErrorBody),
+        (status = 408, description = "The image did not arrive within http.body_timeout_s", body = ErrorBody),
         (status = 413, description = "Larger than limits.max_frame_bytes", body = ErrorBody),
         (status = 415, description = "Not an image content type", body = ErrorBody),
+        (status = 503, description = "Too many request bodies arriving at once (limits.max_buffered_body_mb); retry", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]

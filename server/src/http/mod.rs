@@ -7,11 +7,13 @@
 //! translate between HTTP and the session manager; no SLAM logic lives here.
 
 pub mod auth;
+pub mod body;
 pub mod downloads;
 pub mod error;
 pub mod events_sse;
 pub mod frames;
 pub mod openapi;
+pub mod serve;
 pub mod sessions;
 pub mod stream_ws;
 pub mod uploads;
@@ -28,9 +30,9 @@ use utoipa::ToSchema;
 
 use crate::AppState;
 
-/// Every route of the service, with its state. Buffered bodies (JSON, frames) are bounded by
-/// `limits.max_frame_bytes`; uploads are streamed and bounded by `limits.max_upload_bytes`
-/// as they arrive.
+/// Every route of the service, with its state. Buffered bodies (JSON, frames) are read whole,
+/// in bounded size and time, before a handler runs ([`body`]); uploads are streamed and
+/// bounded by `limits.max_upload_bytes` as they arrive.
 pub fn router(state: Arc<AppState>) -> Router {
     let body_limit = usize::try_from(state.config.limits.max_frame_bytes).unwrap_or(usize::MAX);
     Router::new()
@@ -63,14 +65,32 @@ pub fn router(state: Arc<AppState>) -> Router {
         .fallback(error::no_route)
         .method_not_allowed_fallback(error::wrong_method)
         .layer(DefaultBodyLimit::max(body_limit))
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            body::buffer_body,
+        ))
         .with_state(state)
 }
 
-/// Liveness: the process answers.
+/// Liveness: `ok` while the service can do its work; 503 with the reason when a part of it
+/// is broken (a GPU pool worker stopped, the store cannot be written, resident memory is over
+/// `limits.memory_budget_mb`). A failed session is not a broken service.
 #[utoipa::path(get, path = "/healthz", tag = "service",
-    responses((status = 200, description = "`ok`", body = String, content_type = "text/plain")))]
-pub async fn healthz() -> &'static str {
-    "ok"
+    responses(
+        (status = 200, description = "`ok`", body = String, content_type = "text/plain"),
+        (status = 503, description = "What is broken", body = String, content_type = "text/plain"),
+    ))]
+pub async fn healthz(State(state): State<Arc<AppState>>) -> Response {
+    let sessions = state.sessions.clone();
+    match tokio::task::spawn_blocking(move || sessions.health()).await {
+        Ok(Ok(())) => "ok".into_response(),
+        Ok(Err(reason)) => (StatusCode::SERVICE_UNAVAILABLE, reason).into_response(),
+        Err(e) => (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("the health check failed: {e}"),
+        )
+            .into_response(),
+    }
 }
 
 /// Readiness: 200 while new sessions are accepted, 503 while shutting down.

@@ -55,6 +55,7 @@ use crate::session::{CameraJson, CreateSession, FramePolicy, SessionInfo};
         ErrorDetail,
         Version,
         Binary,
+        super::events_sse::SseEvent,
     )),
     modifiers(&BearerAuth),
     tags(

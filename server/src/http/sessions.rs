@@ -51,9 +51,13 @@ pub(super) fn created(info: SessionInfo) -> Response {
     request_body = CreateSession,
     responses(
         (status = 201, description = "Session created", body = CreatedSession),
-        (status = 400, description = "Invalid camera, config or model", body = ErrorBody),
+        (status = 400, description = "Invalid camera, config or model; a camera too large for limits.max_image_pixels or the session's memory share", body = ErrorBody),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
-        (status = 503, description = "At capacity (max_sessions)", body = ErrorBody),
+        (status = 408, description = "The body did not arrive within http.body_timeout_s", body = ErrorBody),
+        (status = 413, description = "Body larger than limits.max_frame_bytes", body = ErrorBody),
+        (status = 415, description = "Not a JSON body", body = ErrorBody),
+        (status = 429, description = "The token's quota (quotas.max_active_sessions, max_stored_sessions, max_stored_gb) is used up", body = ErrorBody),
+        (status = 503, description = "At capacity (limits.max_sessions), or too many request bodies arriving", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]
@@ -92,6 +96,7 @@ pub async fn list_sessions(
         (status = 200, description = "The session", body = SessionInfo),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]
@@ -111,6 +116,7 @@ pub async fn get_session(
         (status = 204, description = "Deleted"),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]
@@ -132,6 +138,7 @@ pub async fn delete_session(
         (status = 202, description = "Finishing; the body is the session as of now", body = SessionInfo),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]

@@ -51,6 +51,7 @@ const REPLY_QUEUE: usize = 16;
         (status = 400, description = "Not a WebSocket upgrade request", body = ErrorBody),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]

@@ -1,10 +1,13 @@
 //! `POST /v1/uploads`: a whole TUM-layout dataset as one `.tar` or `.zip` stream.
 //!
-//! The body is streamed to a temporary file inside the data directory (never held in memory,
-//! counted against `limits.max_upload_bytes` as it arrives), then handed to the session
-//! manager, which extracts it safely, stores it durably and only then returns: the 201 is the
-//! promise that the upload survives a crash. Processing follows on the worker pool; progress
-//! is in `GET /v1/sessions/{id}`.
+//! Admission comes first: before a byte of the body is read, the upload reserves its place
+//! in the upload queue and in its owner's quotas ([`crate::session::admission`]), so that
+//! uploads racing for the last place cannot both be written. The body is then streamed to a
+//! temporary file inside the data directory (never held in memory, counted against
+//! `limits.max_upload_bytes` as it arrives, aborted when no byte arrives for
+//! `http.body_timeout_s`), and handed to the session manager, which extracts it safely,
+//! stores it durably and only then returns: the 201 is the promise that the upload survives a
+//! crash. Processing follows on the worker pool; progress is in `GET /v1/sessions/{id}`.
 
 use std::sync::Arc;
 
@@ -110,8 +113,10 @@ fn disk_error(e: std::io::Error) -> ApiError {
         (status = 201, description = "Stored durably; processing is queued", body = CreatedSession),
         (status = 400, description = "Unknown format, truncated or invalid archive, unsafe paths (../, absolute, links), not a TUM layout, no camera", body = ErrorBody),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
-        (status = 413, description = "Larger than limits.max_upload_bytes", body = ErrorBody),
-        (status = 503, description = "At capacity (max_sessions)", body = ErrorBody),
+        (status = 408, description = "No byte arrived for http.body_timeout_s", body = ErrorBody),
+        (status = 413, description = "Larger than limits.max_upload_bytes, more entries than limits.max_upload_entries, or extracting to more than the limits allow", body = ErrorBody),
+        (status = 429, description = "The token's quotas (uploads in flight, sessions, bytes stored) are used up", body = ErrorBody),
+        (status = 503, description = "The upload queue is full (limits.max_queued_uploads)", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]
@@ -138,6 +143,8 @@ pub async fn upload(
     }
     let camera = params.camera()?;
     let config = params.config()?;
+    // Reserved before the body is read; given back on every error path (dropped).
+    let ticket = state.sessions.reserve_upload(&owner, declared)?;
     let mut kind = match &params.format {
         Some(name) => Some(name.parse::<ArchiveKind>()?),
         None => headers
@@ -162,7 +169,18 @@ pub async fn upload(
     let mut head = Vec::with_capacity(512);
     let mut received: u64 = 0;
     let mut chunks = body.into_data_stream();
-    while let Some(chunk) = chunks.next().await {
+    let idle = std::time::Duration::from_secs(state.config.http.body_timeout_s);
+    loop {
+        let Ok(next) = tokio::time::timeout(idle, chunks.next()).await else {
+            return Err(ApiError::request_timeout(format!(
+                "no byte of the upload arrived for {} s (http.body_timeout_s) after {received} \
+                 bytes",
+                idle.as_secs()
+            )));
+        };
+        let Some(chunk) = next else {
+            break;
+        };
         let chunk = chunk.map_err(|e| {
             ApiError::bad_request(format!(
                 "the upload was interrupted after {received} bytes: {e}"
@@ -195,7 +213,7 @@ pub async fn upload(
     })?;
     let session = state
         .sessions
-        .create_upload(temp.path(), kind, camera, config, &owner)
+        .create_upload(ticket, temp.path(), kind, camera, config)
         .await?;
     tracing::info!(session = session.id(), bytes = received, "upload stored");
     Ok(created(session.info()))

@@ -2,9 +2,8 @@
 //! against the session's camera before the pixels are decoded (a 100-megapixel PNG must not be
 //! decoded only to be refused), every failure a 400 that says what was wrong.
 
-use std::io::Cursor;
-
-use image::{ImageFormat, ImageReader};
+use image::ImageFormat;
+use relfusion_slam::dataset::tum::{SizedDecodeError, decode_sized};
 
 use crate::ApiError;
 
@@ -28,31 +27,28 @@ pub fn sniff(bytes: &[u8]) -> Result<ImageFormat, ApiError> {
     }
 }
 
-/// Decodes `bytes` into RGB, requiring `width`×`height`.
+/// Decodes `bytes` into RGB, requiring `width`×`height` (checked from the header before any
+/// pixel is decoded; the decoder may allocate no more than that size needs).
 pub fn decode_frame(bytes: &[u8], width: u32, height: u32) -> Result<image::RgbImage, ApiError> {
-    let format = sniff(bytes)?;
-    let name = match format {
+    let name = match sniff(bytes)? {
         ImageFormat::Jpeg => "JPEG",
         _ => "PNG",
     };
-    let corrupt = |e: image::ImageError| ApiError::bad_request(format!("corrupt {name}: {e}"));
-    let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
-        .into_dimensions()
-        .map_err(corrupt)?;
-    if (w, h) != (width, height) {
-        return Err(ApiError::bad_request(format!(
+    match decode_sized(bytes, width, height) {
+        Ok(image) => Ok(image.into_rgb8()),
+        Err(SizedDecodeError::Size(w, h)) => Err(ApiError::bad_request(format!(
             "frame is {w}x{h} but the session camera is {width}x{height}"
-        )));
+        ))),
+        Err(SizedDecodeError::Image(e)) => {
+            Err(ApiError::bad_request(format!("corrupt {name}: {e}")))
+        }
     }
-    let image = ImageReader::with_format(Cursor::new(bytes), format)
-        .decode()
-        .map_err(corrupt)?;
-    Ok(image.into_rgb8())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::io::Cursor;
 
     fn encode(format: ImageFormat, w: u32, h: u32) -> Vec<u8> {
         let img = image::RgbImage::from_fn(w, h, |x, y| image::Rgb([x as u8, y as u8, 7]));

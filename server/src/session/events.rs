@@ -69,7 +69,7 @@ pub enum SessionEvent {
     /// Frames were dropped because the stream outran the pipeline (running total).
     Dropped { frames_dropped: u64 },
     /// The session finished; results are final.
-    Finished { info: SessionInfo },
+    Finished { info: Box<SessionInfo> },
     /// The session stopped with an error (or the server is shutting down).
     Failed { message: String },
 }

@@ -2,30 +2,30 @@
 //! read its state and results; its worker thread ([`super::worker`]) runs the pipeline and
 //! reports back through it.
 
-use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
-use relfusion_slam::export::{mesh_glb_bytes, mesh_ply_bytes};
-use relfusion_slam::fusion::{BlockIndex, BlockMesh, Mesh, MeshDelta};
-use relfusion_slam::geometry::{PinholeCamera, Sim3};
+use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 use tokio::sync::{broadcast, watch};
 
 use super::decode::decode_frame;
 use super::events::SessionEvent;
-use super::persist::{CounterSnapshot, SessionMeta, result_key};
+use super::persist::{CounterSnapshot, SessionMeta};
 use super::queue::FrameQueue;
 use super::types::{
     CameraJson, FrameData, FramePolicy, Owner, Progress, SessionId, SessionInfo, SessionKind,
     SessionState,
 };
 use crate::ApiError;
-use crate::convert::tum_text;
 use crate::metrics::{Metrics, Stage};
 use crate::storage::ObjectStore;
+
+/// Largest timestamp magnitude accepted, in seconds (year ~5000 as Unix time): trajectories
+/// print timestamps with six decimals, which `f64` keeps exactly up to about here.
+const MAX_TIMESTAMP: f64 = 1e11;
 
 /// A decoded frame waiting for the pipeline.
 #[derive(Debug)]
@@ -84,46 +84,8 @@ impl Counters {
 pub(crate) struct Status {
     pub state: SessionState,
     pub error: Option<String>,
-}
-
-/// The poses reported so far (the live trajectory, before the final optimisation).
-#[derive(Debug, Default)]
-struct Track {
-    /// Every processed frame: timestamp, pose at tracking time, lost.
-    frames: Vec<(f64, Sim3, bool)>,
-    /// Keyframe id → (timestamp, latest pose).
-    keyframes: BTreeMap<u64, (f64, Sim3)>,
-    /// The fused mesh as the subscribers have it: every delta applied.
-    mesh: MeshState,
-}
-
-/// The session's fused mesh, block by block (what `MeshUpdate`s describe).
-#[derive(Debug, Default)]
-pub(crate) struct MeshState {
-    pub blocks: BTreeMap<BlockIndex, BlockMesh>,
-    pub revision: u64,
-    pub block_size: f32,
-}
-
-impl MeshState {
-    /// Replaces the changed blocks and drops the removed ones.
-    fn apply(&mut self, delta: &MeshDelta) {
-        for b in &delta.removed {
-            self.blocks.remove(b);
-        }
-        for m in &delta.changed {
-            self.blocks.insert(m.index, m.clone());
-        }
-        self.revision = delta.revision;
-        self.block_size = delta.block_size;
-    }
-
-    fn triangles(&self) -> u64 {
-        self.blocks
-            .values()
-            .map(|m| m.triangle_count() as u64)
-            .sum()
-    }
+    /// Why it ended without failing, or what it waits for (`SessionInfo::notice`).
+    pub notice: Option<String>,
 }
 
 /// One session. Shared (`Arc`) by the manager, request handlers and its worker thread.
@@ -144,8 +106,18 @@ pub struct Session {
     pub(crate) counters: Counters,
     /// Live sessions: frames waiting for the pipeline.
     pub(crate) queue: Option<FrameQueue<QueuedFrame>>,
-    /// Serialises pushes so frames enter the queue in id order; holds the last frame id.
-    push_order: tokio::sync::Mutex<Option<u64>>,
+    /// Serialises pushes so frames enter the queue in id order; holds the last frame's id
+    /// and timestamp.
+    push_order: tokio::sync::Mutex<Option<(u64, f64)>>,
+    /// Largest step between consecutive timestamps (`limits.max_timestamp_step_s`).
+    max_timestamp_step: f64,
+    /// Most keyframes its map may hold (memory share, `limits.max_keyframes`).
+    pub(crate) max_keyframes: usize,
+    /// Bytes of its extracted upload and of its last saved results.
+    upload_bytes: AtomicU64,
+    results_bytes: AtomicU64,
+    /// When it ended (seconds since the epoch; 0 while it runs).
+    ended_unix: AtomicU64,
     ended: AtomicBool,
     /// Deleted: the worker stops and discards everything.
     pub(crate) cancelled: AtomicBool,
@@ -155,7 +127,7 @@ pub struct Session {
     pub(crate) holds_slot: AtomicBool,
     status: watch::Sender<Status>,
     events: broadcast::Sender<SessionEvent>,
-    track: Mutex<Track>,
+    pub(super) track: Mutex<super::track::Track>,
     pub(crate) store: Arc<dyn ObjectStore>,
     pub(crate) metrics: Arc<Metrics>,
     max_frame_bytes: u64,
@@ -186,6 +158,8 @@ pub(crate) struct SessionSpec {
     pub frame_queue: usize,
     pub event_buffer: usize,
     pub max_frame_bytes: u64,
+    pub max_timestamp_step: f64,
+    pub max_keyframes: usize,
 }
 
 impl Session {
@@ -202,6 +176,7 @@ impl Session {
         let (status, _) = watch::channel(Status {
             state: meta.state,
             error: meta.error.clone(),
+            notice: meta.notice.clone(),
         });
         Self {
             id: meta.id,
@@ -218,13 +193,18 @@ impl Session {
             counters: Counters::restore(&meta.counters),
             queue,
             push_order: tokio::sync::Mutex::new(None),
+            max_timestamp_step: spec.max_timestamp_step,
+            max_keyframes: spec.max_keyframes,
+            upload_bytes: meta.upload_bytes.into(),
+            results_bytes: meta.results_bytes.into(),
+            ended_unix: meta.ended_unix.unwrap_or(0).into(),
             ended: AtomicBool::new(meta.state.is_terminal()),
             cancelled: AtomicBool::new(false),
             stop: AtomicBool::new(false),
             holds_slot: AtomicBool::new(false),
             status,
             events,
-            track: Mutex::new(Track::default()),
+            track: Mutex::new(Default::default()),
             store,
             metrics,
             max_frame_bytes: spec.max_frame_bytes,
@@ -284,7 +264,19 @@ impl Session {
             camera: self.camera_json.clone(),
             model: self.model.clone(),
             error: status.error,
+            notice: status.notice,
+            max_keyframes: Some(self.max_keyframes as u64),
         }
+    }
+
+    /// Bytes its upload and results take on disk.
+    pub fn disk_bytes(&self) -> u64 {
+        self.upload_bytes.load(Ordering::Relaxed) + self.results_bytes.load(Ordering::Relaxed)
+    }
+
+    /// When it finished or failed (seconds since the epoch), if it has.
+    pub fn ended_unix(&self) -> Option<u64> {
+        Some(self.ended_unix.load(Ordering::Relaxed)).filter(|&t| t > 0)
     }
 
     /// [`Session::push_frame`] for a protobuf `Frame` (WebSocket, Zenoh): the frame may
@@ -364,21 +356,38 @@ impl Session {
                 self.max_frame_bytes
             )));
         }
-        if !frame.timestamp.is_finite() {
-            return Err(ApiError::bad_request("timestamp must be a finite number"));
+        if !(frame.timestamp.is_finite() && frame.timestamp.abs() <= MAX_TIMESTAMP) {
+            return Err(ApiError::bad_request(format!(
+                "timestamp must be a finite number of seconds within ±{MAX_TIMESTAMP:e}, got {}",
+                frame.timestamp
+            )));
         }
         let mut last = self.push_order.lock().await;
         let frame_id = match (frame.frame_id, *last) {
-            (Some(id), Some(prev)) if id <= prev => {
+            (Some(id), Some((prev, _))) if id <= prev => {
                 return Err(ApiError::bad_request(format!(
                     "frame_id {id} is not greater than the previous frame_id {prev}; \
                      frame ids must strictly increase"
                 )));
             }
             (Some(id), _) => id,
-            (None, Some(prev)) => prev + 1,
+            (None, Some((prev, _))) => prev.checked_add(1).ok_or_else(|| {
+                ApiError::bad_request(format!(
+                    "frame ids are used up: the previous frame_id is {prev}; open a new session"
+                ))
+            })?,
             (None, None) => 0,
         };
+        if let Some((_, prev_t)) = *last {
+            let step = frame.timestamp - prev_t;
+            if !(step > 0.0 && step <= self.max_timestamp_step) {
+                return Err(ApiError::bad_request(format!(
+                    "timestamp {} follows {prev_t}: timestamps must increase, by at most {} s \
+                     per frame (limits.max_timestamp_step_s)",
+                    frame.timestamp, self.max_timestamp_step
+                )));
+            }
+        }
         let start = Instant::now();
         let (w, h) = (self.camera.width, self.camera.height);
         let bytes = frame.bytes;
@@ -416,7 +425,7 @@ impl Session {
                 self.metrics.frame_queue_depth.inc();
             }
         }
-        *last = Some(frame_id);
+        *last = Some((frame_id, frame.timestamp));
         self.counters.received.fetch_add(1, Ordering::Relaxed);
         self.metrics.frames_received.inc();
         Ok(frame_id)
@@ -480,70 +489,6 @@ impl Session {
         self.info()
     }
 
-    /// The trajectory in TUM format: final (optimised) once finished, else the poses as
-    /// tracked so far.
-    pub fn trajectory_tum(&self) -> String {
-        if let Some(text) = self.stored_text("trajectory.txt") {
-            return text;
-        }
-        let track = lock(&self.track);
-        let poses: Vec<(f64, Sim3)> = track
-            .frames
-            .iter()
-            .filter(|(_, _, lost)| !lost)
-            .map(|(t, p, _)| (*t, *p))
-            .collect();
-        tum_text(&poses)
-    }
-
-    /// The keyframe poses in TUM format (final once finished).
-    pub fn keyframes_tum(&self) -> String {
-        if let Some(text) = self.stored_text("keyframes.txt") {
-            return text;
-        }
-        let track = lock(&self.track);
-        let poses: Vec<(f64, Sim3)> = track.keyframes.values().copied().collect();
-        tum_text(&poses)
-    }
-
-    /// The semi-dense point cloud (PLY): final once finished, else the last checkpoint
-    /// (an empty cloud before the first one).
-    pub fn pointcloud_ply(&self) -> Vec<u8> {
-        match self.store.get(&result_key(&self.id, "pointcloud.ply")) {
-            Ok(Some(bytes)) => bytes,
-            _ => crate::convert::points_ply(&[]),
-        }
-    }
-
-    /// The fused mesh as PLY: the stored result once finished, the current mesh while
-    /// running; `None` before the first mesh update.
-    pub fn mesh_ply(&self) -> Option<Vec<u8>> {
-        self.mesh_file("mesh.ply", mesh_ply_bytes)
-    }
-
-    /// The fused mesh as glTF binary (like [`Session::mesh_ply`]).
-    pub fn mesh_glb(&self) -> Option<Vec<u8>> {
-        self.mesh_file("mesh.glb", mesh_glb_bytes)
-    }
-
-    fn mesh_file(&self, name: &str, encode: fn(&Mesh) -> Vec<u8>) -> Option<Vec<u8>> {
-        if self.state().is_terminal()
-            && let Ok(Some(bytes)) = self.store.get(&result_key(&self.id, name))
-        {
-            return Some(bytes);
-        }
-        self.current_mesh().map(|m| encode(&m))
-    }
-
-    /// A stored result of a finished (or failed) session.
-    fn stored_text(&self, name: &str) -> Option<String> {
-        if !self.state().is_terminal() {
-            return None;
-        }
-        let bytes = self.store.get(&result_key(&self.id, name)).ok().flatten()?;
-        String::from_utf8(bytes).ok()
-    }
-
     // ---- used by the worker and the manager ----
 
     /// Sends an event to every subscriber (none listening is fine).
@@ -551,47 +496,15 @@ impl Session {
         let _ = self.events.send(event);
     }
 
-    pub(crate) fn record_pose(&self, timestamp: f64, pose: Sim3, lost: bool) {
-        lock(&self.track).frames.push((timestamp, pose, lost));
+    /// Sets the notice (why it ends, what it waits for), persisting the metadata.
+    pub(crate) fn set_notice(&self, notice: Option<String>) {
+        self.status.send_modify(|s| s.notice = notice);
+        self.persist_meta();
     }
 
-    pub(crate) fn record_keyframe(&self, id: u64, timestamp: f64, pose: Sim3) {
-        lock(&self.track).keyframes.insert(id, (timestamp, pose));
-    }
-
-    pub(crate) fn apply_mesh_delta(&self, delta: &MeshDelta) {
-        let mut track = lock(&self.track);
-        track.mesh.apply(delta);
-        let c = &self.counters;
-        c.mesh_revision.store(delta.revision, Ordering::Relaxed);
-        c.mesh_triangles
-            .store(track.mesh.triangles(), Ordering::Relaxed);
-    }
-
-    /// The mesh blocks with their revision and block size (the map snapshot's mesh).
-    pub(crate) fn mesh_blocks(&self) -> (Vec<BlockMesh>, u64, f32) {
-        let track = lock(&self.track);
-        let m = &track.mesh;
-        (
-            m.blocks.values().cloned().collect(),
-            m.revision,
-            m.block_size,
-        )
-    }
-
-    /// The whole current mesh, welded (`None` before the first mesh update).
-    pub(crate) fn current_mesh(&self) -> Option<Mesh> {
-        let track = lock(&self.track);
-        (!track.mesh.blocks.is_empty()).then(|| Mesh::from_blocks(track.mesh.blocks.values()))
-    }
-
-    pub(crate) fn update_keyframe_poses(&self, poses: &[(usize, Sim3)]) {
-        let mut track = lock(&self.track);
-        for (id, pose) in poses {
-            if let Some(entry) = track.keyframes.get_mut(&(*id as u64)) {
-                entry.1 = *pose;
-            }
-        }
+    /// Records the bytes its saved results take on disk.
+    pub(crate) fn set_results_bytes(&self, bytes: u64) {
+        self.results_bytes.store(bytes, Ordering::Relaxed);
     }
 
     /// Changes the state (and error), persisting the metadata.
@@ -608,6 +521,10 @@ impl Session {
     /// that subscribes afterwards finds the results, and a subscriber sees the last event
     /// before anyone is told the session is over.
     pub(crate) fn conclude(&self, state: SessionState, error: Option<String>) {
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(1, |d| d.as_secs().max(1));
+        self.ended_unix.store(now, Ordering::Relaxed);
         self.status.send_if_modified(|s| {
             s.state = state;
             s.error = error.clone();
@@ -616,7 +533,9 @@ impl Session {
         self.persist_meta();
         let event = match (state, error) {
             (SessionState::Failed, Some(message)) => SessionEvent::Failed { message },
-            _ => SessionEvent::Finished { info: self.info() },
+            _ => SessionEvent::Finished {
+                info: Box::new(self.info()),
+            },
         };
         self.emit(event);
         self.status.send_modify(|_| {});
@@ -640,6 +559,10 @@ impl Session {
             dataset: self.dataset.clone(),
             total_frames: self.total_frames,
             counters: self.counters.snapshot(),
+            ended_unix: self.ended_unix(),
+            notice: status.notice,
+            upload_bytes: self.upload_bytes.load(Ordering::Relaxed),
+            results_bytes: self.results_bytes.load(Ordering::Relaxed),
         }
     }
 

@@ -3,7 +3,9 @@
 //!
 //! - [`types`]: the JSON of sessions (create request, info, camera, policy).
 //! - [`handle`]: [`Session`], the shared handle request handlers use.
-//! - [`manager`]: [`SessionManager`]: admission, uploads, recovery, shutdown.
+//! - [`manager`]: [`SessionManager`]: sessions, uploads, recovery, retention, health.
+//! - [`admission`]: slots, the upload queue, per-owner quotas, upload tickets.
+//! - [`track`]: what a session has produced (poses, keyframes, mesh) and its result files.
 //! - [`overrides`]: the per-session pipeline config (JSON merged over defaults).
 //! - [`worker`]: the per-session pipeline thread.
 //! - [`queue`]: the bounded frame queue (drop-oldest or wait).
@@ -13,16 +15,16 @@
 //! - [`prior`]: the shared depth model, run on the GPU pool.
 //! - [`decode`]: JPEG/PNG frame decoding and checks.
 
+pub mod admission;
 pub mod decode;
 pub mod events;
 pub mod handle;
 pub mod manager;
-#[cfg(test)]
-mod manager_tests;
 pub mod overrides;
 pub mod persist;
 pub mod prior;
 pub mod queue;
+pub mod track;
 pub mod types;
 pub mod upload;
 mod worker;

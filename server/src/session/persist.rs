@@ -81,6 +81,17 @@ pub struct SessionMeta {
     pub total_frames: Option<u64>,
     #[serde(default)]
     pub counters: CounterSnapshot,
+    /// When it finished or failed (seconds since the epoch); retention counts from here.
+    #[serde(default)]
+    pub ended_unix: Option<u64>,
+    /// Why it ended, or what it waits for (`SessionInfo::notice`).
+    #[serde(default)]
+    pub notice: Option<String>,
+    /// Bytes of its extracted upload and of its results on disk (owner quotas).
+    #[serde(default)]
+    pub upload_bytes: u64,
+    #[serde(default)]
+    pub results_bytes: u64,
 }
 
 impl SessionMeta {
@@ -124,6 +135,8 @@ impl SessionMeta {
             camera: self.camera.clone(),
             model: self.model.clone(),
             error: self.error.clone(),
+            notice: self.notice.clone(),
+            max_keyframes: None,
         }
     }
 }
@@ -140,19 +153,24 @@ pub struct Results {
 }
 
 impl Results {
-    /// Writes every result file (each atomically).
-    pub fn save(&self, store: &dyn ObjectStore, id: &str) -> Result<(), StoreError> {
-        store.put(
-            &result_key(id, "trajectory.txt"),
-            self.trajectory.as_bytes(),
-        )?;
-        store.put(&result_key(id, "keyframes.txt"), self.keyframes.as_bytes())?;
-        store.put(&result_key(id, "pointcloud.ply"), &self.pointcloud)?;
-        if let Some((ply, glb)) = &self.mesh {
-            store.put(&result_key(id, "mesh.ply"), ply)?;
-            store.put(&result_key(id, "mesh.glb"), glb)?;
-        }
+    /// Writes every result file (each atomically); returns the bytes they take.
+    pub fn save(&self, store: &dyn ObjectStore, id: &str) -> Result<u64, StoreError> {
         let summary = serde_json::to_vec_pretty(&self.summary).unwrap_or_default();
-        store.put(&result_key(id, "summary.json"), &summary)
+        let mut files: Vec<(&str, &[u8])> = vec![
+            ("trajectory.txt", self.trajectory.as_bytes()),
+            ("keyframes.txt", self.keyframes.as_bytes()),
+            ("pointcloud.ply", &self.pointcloud),
+        ];
+        if let Some((ply, glb)) = &self.mesh {
+            files.push(("mesh.ply", ply));
+            files.push(("mesh.glb", glb));
+        }
+        files.push(("summary.json", &summary));
+        let mut bytes = 0;
+        for (name, data) in files {
+            store.put(&result_key(id, name), data)?;
+            bytes += data.len() as u64;
+        }
+        Ok(bytes)
     }
 }

@@ -15,6 +15,16 @@ pub type SessionId = String;
 #[derive(Clone, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct Owner(pub Option<String>);
 
+impl Owner {
+    /// The owner's Zenoh tenant (`relfusion/tenants/<tenant>/…`): its token name, or the
+    /// public tenant when auth is off.
+    pub fn tenant(&self) -> &str {
+        self.0
+            .as_deref()
+            .unwrap_or(relfusion_proto::zenoh_keys::PUBLIC_TENANT)
+    }
+}
+
 /// What a live session does when frames arrive faster than its pipeline processes them.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 #[serde(rename_all = "snake_case")]
@@ -31,20 +41,42 @@ pub enum FramePolicy {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CameraJson {
+    #[schema(exclusive_minimum = 0.0)]
     pub fx: f64,
+    #[schema(exclusive_minimum = 0.0)]
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
+    /// Image width in pixels; width × height is also bounded by the server's
+    /// `limits.max_image_pixels` (1920×1080 by default).
+    #[schema(minimum = 16, maximum = 8192)]
+    #[serde(deserialize_with = "integral_u32")]
     pub width: u32,
+    #[schema(minimum = 16, maximum = 8192)]
+    #[serde(deserialize_with = "integral_u32")]
     pub height: u32,
     /// OpenCV radial-tangential coefficients `[k1, k2, p1, p2, k3]`; absent for undistorted
     /// images.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(min_items = 5, max_items = 5)]
     pub distortion: Option<[f64; 5]>,
 }
 
+/// A `u32` from any JSON number with an integral value: `640.0` is the integer 640 in JSON
+/// Schema (the OpenAPI document's `integer`), so it is accepted as such.
+fn integral_u32<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u32, D::Error> {
+    let v = f64::deserialize(d)?;
+    if v.fract() == 0.0 && (0.0..=f64::from(u32::MAX)).contains(&v) {
+        Ok(v as u32)
+    } else {
+        Err(serde::de::Error::custom(format!(
+            "expected a non-negative integer, got {v}"
+        )))
+    }
+}
+
 /// Smallest and largest accepted image side: below 16 pixels the 5-level pyramid has no
-/// pixels left, above 8192 a frame would not fit the frame-size limit anyway.
+/// pixels left; the area is bounded separately (`limits.max_image_pixels`).
 pub const IMAGE_SIDE_RANGE: std::ops::RangeInclusive<u32> = 16..=8192;
 
 impl CameraJson {
@@ -92,7 +124,7 @@ pub struct CreateSession {
     /// Partial pipeline configuration (sections `pipeline`, `tracking`, `mapping`,
     /// `backend`); keys not given keep their defaults, unknown keys are rejected.
     #[serde(default)]
-    #[schema(value_type = Object)]
+    #[schema(value_type = Option<Object>)]
     pub config: serde_json::Value,
     /// Depth model: `"none"`, `"default"` (the server's model, if any) or the server model's
     /// name. Absent = `"default"`.
@@ -189,6 +221,14 @@ pub struct SessionInfo {
     /// Why the session failed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// Why a session ended without a failure (idle, map limit), or what a finishing session
+    /// waits for (disk space).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub notice: Option<String>,
+    /// Most keyframes the session's map may hold (`limits.max_keyframes`, or what its memory
+    /// share allows); it finishes when it reaches them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_keyframes: Option<u64>,
 }
 
 /// The dense layer's mode for a session's config and model (`SessionInfo::dense_mode`).

@@ -4,8 +4,12 @@
 //! An archive is untrusted input: every entry path must be relative and stay inside the
 //! destination (no `..`, no absolute path), links are refused (a symlink entry followed by a
 //! file "inside" it is the classic escape), and the number of entries and the extracted bytes
-//! are bounded (zip bombs). Every file is fsynced, then every folder, so that once the caller
-//! renames the folder into place and acknowledges the upload, it survives a crash.
+//! are bounded — in total and relative to the archive's own size (zip bombs) — while
+//! extracting; a zip's entry count is read from its end record before its central directory
+//! is parsed, so a million-entry zip is refused at once. Every file is fsynced, then every
+//! folder, so that once the caller renames the folder into place and acknowledges the upload,
+//! it survives a crash. The dataset inside is then read through
+//! [`relfusion_slam::dataset::SequenceFolder`]: every file its lists name must stay inside it.
 
 use std::collections::BTreeSet;
 use std::fs::File;
@@ -17,7 +21,8 @@ use relfusion_slam::geometry::PinholeCamera;
 use serde::{Deserialize, Serialize};
 
 use crate::ApiError;
-use crate::storage::sync_dir;
+use crate::config::Limits;
+use crate::storage::{create_dirs_durably, sync_dir};
 
 /// The archive format of an upload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -45,6 +50,31 @@ impl std::str::FromStr for ArchiveKind {
 pub struct ExtractLimits {
     pub max_bytes: u64,
     pub max_entries: usize,
+}
+
+impl ExtractLimits {
+    /// The bounds for `archive` under `limits`: at most `max_extracted_bytes`, and at most
+    /// `max_expansion_ratio` times the archive's size (at least that many MiB).
+    pub fn for_archive(limits: &Limits, archive: &Path) -> Result<Self, ApiError> {
+        let size = std::fs::metadata(archive).map_err(internal(archive))?.len();
+        let ratio = limits.max_expansion_ratio;
+        let by_ratio = (size.max(1 << 20) as f64 * ratio).min(u64::MAX as f64) as u64;
+        Ok(Self {
+            max_bytes: limits.max_extracted_bytes.min(by_ratio),
+            max_entries: limits.max_upload_entries,
+        })
+    }
+}
+
+/// A staged upload: where its dataset is, its camera, frames and bytes on disk.
+#[derive(Debug)]
+pub struct Staged {
+    /// The dataset folder relative to the upload folder.
+    pub dataset_rel: PathBuf,
+    pub camera: PinholeCamera,
+    pub frames: usize,
+    /// Bytes extracted.
+    pub bytes: u64,
 }
 
 /// The validated relative path of an archive entry: only normal components (`.` is skipped);
@@ -154,7 +184,8 @@ impl<'a> Extractor<'a> {
         })?;
         if n > budget {
             return Err(ApiError::payload_too_large(format!(
-                "the archive extracts to more than {} bytes (limits.max_extracted_bytes)",
+                "the archive extracts to more than {} bytes (limits.max_extracted_bytes, and \
+                 limits.max_expansion_ratio times its own size)",
                 self.limits.max_bytes
             )));
         }
@@ -179,7 +210,7 @@ pub fn extract(
     dest: &Path,
     limits: ExtractLimits,
 ) -> Result<u64, ApiError> {
-    std::fs::create_dir_all(dest).map_err(internal(dest))?;
+    create_dirs_durably(dest).map_err(|e| ApiError::internal(e.to_string()))?;
     let mut ex = Extractor::new(dest, limits);
     match kind {
         ArchiveKind::Tar => extract_tar(archive, &mut ex)?,
@@ -222,7 +253,14 @@ fn extract_tar(archive: &Path, ex: &mut Extractor<'_>) -> Result<(), ApiError> {
 }
 
 fn extract_zip(archive: &Path, ex: &mut Extractor<'_>) -> Result<(), ApiError> {
-    let file = File::open(archive).map_err(internal(archive))?;
+    let mut file = File::open(archive).map_err(internal(archive))?;
+    let declared = zip_entry_count(&mut file)?;
+    if declared > ex.limits.max_entries as u64 {
+        return Err(ApiError::payload_too_large(format!(
+            "the archive has {declared} entries, more than {} (limits.max_upload_entries)",
+            ex.limits.max_entries
+        )));
+    }
     let bad = |e: zip::result::ZipError| ApiError::bad_request(format!("invalid zip archive: {e}"));
     let mut ar = zip::ZipArchive::new(BufReader::new(file)).map_err(bad)?;
     for i in 0..ar.len() {
@@ -248,6 +286,61 @@ fn extract_zip(archive: &Path, ex: &mut Extractor<'_>) -> Result<(), ApiError> {
         }
     }
     Ok(())
+}
+
+/// A 400 for a dataset the pipeline cannot read (its message names files as the dataset does).
+fn dataset_error(e: relfusion_slam::Error) -> ApiError {
+    match e {
+        relfusion_slam::Error::Dataset(message) => {
+            ApiError::bad_request(format!("uploaded dataset: {message}"))
+        }
+        other => ApiError::bad_request(format!("uploaded dataset: {other}")),
+    }
+}
+
+/// The entry count a zip's end-of-central-directory record declares (its zip64 record's when
+/// the classic one says 0xFFFF), read from the file's tail alone: the central directory is not
+/// parsed. A count that cannot fit the file (46 bytes per central entry) is a 400.
+pub fn zip_entry_count(file: &mut File) -> Result<u64, ApiError> {
+    use std::io::{Seek, SeekFrom};
+    const EOCD: [u8; 4] = [0x50, 0x4b, 0x05, 0x06];
+    const ZIP64_LOCATOR: [u8; 4] = [0x50, 0x4b, 0x06, 0x07];
+    const ZIP64_EOCD: [u8; 4] = [0x50, 0x4b, 0x06, 0x06];
+    let bad = |what: &str| ApiError::bad_request(format!("invalid zip archive: {what}"));
+    let io = |e: std::io::Error| ApiError::bad_request(format!("invalid zip archive: {e}"));
+    let len = file.seek(SeekFrom::End(0)).map_err(io)?;
+    let tail_len = len.min(22 + 65535 + 20);
+    let mut tail = vec![0u8; tail_len as usize];
+    file.seek(SeekFrom::Start(len - tail_len)).map_err(io)?;
+    file.read_exact(&mut tail).map_err(io)?;
+    let at = (0..tail.len().saturating_sub(21))
+        .rev()
+        .find(|&i| tail[i..i + 4] == EOCD)
+        .ok_or_else(|| bad("no end-of-central-directory record"))?;
+    let le16 = |b: &[u8]| u64::from(u16::from_le_bytes([b[0], b[1]]));
+    let mut count = le16(&tail[at + 10..at + 12]);
+    if count == 0xFFFF && at >= 20 && tail[at - 20..at - 16] == ZIP64_LOCATOR {
+        let mut off = [0u8; 8];
+        off.copy_from_slice(&tail[at - 12..at - 4]);
+        let offset = u64::from_le_bytes(off);
+        if offset.saturating_add(56) > len {
+            return Err(bad("zip64 record outside the file"));
+        }
+        let mut record = [0u8; 56];
+        file.seek(SeekFrom::Start(offset)).map_err(io)?;
+        file.read_exact(&mut record).map_err(io)?;
+        if record[..4] != ZIP64_EOCD {
+            return Err(bad("broken zip64 record"));
+        }
+        let mut n = [0u8; 8];
+        n.copy_from_slice(&record[32..40]);
+        count = u64::from_le_bytes(n);
+    }
+    if count.saturating_mul(46) > len {
+        return Err(bad("it declares more entries than it can hold"));
+    }
+    file.seek(SeekFrom::Start(0)).map_err(io)?;
+    Ok(count)
 }
 
 /// The dataset folder of an extracted upload: `dir` itself when it holds `rgb.txt`, else the
@@ -280,7 +373,6 @@ pub fn find_dataset_root(dir: &Path) -> Result<PathBuf, ApiError> {
 /// dataset folder, moves the tree to `final_dir` (durably), and checks the dataset where it
 /// will stay: `rgb.txt` parses, listed files exist, a camera resolves (`camera`, else
 /// `calibration.txt`, else a TUM preset from the folder name) and the first image has its size.
-/// Returns the dataset folder relative to `final_dir`, the camera and the frame count.
 pub fn stage_upload(
     archive: &Path,
     kind: ArchiveKind,
@@ -288,8 +380,9 @@ pub fn stage_upload(
     final_dir: &Path,
     limits: ExtractLimits,
     camera: Option<PinholeCamera>,
-) -> Result<(PathBuf, PinholeCamera, usize), ApiError> {
-    extract(archive, kind, staging, limits)?;
+    check_camera: &dyn Fn(&PinholeCamera) -> Result<(), ApiError>,
+) -> Result<Staged, ApiError> {
+    let bytes = extract(archive, kind, staging, limits)?;
     let dataset_rel = find_dataset_root(staging)?
         .strip_prefix(staging)
         .map(Path::to_path_buf)
@@ -300,14 +393,20 @@ pub fn stage_upload(
         sync_dir(parent).map_err(|e| ApiError::internal(e.to_string()))?;
     }
     let dir = final_dir.join(&dataset_rel);
-    let mut seq = TumSequence::open(&dir, camera)
-        .map_err(|e| ApiError::bad_request(format!("uploaded dataset: {e}")))?;
+    let mut seq = TumSequence::open(&dir, camera).map_err(dataset_error)?;
     if let Some(camera) = camera {
         seq.camera = camera;
     }
-    seq.load_rgb(0)
-        .map_err(|e| ApiError::bad_request(format!("uploaded dataset: {e}")))?;
-    Ok((dataset_rel, seq.camera, seq.len()))
+    // Before any image is decoded: the camera (from calibration.txt, the first image's
+    // header) may be larger than this server takes.
+    check_camera(&seq.camera)?;
+    seq.load_rgb(0).map_err(dataset_error)?;
+    Ok(Staged {
+        dataset_rel,
+        camera: seq.camera,
+        frames: seq.len(),
+        bytes,
+    })
 }
 
 #[cfg(test)]

@@ -5,10 +5,16 @@
 //! Tracking is CPU work, so each session gets a plain thread (not a tokio task: a 50 ms
 //! tracking step would stall the async runtime that serves `/healthz`). Accelerator work goes
 //! through the GPU pool ([`super::prior::PooledPrior`]).
+//!
+//! Bounds: a live session that receives fewer than `limits.min_frame_rate` frames per second
+//! over `limits.idle_timeout_s` ends as idle; a session whose map reaches its keyframe limit
+//! (its memory share) ends there, its results saved. Both say why in the session's notice.
+//! Results that cannot be stored (a full disk) are retried until they can be, or until the
+//! server shuts down (an upload then re-runs on restart): acknowledged work is not lost.
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dense::DepthPrior;
@@ -34,6 +40,7 @@ pub(crate) struct WorkerEnv {
     pub metrics: Arc<Metrics>,
     pub checkpoint_keyframes: usize,
     pub idle_timeout: Duration,
+    pub min_frame_rate: f64,
 }
 
 /// How a worker ended.
@@ -69,6 +76,7 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         last_stats: Stats::default(),
         since_checkpoint: 0,
         keyframe_frames: std::collections::HashMap::new(),
+        map_full: false,
     };
     let fed = match session.kind() {
         SessionKind::Live => runner.feed_live(),
@@ -84,8 +92,10 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
 /// Marks the session failed, saving what results there are.
 fn fail(session: &Session, runner: Option<&Runner<'_>>, message: String) -> Outcome {
     tracing::warn!(session = %session.id(), "session failed: {message}");
-    if let Some(runner) = runner {
-        runner.save_results(false);
+    if let Some(runner) = runner
+        && let Err(e) = runner.save_results(false)
+    {
+        tracing::error!(session = %session.id(), "saving results: {e}");
     }
     session.conclude(SessionState::Failed, Some(message));
     Outcome::Failed
@@ -99,6 +109,8 @@ struct Runner<'a> {
     since_checkpoint: usize,
     /// Client frame id and timestamp of each keyframe, for pose-graph updates.
     keyframe_frames: std::collections::HashMap<u64, (u64, f64)>,
+    /// The map reached the session's keyframe limit: no more frames go in.
+    map_full: bool,
 }
 
 impl Runner<'_> {
@@ -165,23 +177,25 @@ impl Runner<'_> {
         let Some(queue) = &self.session.queue else {
             return Err("live session without a frame queue".into());
         };
+        let window = self.env.idle_timeout;
+        let needed = ((self.env.min_frame_rate * window.as_secs_f64()).ceil() as u64).max(1);
+        let mut window_start = Instant::now();
+        let mut in_window = 0u64;
         loop {
             if self.session.cancelled.load(Ordering::SeqCst) {
                 return Ok(Outcome::Cancelled);
             }
-            match queue.pop_timeout(self.env.idle_timeout) {
+            match queue.pop_timeout(window.min(Duration::from_millis(500))) {
                 Pop::Item(frame) => {
                     self.env.metrics.frame_queue_depth.dec();
+                    in_window += 1;
                     self.process(frame)?;
+                    if self.map_full {
+                        self.session.close_input();
+                        return Ok(Outcome::Finished);
+                    }
                 }
-                Pop::TimedOut => {
-                    tracing::info!(
-                        session = %self.session.id(),
-                        "no frame for {:?}: finishing (limits.idle_timeout_s)",
-                        self.env.idle_timeout
-                    );
-                    self.session.end_of_stream();
-                }
+                Pop::TimedOut => {}
                 Pop::Closed => {
                     return Ok(if self.session.cancelled.load(Ordering::SeqCst) {
                         Outcome::Cancelled
@@ -189,6 +203,20 @@ impl Runner<'_> {
                         Outcome::Finished
                     });
                 }
+            }
+            if window_start.elapsed() >= window {
+                if in_window < needed && !self.session.has_ended() {
+                    let notice = format!(
+                        "ended as idle: {in_window} frames in the last {} s, fewer than the \
+                         {needed} that limits.min_frame_rate × limits.idle_timeout_s ask",
+                        window.as_secs()
+                    );
+                    tracing::info!(session = %self.session.id(), "{notice}");
+                    self.session.set_notice(Some(notice));
+                    self.session.end_of_stream();
+                }
+                window_start = Instant::now();
+                in_window = 0;
             }
         }
     }
@@ -225,8 +253,11 @@ impl Runner<'_> {
                 frame_id: i as u64,
                 timestamp: seq.frames[i].timestamp,
                 rgb,
-                received: std::time::Instant::now(),
+                received: Instant::now(),
             })?;
+            if self.map_full {
+                break;
+            }
         }
         self.session.set_state(SessionState::Finishing, None);
         Ok(Outcome::Finished)
@@ -234,6 +265,8 @@ impl Runner<'_> {
 
     /// One frame through the pipeline; its events go to the subscribers.
     fn process(&mut self, frame: QueuedFrame) -> Result<(), String> {
+        #[cfg(debug_assertions)]
+        fault::maybe_panic(frame.frame_id);
         let events = self
             .pipeline
             .push(FrameInput {
@@ -294,20 +327,33 @@ impl Runner<'_> {
                 }
             }
         }
+        let keyframes = s.counters.keyframes.load(Ordering::Relaxed);
+        if keyframes >= s.max_keyframes as u64 && !self.map_full {
+            self.map_full = true;
+            let notice = format!(
+                "ended at the map limit: {keyframes} keyframes, what this session's share of \
+                 the server's memory holds (limits.memory_budget_mb, limits.max_keyframes); \
+                 frames after {} were not processed",
+                frame.frame_id
+            );
+            tracing::info!(session = %s.id(), "{notice}");
+            s.set_notice(Some(notice));
+        }
         if self.since_checkpoint >= self.env.checkpoint_keyframes {
             self.since_checkpoint = 0;
-            self.save_results(false);
+            if let Err(e) = self.save_results(false) {
+                tracing::error!(session = %s.id(), "checkpoint: {e}");
+            }
             s.persist_meta();
         }
         Ok(())
     }
 
-    /// Writes the current results (best effort while running: a failed checkpoint is logged,
-    /// the session goes on).
-    fn save_results(&self, final_: bool) -> bool {
+    /// Writes the current results.
+    fn save_results(&self, final_: bool) -> Result<(), String> {
         let s = self.session;
         if s.cancelled.load(Ordering::SeqCst) {
-            return false;
+            return Err("the session was deleted".into());
         }
         let stats = self.pipeline.stats();
         let results = Results {
@@ -333,12 +379,47 @@ impl Runner<'_> {
                 "mesh_revision": stats.mesh_revision,
             }),
         };
-        match results.save(s.store.as_ref(), s.id()) {
-            Ok(()) => true,
-            Err(e) => {
-                tracing::error!(session = %s.id(), "saving results: {e}");
-                false
+        let bytes = results
+            .save(s.store.as_ref(), s.id())
+            .map_err(|e| e.to_string())?;
+        s.set_results_bytes(bytes);
+        Ok(())
+    }
+
+    /// Saves the final results, retrying (1 s, doubling to 30 s) while the store refuses them
+    /// (a full disk) until it takes them, the session is deleted, or the server shuts down.
+    fn save_final(&self) -> Result<(), Outcome> {
+        let s = self.session;
+        let mut delay = Duration::from_secs(1);
+        loop {
+            let error = match self.save_results(true) {
+                Ok(()) => return Ok(()),
+                Err(e) => e,
+            };
+            if s.cancelled.load(Ordering::SeqCst) {
+                return Err(Outcome::Cancelled);
             }
+            if s.stop.load(Ordering::SeqCst) {
+                // Shutdown: the upload re-runs on restart; a live session cannot.
+                return Err(match s.kind() {
+                    SessionKind::Upload => Outcome::Stopped,
+                    SessionKind::Live => fail(
+                        s,
+                        None,
+                        format!("the server shut down before the results could be stored: {error}"),
+                    ),
+                });
+            }
+            tracing::warn!(session = %s.id(), "storing the results failed, retrying in {delay:?}: {error}");
+            s.set_notice(Some(format!(
+                "waiting to store the results (retrying every {} s): {error}",
+                delay.as_secs()
+            )));
+            let until = Instant::now() + delay;
+            while Instant::now() < until && !s.stop.load(Ordering::SeqCst) {
+                std::thread::sleep(Duration::from_millis(100));
+            }
+            delay = (delay * 2).min(Duration::from_secs(30));
         }
     }
 
@@ -364,8 +445,11 @@ impl Runner<'_> {
             return Outcome::Cancelled;
         }
         let optimise_s = t0.elapsed().as_secs_f64();
-        if !self.save_results(true) {
-            return fail(s, None, "could not store the results".into());
+        if let Err(outcome) = self.save_final() {
+            return outcome;
+        }
+        if s.info().notice.is_some_and(|n| n.starts_with("waiting")) {
+            s.set_notice(None);
         }
         tracing::info!(
             session = %s.id(),
@@ -376,5 +460,24 @@ impl Runner<'_> {
         self.since_checkpoint = 0;
         s.conclude(SessionState::Finished, None);
         Outcome::Finished
+    }
+}
+
+/// Fault injection for the failure tests (debug builds only): `RELFUSIOND_FAULT_PANIC_AT_FRAME=N`
+/// makes a session's worker panic on its frame `N`, as a bug in the pipeline would.
+#[cfg(debug_assertions)]
+mod fault {
+    use std::sync::OnceLock;
+
+    pub fn maybe_panic(frame_id: u64) {
+        static AT: OnceLock<Option<u64>> = OnceLock::new();
+        let at = AT.get_or_init(|| {
+            std::env::var("RELFUSIOND_FAULT_PANIC_AT_FRAME")
+                .ok()
+                .and_then(|v| v.parse().ok())
+        });
+        if *at == Some(frame_id) {
+            panic!("fault injection: RELFUSIOND_FAULT_PANIC_AT_FRAME={frame_id}");
+        }
     }
 }

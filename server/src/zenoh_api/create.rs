@@ -1,6 +1,7 @@
-//! The `relfusion/sessions/create` queryable: a query whose payload is a protobuf
-//! `SessionConfig` (and whose attachment is the bearer token) creates a live session and puts
-//! it on Zenoh before the reply goes out, so the creator can publish frames at once.
+//! The `relfusion/tenants/<tenant>/create` queryables (one per tenant): a query whose payload
+//! is a protobuf `SessionConfig` (and whose attachment is the tenant's bearer token) creates a
+//! live session of that tenant and puts it on Zenoh before the reply goes out, so the creator
+//! can publish frames at once.
 //!
 //! The reply is a protobuf `CreateSessionReply`: a normal reply with `session_id` on success,
 //! an error reply with `error` set otherwise (invalid camera or config: INVALID_ARGUMENT,
@@ -12,7 +13,7 @@ use std::sync::Arc;
 
 use relfusion_proto::Message as _;
 use relfusion_proto::v1::{self, CreateSessionReply, SessionConfig};
-use relfusion_proto::zenoh_keys::CREATE;
+use relfusion_proto::zenoh_keys::create_key;
 use tokio::task::JoinHandle;
 use zenoh::query::Query;
 
@@ -21,25 +22,33 @@ use crate::convert::camera_json_from_proto;
 use crate::session::{CreateSession, FramePolicy};
 use crate::{ApiError, ServerError};
 
-/// Declares the queryable and serves it until shutdown.
-pub(crate) async fn serve(shared: Arc<Shared>) -> Result<JoinHandle<()>, ServerError> {
-    serve_queryable(shared, CREATE, true, |shared, query| async move {
-        if query.key_expr().as_str() == CREATE {
-            answer(&shared, &query).await;
+/// Declares `tenant`'s queryable and serves it until shutdown.
+pub(crate) async fn serve(
+    shared: Arc<Shared>,
+    tenant: &str,
+) -> Result<JoinHandle<()>, ServerError> {
+    let key = create_key(tenant);
+    let tenant = tenant.to_string();
+    serve_queryable(shared, key.clone(), true, move |shared, query| {
+        let (key, tenant) = (key.clone(), tenant.clone());
+        async move {
+            if query.key_expr().as_str() == key {
+                answer(&shared, &query, &key, &tenant).await;
+            }
         }
     })
     .await
 }
 
-async fn answer(shared: &Arc<Shared>, query: &Query) {
-    match create(shared, query).await {
+async fn answer(shared: &Arc<Shared>, query: &Query, key: &str, tenant: &str) {
+    match create(shared, query, tenant).await {
         Ok(session_id) => {
             let reply = CreateSessionReply {
                 session_id,
                 error: None,
             };
-            if let Err(e) = query.reply(CREATE, reply.encode_to_vec()).await {
-                tracing::warn!("replying to {CREATE}: {e}");
+            if let Err(e) = query.reply(key, reply.encode_to_vec()).await {
+                tracing::warn!("replying to {key}: {e}");
             }
         }
         Err(error) => {
@@ -54,14 +63,14 @@ async fn answer(shared: &Arc<Shared>, query: &Query) {
                 error: Some(proto_error(&error)),
             };
             if let Err(e) = query.reply_err(reply.encode_to_vec()).await {
-                tracing::warn!("replying to {CREATE}: {e}");
+                tracing::warn!("replying to {key}: {e}");
             }
         }
     }
 }
 
-async fn create(shared: &Arc<Shared>, query: &Query) -> Result<String, ApiError> {
-    let owner = shared.owner(query.attachment())?;
+async fn create(shared: &Arc<Shared>, query: &Query, tenant: &str) -> Result<String, ApiError> {
+    let owner = shared.owner(query.attachment(), tenant)?;
     let payload = query.payload().map(|p| p.to_bytes()).unwrap_or_default();
     let config = SessionConfig::decode(payload.as_ref()).map_err(|e| {
         bump(&shared.stats.malformed_messages);

@@ -1,7 +1,8 @@
-//! One session on Zenoh: its frames come in on `relfusion/sessions/<id>/frames` (then `end`),
-//! its updates go out on `poses` and, at the end, `finished`.
+//! One session on Zenoh: its frames come in on
+//! `relfusion/tenants/<tenant>/sessions/<id>/frames` (then `end`), its updates go out on
+//! `poses` and `mesh` and, at the end, `finished`.
 //!
-//! Frames and the end marker are received by ONE subscriber of `relfusion/sessions/<id>/*`
+//! Frames and the end marker are received by ONE subscriber of the session's keys (`…/<id>/*`)
 //! (remote publications only, so the server's own updates are not looped back): Zenoh keeps
 //! the order of one publisher's messages, so an `end` can never overtake the last frames.
 //! The subscriber's channel holds `limits.frame_queue` messages; when it is full, Zenoh's
@@ -43,25 +44,26 @@ pub(crate) async fn attach(
     session: Arc<Session>,
 ) -> Result<Vec<JoinHandle<()>>, ApiError> {
     let id = session.id().to_string();
+    let tenant = session.owner().tenant().to_string();
     let zerr = |what: &str, e: zenoh::Error| ApiError::internal(format!("Zenoh {what}: {e}"));
     // Subscribe to events before the first frame can arrive: every pose gets published.
     let events = session.subscribe();
     let poses = shared
         .zenoh
-        .declare_publisher(session_key(&id, POSES))
+        .declare_publisher(session_key(&tenant, &id, POSES))
         .congestion_control(CongestionControl::Block)
         .await
         .map_err(|e| zerr("poses publisher", e))?;
     let mesh = shared
         .zenoh
-        .declare_publisher(session_key(&id, MESH))
+        .declare_publisher(session_key(&tenant, &id, MESH))
         .congestion_control(CongestionControl::Block)
         .await
         .map_err(|e| zerr("mesh publisher", e))?;
     let capacity = shared.sessions.config().limits.frame_queue.max(1);
     let subscriber = shared
         .zenoh
-        .declare_subscriber(session_wildcard(&id))
+        .declare_subscriber(session_wildcard(&tenant, &id))
         .allowed_origin(Locality::Remote)
         .with(FifoChannel::new(capacity))
         .await
@@ -70,7 +72,7 @@ pub(crate) async fn attach(
     let ingest = {
         let shared = shared.clone();
         let session = session.clone();
-        let errors_key = session_key(&id, POSES);
+        let errors_key = session_key(&tenant, &id, POSES);
         tokio::spawn(async move {
             let mut shutdown = shared.shutdown.clone();
             let finished = session.wait_finished();
@@ -205,7 +207,10 @@ async fn publish_updates(
     let finished = finished_message(&info);
     if let Err(e) = shared
         .zenoh
-        .put(session_key(&id, FINISHED), finished.encode_to_vec())
+        .put(
+            session_key(session.owner().tenant(), &id, FINISHED),
+            finished.encode_to_vec(),
+        )
         .congestion_control(CongestionControl::Block)
         .await
     {

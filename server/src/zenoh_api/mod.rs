@@ -2,16 +2,20 @@
 //! client or subscriber reaches a session wherever it runs (see the key space in
 //! [`relfusion_proto::zenoh_keys`]).
 //!
-//! - [`setup`]: the Zenoh configuration from `[zenoh]` (mode, endpoints, scouting).
-//! - [`create`]: the `relfusion/sessions/create` queryable.
+//! - [`setup`]: the Zenoh configuration from `[zenoh]` and `[auth]` (mode, endpoints,
+//!   scouting; with tokens, user/password authentication and per-tenant access control).
+//! - [`create`]: the `relfusion/tenants/<tenant>/create` queryables.
 //! - [`link`]: one created session on Zenoh: its frames in, its updates out.
-//! - [`map`]: the `relfusion/sessions/*/map` queryable (the whole current map).
+//! - [`map`]: the `relfusion/tenants/<tenant>/sessions/*/map` queryables (the whole map).
 //! - [`status`]: `relfusion/nodes/<node>/status`, published every 2 s.
 //!
-//! Auth: when the server has tokens, the create and map queries carry the bearer token as
-//! their attachment (UTF-8, optionally prefixed `Bearer `); a token sees only its own sessions
-//! (another token's session is NOT_FOUND, so ids cannot be probed). Frames need no token: the
-//! session id (unguessable, handed out only to its creator) is the capability.
+//! Auth: when the server has tokens, Zenoh itself refuses peers without a token's
+//! credentials and confines each to its tenant's keys ([`setup`]): nothing of a session can
+//! be read or written over Zenoh without its owner's credentials. The create and map queries
+//! also carry the bearer token as their attachment (UTF-8, optionally prefixed `Bearer `),
+//! which must belong to the tenant the key names (defence in depth; another tenant's session
+//! is NOT_FOUND, so ids cannot be probed). Without tokens every session is in the public
+//! tenant, open to every peer, as HTTP is then.
 //!
 //! Nothing here does SLAM: frames go through [`Session::push_frame`] exactly like HTTP frames,
 //! so a Zenoh session gives the same result as any other.
@@ -33,7 +37,7 @@ use serde::Serialize;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
-use crate::config::ZenohConfig;
+use crate::config::Config;
 use crate::session::{Owner, Session, SessionManager};
 use crate::{ApiError, ServerError};
 
@@ -95,8 +99,13 @@ pub(crate) struct Shared {
 }
 
 impl Shared {
-    /// The owner a query's attachment authenticates (see the module docs).
-    pub fn owner(&self, attachment: Option<&zenoh::bytes::ZBytes>) -> Result<Owner, ApiError> {
+    /// The owner a query's attachment authenticates, which must be `tenant`'s (see the
+    /// module docs).
+    pub fn owner(
+        &self,
+        attachment: Option<&zenoh::bytes::ZBytes>,
+        tenant: &str,
+    ) -> Result<Owner, ApiError> {
         let token = match attachment {
             None => None,
             Some(bytes) => {
@@ -112,7 +121,14 @@ impl Shared {
                 (!token.is_empty()).then(|| token.to_string())
             }
         };
-        crate::http::auth::authenticate(&self.sessions.config().auth, token.as_deref())
+        let owner =
+            crate::http::auth::authenticate(&self.sessions.config().auth, token.as_deref())?;
+        if owner.tenant() != tenant {
+            return Err(ApiError::unauthorized(format!(
+                "this token does not belong to tenant {tenant:?}"
+            )));
+        }
+        Ok(owner)
     }
 
     /// Puts `session` on Zenoh (its frames subscriber and update publishers).
@@ -130,13 +146,12 @@ impl Shared {
     }
 }
 
-/// The protobuf `Error` for a refused request (401 has its own code on the wire).
 /// Declares the queryable on `key` and hands every query to `answer`, one after the other,
 /// until shutdown. `complete`: whether this node answers for the whole key (create) or only
 /// for the sessions it runs (map).
 pub(crate) async fn serve_queryable<F, Fut>(
     shared: Arc<Shared>,
-    key: &'static str,
+    key: String,
     complete: bool,
     answer: F,
 ) -> Result<JoinHandle<()>, ServerError>
@@ -146,7 +161,7 @@ where
 {
     let queryable = shared
         .zenoh
-        .declare_queryable(key)
+        .declare_queryable(key.clone())
         .complete(complete)
         .await
         .map_err(|e| ServerError::Startup(format!("declaring {key}: {e}")))?;
@@ -165,6 +180,7 @@ where
     }))
 }
 
+/// The protobuf `Error` for a refused request (401 has its own code on the wire).
 pub(crate) fn proto_error(error: &ApiError) -> v1::Error {
     let code = match error.status {
         401 => v1::ErrorCode::Unauthenticated,
@@ -193,13 +209,28 @@ pub struct ZenohHandle {
     tasks: Vec<JoinHandle<()>>,
 }
 
-/// Opens the Zenoh session from `config` and declares the create and map queryables and the
-/// node status publisher. Sessions created through Zenoh are served until [`ZenohHandle::close`].
+/// The tenants this node serves: one per token name, or the public tenant without tokens.
+fn tenants(config: &Config) -> Vec<String> {
+    let mut names: Vec<String> = config.auth.tokens.iter().map(|t| t.name.clone()).collect();
+    names.sort_unstable();
+    names.dedup();
+    if names.is_empty() {
+        names.push(relfusion_proto::zenoh_keys::PUBLIC_TENANT.to_string());
+    }
+    names
+}
+
+/// Opens the Zenoh session from `config` and declares each tenant's create and map
+/// queryables and the node status publisher. Sessions created through Zenoh are served until
+/// [`ZenohHandle::close`].
 pub async fn start(
-    config: &ZenohConfig,
+    config: &Config,
     sessions: Arc<SessionManager>,
 ) -> Result<ZenohHandle, ServerError> {
-    let zconfig = setup::zenoh_config(config)?;
+    // The user/password dictionary lives in the data dir's private tmp folder (emptied at
+    // every start) for as long as the Zenoh runtime may re-read it.
+    let users_file = sessions.temp_dir().join("zenoh-users");
+    let zconfig = setup::zenoh_config(config, &users_file)?;
     let zenoh = zenoh::open(zconfig)
         .await
         .map_err(|e| ServerError::Startup(format!("opening the Zenoh session: {e}")))?;
@@ -211,16 +242,18 @@ pub async fn start(
         shutdown: shutdown_rx,
         links: Mutex::default(),
     });
-    let tasks = vec![
-        create::serve(shared.clone()).await?,
-        map::serve(shared.clone()).await?,
-        status::serve(shared.clone(), config.node.clone()).await?,
-    ];
+    let mut tasks = vec![status::serve(shared.clone(), config.zenoh.node.clone()).await?];
+    for tenant in tenants(config) {
+        tasks.push(create::serve(shared.clone(), &tenant).await?);
+        tasks.push(map::serve(shared.clone(), &tenant).await?);
+    }
+    let z = &config.zenoh;
     tracing::info!(
-        mode = %config.mode,
-        listen = ?config.listen,
-        connect = ?config.connect,
-        node = %config.node,
+        mode = %z.mode,
+        listen = ?z.listen,
+        connect = ?z.connect,
+        node = %z.node,
+        auth = config.auth.enabled(),
         "Zenoh endpoints up"
     );
     Ok(ZenohHandle {

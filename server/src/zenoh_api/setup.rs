@@ -1,23 +1,43 @@
-//! The Zenoh configuration of the server from the `[zenoh]` section.
+//! The Zenoh configuration of the server from `[zenoh]` and `[auth]`.
 //!
 //! Everything not set here keeps Zenoh's defaults. Scouting (multicast discovery and gossip) is
 //! off unless `zenoh.scouting = true`: explicit endpoints are predictable, and multicast is
 //! often unavailable in containers and CI.
+//!
+//! With tokens configured (`[auth]`), Zenoh is closed the way HTTP is, with Zenoh's own means:
+//! - **authentication**: a peer or client must log in with user/password (Zenoh's `usrpwd`
+//!   transport authentication): the user is a token's name, the password the token. A peer
+//!   without credentials cannot connect.
+//! - **access control**: every other message is denied unless a rule allows it; a user may
+//!   publish, subscribe and query only below its own tenant prefix
+//!   (`relfusion/tenants/<name>/**`, [`relfusion_proto::zenoh_keys`]) and read the node
+//!   status. A wildcard subscription that reaches beyond the prefix (`relfusion/**`) is
+//!   refused, and publications of other tenants are never forwarded to it.
+//! - nodes (`zenoh.user`) may do everything below `relfusion/**`: they forward sessions.
+//!
+//! The same rules, printed by [`router_config`], protect a `zenohd` router that nodes and
+//! clients join in a cluster (deploy/zenoh).
+
+use std::path::Path;
+
+use relfusion_proto::zenoh_keys::{ROOT, is_valid_chunk, tenant_prefix};
+use serde_json::{Value, json};
 
 use crate::ServerError;
-use crate::config::ZenohConfig;
-use relfusion_proto::zenoh_keys::is_valid_chunk;
+use crate::config::Config;
 
-/// The `zenoh::Config` for `config`; a bad mode, endpoint or node name is a config error.
-pub fn zenoh_config(config: &ZenohConfig) -> Result<zenoh::Config, ServerError> {
+/// The `zenoh::Config` for the server. `users_file` is where the user/password dictionary is
+/// written when auth is on (a private file the caller keeps for the session's lifetime).
+pub fn zenoh_config(config: &Config, users_file: &Path) -> Result<zenoh::Config, ServerError> {
+    let z = &config.zenoh;
     let bad = |message: String| ServerError::Config {
         path: "[zenoh]".into(),
         message,
     };
-    if !is_valid_chunk(&config.node) {
+    if !is_valid_chunk(&z.node) {
         return Err(bad(format!(
             "zenoh.node {:?} must be one key chunk (no '/', '*', '$', '?', '#')",
-            config.node
+            z.node
         )));
     }
     let mut zconfig = zenoh::Config::default();
@@ -26,41 +46,190 @@ pub fn zenoh_config(config: &ZenohConfig) -> Result<zenoh::Config, ServerError> 
             .insert_json5(key, &value)
             .map_err(|e| bad(format!("zenoh {key} = {value}: {e}")))
     };
-    set("mode", json_string(&config.mode))?;
-    if !config.listen.is_empty() {
-        set("listen/endpoints", json_list(&config.listen))?;
+    set("mode", Value::from(z.mode.as_str()).to_string())?;
+    if !z.listen.is_empty() {
+        set("listen/endpoints", json!(z.listen).to_string())?;
     }
-    if !config.connect.is_empty() {
-        set("connect/endpoints", json_list(&config.connect))?;
+    if !z.connect.is_empty() {
+        set("connect/endpoints", json!(z.connect).to_string())?;
     }
-    set("scouting/multicast/enabled", config.scouting.to_string())?;
-    set("scouting/gossip/enabled", config.scouting.to_string())?;
+    set("scouting/multicast/enabled", z.scouting.to_string())?;
+    set("scouting/gossip/enabled", z.scouting.to_string())?;
+    if !z.user.is_empty() {
+        set(
+            "transport/auth/usrpwd/user",
+            Value::from(z.user.as_str()).to_string(),
+        )?;
+        set(
+            "transport/auth/usrpwd/password",
+            Value::from(z.password.as_str()).to_string(),
+        )?;
+    }
+    if config.auth.enabled() {
+        write_users_file(config, users_file)?;
+        set(
+            "transport/auth/usrpwd/dictionary_file",
+            Value::from(users_file.to_string_lossy().as_ref()).to_string(),
+        )?;
+        set("access_control", access_control(config).to_string())?;
+    }
     Ok(zconfig)
 }
 
-fn json_string(s: &str) -> String {
-    serde_json::Value::String(s.to_string()).to_string()
+/// The users dictionary: `user:password` lines, every token's name and token, and the node
+/// user.
+pub fn users_text(config: &Config) -> String {
+    let mut text = String::new();
+    for t in &config.auth.tokens {
+        text.push_str(&format!("{}:{}\n", t.name, t.token));
+    }
+    if !config.zenoh.user.is_empty() {
+        text.push_str(&format!(
+            "{}:{}\n",
+            config.zenoh.user, config.zenoh.password
+        ));
+    }
+    text
 }
 
-fn json_list(items: &[String]) -> String {
-    serde_json::Value::from(items.to_vec()).to_string()
+/// Writes [`users_text`] with mode 0600: it holds the tokens.
+fn write_users_file(config: &Config, path: &Path) -> Result<(), ServerError> {
+    let text = users_text(config);
+    let io = |e: std::io::Error| {
+        ServerError::Startup(format!(
+            "writing the Zenoh users file {}: {e}",
+            path.display()
+        ))
+    };
+    use std::io::Write as _;
+    use std::os::unix::fs::OpenOptionsExt as _;
+    let _ = std::fs::remove_file(path);
+    let mut file = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o600)
+        .open(path)
+        .map_err(io)?;
+    file.write_all(text.as_bytes()).map_err(io)
+}
+
+/// The access-control section (see the module docs): default deny, each token's user below
+/// its tenant prefix, nodes everywhere below `relfusion/**`.
+pub fn access_control(config: &Config) -> Value {
+    let mut rules = vec![
+        json!({
+            "id": "node-status-read",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["declare_subscriber"],
+            "key_exprs": [format!("{ROOT}/nodes/**")],
+        }),
+        json!({
+            "id": "node-status-deliver",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put"],
+            "key_exprs": [format!("{ROOT}/nodes/**")],
+        }),
+        json!({
+            "id": "nodes",
+            "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": ["put", "delete", "declare_subscriber", "query", "declare_queryable",
+                         "reply", "liveliness_token", "declare_liveliness_subscriber",
+                         "liveliness_query"],
+            "key_exprs": [format!("{ROOT}/**")],
+        }),
+    ];
+    let mut subjects = Vec::new();
+    let mut policies = Vec::new();
+    let mut names: Vec<&str> = config.auth.tokens.iter().map(|t| t.name.as_str()).collect();
+    names.sort_unstable();
+    names.dedup();
+    for name in names {
+        let prefix = format!("{}/**", tenant_prefix(name));
+        rules.push(json!({
+            "id": format!("tenant-{name}-in"),
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["put", "declare_subscriber", "query"],
+            "key_exprs": [prefix],
+        }));
+        rules.push(json!({
+            "id": format!("tenant-{name}-out"),
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put", "reply", "declare_subscriber", "declare_queryable"],
+            "key_exprs": [prefix],
+        }));
+        subjects.push(json!({ "id": format!("user-{name}"), "usernames": [name] }));
+        policies.push(json!({
+            "rules": [format!("tenant-{name}-in"), format!("tenant-{name}-out"),
+                      "node-status-read", "node-status-deliver"],
+            "subjects": [format!("user-{name}")],
+        }));
+    }
+    if !config.zenoh.user.is_empty() {
+        subjects.push(json!({ "id": "nodes", "usernames": [config.zenoh.user] }));
+        policies.push(json!({ "rules": ["nodes"], "subjects": ["nodes"] }));
+    }
+    json!({
+        "enabled": true,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    })
+}
+
+/// A `zenohd` configuration (JSON5) for a cluster router with this server's protection:
+/// listening on `listen`, user/password authentication from `users_file`, and the access
+/// rules of [`access_control`]. `relfusiond --print-zenoh-router-config` prints it.
+pub fn router_config(config: &Config, listen: &str, users_file: &str) -> String {
+    let mut router = json!({
+        "mode": "router",
+        "listen": { "endpoints": [listen] },
+        "scouting": { "multicast": { "enabled": false }, "gossip": { "enabled": true } },
+    });
+    if config.auth.enabled() {
+        router["transport"] = json!({ "auth": { "usrpwd": { "dictionary_file": users_file } } });
+        router["access_control"] = access_control(config);
+    }
+    serde_json::to_string_pretty(&router).unwrap_or_default()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::TokenEntry;
+
+    fn config(tokens: &[(&str, &str)]) -> Config {
+        let mut c = Config::default();
+        c.zenoh.enabled = true;
+        c.zenoh.mode = "peer".into();
+        c.zenoh.listen = vec!["tcp/127.0.0.1:7447".into()];
+        c.zenoh.connect = vec!["tcp/127.0.0.1:7448".into()];
+        c.zenoh.node = "node-1".into();
+        c.auth.tokens = tokens
+            .iter()
+            .map(|(n, t)| TokenEntry {
+                name: n.to_string(),
+                token: t.to_string(),
+            })
+            .collect();
+        c
+    }
+
+    fn users_file(tag: &str) -> std::path::PathBuf {
+        std::env::temp_dir().join(format!(
+            "relfusion-zenoh-users-{tag}-{}",
+            std::process::id()
+        ))
+    }
 
     #[test]
     fn endpoints_mode_and_scouting_reach_the_zenoh_config() {
-        let config = ZenohConfig {
-            enabled: true,
-            mode: "peer".into(),
-            listen: vec!["tcp/127.0.0.1:7447".into()],
-            connect: vec!["tcp/127.0.0.1:7448".into()],
-            scouting: false,
-            node: "node-1".into(),
-        };
-        let z = zenoh_config(&config).expect("valid");
+        let z = zenoh_config(&config(&[]), &users_file("open")).expect("valid");
         assert_eq!(z.get_json("mode").expect("mode"), "\"peer\"");
         assert!(
             z.get_json("listen/endpoints")
@@ -73,32 +242,47 @@ mod tests {
                 .contains("tcp/127.0.0.1:7448")
         );
         assert_eq!(
-            z.get_json("scouting/multicast/enabled").expect("multicast"),
+            z.get_json("scouting/multicast/enabled").expect("m"),
             "false"
         );
+        assert_eq!(z.get_json("access_control/enabled").expect("acl"), "false");
+    }
+
+    #[test]
+    fn tokens_turn_on_authentication_and_per_tenant_access_control() {
+        let path = users_file("auth");
+        let z = zenoh_config(&config(&[("alice", "a1"), ("bob", "b2")]), &path).expect("valid");
+        assert_eq!(z.get_json("access_control/enabled").expect("acl"), "true");
         assert_eq!(
-            z.get_json("scouting/gossip/enabled").expect("gossip"),
-            "false"
+            z.get_json("access_control/default_permission")
+                .expect("default"),
+            "\"deny\""
         );
+        let acl = z.get_json("access_control/rules").expect("rules");
+        assert!(
+            acl.contains("relfusion/tenants/alice/**") && acl.contains("relfusion/tenants/bob/**")
+        );
+        let users = std::fs::read_to_string(&path).expect("users file");
+        assert_eq!(users, "alice:a1\nbob:b2\n");
+        use std::os::unix::fs::PermissionsExt as _;
+        let mode = std::fs::metadata(&path).expect("meta").permissions().mode();
+        assert_eq!(mode & 0o077, 0, "the users file is private");
+        let _ = std::fs::remove_file(path);
+        let router = router_config(&config(&[("alice", "a1")]), "tcp/0.0.0.0:7447", "/etc/u");
+        let parsed: Value = serde_json::from_str(&router).expect("JSON");
+        assert_eq!(parsed["access_control"]["default_permission"], "deny");
+        let mut zc = zenoh::Config::default();
+        zc.insert_json5("access_control", &parsed["access_control"].to_string())
+            .expect("zenoh accepts the rules");
     }
 
     #[test]
     fn bad_values_are_config_errors() {
-        let base = ZenohConfig {
-            node: "n".into(),
-            ..ZenohConfig::default()
-        };
-        for bad in [
-            ZenohConfig {
-                node: "a/b".into(),
-                ..base.clone()
-            },
-            ZenohConfig {
-                listen: vec!["not an endpoint".into()],
-                ..base.clone()
-            },
-        ] {
-            assert!(zenoh_config(&bad).is_err(), "{bad:?} accepted");
-        }
+        let mut bad_node = config(&[]);
+        bad_node.zenoh.node = "a/b".into();
+        assert!(zenoh_config(&bad_node, &users_file("bad1")).is_err());
+        let mut bad_endpoint = config(&[]);
+        bad_endpoint.zenoh.listen = vec!["not an endpoint".into()];
+        assert!(zenoh_config(&bad_endpoint, &users_file("bad2")).is_err());
     }
 }

@@ -8,10 +8,12 @@
 //! `calibration.txt` (`fx fy cx cy [k1 k2 p1 p2 k3]`) is this project's addition for
 //! sequences that are not one of the three Freiburg cameras.
 
+pub mod folder;
 pub mod synth;
 pub mod trajectory;
 pub mod tum;
 
+pub use folder::SequenceFolder;
 pub use synth::{Motion, Scene, SynthConfig, SynthSummary, render_frame, render_sequence};
 pub use tum::{TumFrame, TumSequence, preset};
 

@@ -14,11 +14,15 @@
 //!   used as is. Otherwise the frame has no pose (`world_from_camera: None`).
 //! - **Intrinsics**: `calibration.txt` when present, else the caller's camera, else a Freiburg
 //!   preset recognised from the folder name or the text-file headers (see [`preset`]).
+//! - **Untrusted folders** (uploads): every file a sequence names must resolve inside its
+//!   folder ([`SequenceFolder`]), images are size-checked from their headers before decoding,
+//!   and errors name files relative to the folder, so they reveal nothing of the machine.
 
 use std::path::{Path, PathBuf};
 
 use super::DEPTH_SCALE;
-use super::trajectory::read_tum_trajectory;
+use super::folder::SequenceFolder;
+use super::trajectory::parse_tum_trajectory;
 use crate::geometry::{Distortion, PinholeCamera, SE3, SO3};
 use crate::image::ImageF32;
 use crate::{Error, Result};
@@ -59,65 +63,57 @@ impl TumSequence {
     /// Parses the sequence in `dir`. `camera` is used when the folder has no `calibration.txt`;
     /// without either, a Freiburg preset must be recognisable (see the module docs).
     pub fn open(dir: &Path, camera: Option<PinholeCamera>) -> Result<Self> {
-        let root = dir.to_path_buf();
         if !dir.is_dir() {
             return Err(Error::Dataset(format!("{} is not a folder", dir.display())));
         }
-        let rgb_txt = dir.join("rgb.txt");
-        if !rgb_txt.is_file() {
-            return Err(Error::Dataset(format!("{} is missing", rgb_txt.display())));
-        }
-        let rgb_list = read_file_list(&rgb_txt)?;
-        if rgb_list.is_empty() {
-            return Err(Error::Dataset(format!(
-                "{} lists no images",
-                rgb_txt.display()
-            )));
-        }
-        let depth_txt = dir.join("depth.txt");
-        let depth_list = if depth_txt.is_file() {
-            read_file_list(&depth_txt)?
-        } else {
-            Vec::new()
+        let folder = SequenceFolder::new(dir)?;
+        let rgb_list = match folder.read_own("rgb.txt")? {
+            Some(text) => parse_file_list(&text, "rgb.txt")?,
+            None => return Err(Error::Dataset("rgb.txt is missing".into())),
         };
-        let gt_txt = dir.join("groundtruth.txt");
-        let mut groundtruth: Vec<(f64, SE3)> = if gt_txt.is_file() {
-            read_tum_trajectory(&gt_txt)?
+        if rgb_list.is_empty() {
+            return Err(Error::Dataset("rgb.txt lists no images".into()));
+        }
+        let depth_list = match folder.read_own("depth.txt")? {
+            Some(text) => parse_file_list(&text, "depth.txt")?,
+            None => Vec::new(),
+        };
+        let mut groundtruth: Vec<(f64, SE3)> = match folder.read_own("groundtruth.txt")? {
+            Some(text) => parse_tum_trajectory(&text, "groundtruth.txt")?
                 .into_iter()
                 .map(|p| (p.timestamp, p.world_from_camera))
-                .collect()
-        } else {
-            Vec::new()
+                .collect(),
+            None => Vec::new(),
         };
         groundtruth.sort_by(|a, b| a.0.total_cmp(&b.0));
 
-        for (_, rel) in rgb_list.iter().chain(depth_list.iter()) {
-            let path = dir.join(rel);
-            if !path.is_file() {
-                return Err(Error::Dataset(format!(
-                    "listed file {} does not exist",
-                    path.display()
-                )));
-            }
-        }
+        let resolve = |list: &[(f64, String)], name: &str| -> Result<Vec<PathBuf>> {
+            list.iter()
+                .enumerate()
+                .map(|(i, (_, rel))| folder.listed(rel, name, i + 1))
+                .collect()
+        };
+        let rgb_paths = resolve(&rgb_list, "rgb.txt")?;
+        let depth_paths = resolve(&depth_list, "depth.txt")?;
 
         let rgb_stamps: Vec<f64> = rgb_list.iter().map(|(t, _)| *t).collect();
         let depth_stamps: Vec<f64> = depth_list.iter().map(|(t, _)| *t).collect();
         let depth_of = associate(&rgb_stamps, &depth_stamps, MAX_ASSOCIATION_DT);
-        let frames = rgb_list
+        let frames = rgb_stamps
             .iter()
+            .zip(rgb_paths)
             .zip(depth_of)
-            .map(|((t, rel), d)| TumFrame {
+            .map(|((t, rgb), d)| TumFrame {
                 timestamp: *t,
-                rgb: dir.join(rel),
-                depth: d.map(|j| dir.join(&depth_list[j].1)),
+                rgb,
+                depth: d.map(|j| depth_paths[j].clone()),
                 world_from_camera: interpolate_pose(&groundtruth, *t, MAX_ASSOCIATION_DT),
             })
             .collect::<Vec<_>>();
 
-        let camera = resolve_camera(dir, camera, &frames[0].rgb)?;
+        let camera = resolve_camera(&folder, camera, &frames[0].rgb)?;
         Ok(Self {
-            root,
+            root: dir.to_path_buf(),
             camera,
             frames,
             groundtruth,
@@ -150,10 +146,7 @@ impl TumSequence {
 
     /// The colour image of frame `i` (PNG or JPEG, detected from the bytes).
     pub fn load_rgb(&self, i: usize) -> Result<::image::RgbImage> {
-        let path = &self.frame(i)?.rgb;
-        let img = decode(path)?.into_rgb8();
-        self.check_size(path, img.width(), img.height())?;
-        Ok(img)
+        Ok(self.decode(&self.frame(i)?.rgb)?.into_rgb8())
     }
 
     /// Frame `i` as grey levels in [0, 255] (BT.601 luma, see [`ImageF32::from_rgb8`]).
@@ -167,43 +160,81 @@ impl TumSequence {
         let Some(path) = &self.frame(i)?.depth else {
             return Ok(None);
         };
-        let img = match decode(path)? {
+        let img = match self.decode(path)? {
             ::image::DynamicImage::ImageLuma16(buf) => buf,
             other => {
                 return Err(Error::Dataset(format!(
                     "depth {} is {:?}, expected a 16-bit grey PNG",
-                    path.display(),
+                    self.name(path).display(),
                     other.color()
                 )));
             }
         };
-        self.check_size(path, img.width(), img.height())?;
         let scale = (1.0 / DEPTH_SCALE) as f32;
         let data = img.as_raw().iter().map(|&v| f32::from(v) * scale).collect();
         ImageF32::from_vec(img.width() as usize, img.height() as usize, data).map(Some)
     }
 
-    fn check_size(&self, path: &Path, w: u32, h: u32) -> Result<()> {
-        if (w, h) != (self.camera.width, self.camera.height) {
-            return Err(Error::Dataset(format!(
-                "{} is {w}x{h} but the camera is {}x{}",
-                path.display(),
-                self.camera.width,
-                self.camera.height
-            )));
-        }
-        Ok(())
+    /// `path` as the sequence names it (relative to its folder), for error messages.
+    fn name<'a>(&self, path: &'a Path) -> &'a Path {
+        path.strip_prefix(&self.root).unwrap_or(path)
+    }
+
+    /// Reads and decodes one image; an image whose header gives another size than the
+    /// camera's is refused before any pixel is decoded (a small file can claim gigapixels).
+    /// The format is guessed from the content, so extensions do not matter.
+    fn decode(&self, path: &Path) -> Result<::image::DynamicImage> {
+        let name = self.name(path);
+        let bytes = std::fs::read(path).map_err(|e| Error::io(name, e))?;
+        let (w, h) = (self.camera.width, self.camera.height);
+        decode_sized(&bytes, w, h).map_err(|e| match e {
+            SizedDecodeError::Size(iw, ih) => Error::Dataset(format!(
+                "{} is {iw}x{ih} but the camera is {w}x{h}",
+                name.display()
+            )),
+            SizedDecodeError::Image(source) => Error::Image {
+                path: name.to_path_buf(),
+                source,
+            },
+        })
     }
 }
 
-/// Reads and decodes an image file; I/O failures are `Error::Io`, undecodable bytes
-/// `Error::Image`. The format is guessed from the content, so extensions do not matter.
-fn decode(path: &Path) -> Result<::image::DynamicImage> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    ::image::load_from_memory(&bytes).map_err(|source| Error::Image {
-        path: path.to_path_buf(),
-        source,
-    })
+/// Why [`decode_sized`] refused an image.
+#[derive(Debug)]
+pub enum SizedDecodeError {
+    /// The header gives this size, not the expected one.
+    Size(u32, u32),
+    /// The bytes are no image of a known format, or are corrupt.
+    Image(::image::ImageError),
+}
+
+/// Decodes an encoded image (format from its bytes) that must be `width`×`height`: the size is
+/// read from the header first, and the decoder may allocate no more than that size needs.
+pub fn decode_sized(
+    bytes: &[u8],
+    width: u32,
+    height: u32,
+) -> std::result::Result<::image::DynamicImage, SizedDecodeError> {
+    let reader = || {
+        ::image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|e| SizedDecodeError::Image(::image::ImageError::IoError(e)))
+    };
+    let size = reader()?
+        .into_dimensions()
+        .map_err(SizedDecodeError::Image)?;
+    if size != (width, height) {
+        return Err(SizedDecodeError::Size(size.0, size.1));
+    }
+    let mut reader = reader()?;
+    let mut limits = ::image::Limits::default();
+    limits.max_image_width = Some(width);
+    limits.max_image_height = Some(height);
+    // 16-bit RGBA is the widest layout we read, plus the decoders' own buffers.
+    limits.max_alloc = Some(u64::from(width) * u64::from(height) * 8 + (4 << 20));
+    reader.limits(limits);
+    reader.decode().map_err(SizedDecodeError::Image)
 }
 
 /// The camera of a TUM Freiburg sensor (640×480), from a name that contains `freiburg1` /
@@ -225,28 +256,23 @@ pub fn preset(name: &str) -> Option<PinholeCamera> {
 
 /// Intrinsics by priority: `calibration.txt`, the caller's camera, a recognised preset.
 fn resolve_camera(
-    dir: &Path,
+    folder: &SequenceFolder,
     camera: Option<PinholeCamera>,
     first_rgb: &Path,
 ) -> Result<PinholeCamera> {
-    let calib = dir.join("calibration.txt");
-    if calib.is_file() {
+    if let Some(text) = folder.read_own("calibration.txt")? {
         let (w, h) = ::image::image_dimensions(first_rgb).map_err(|source| Error::Image {
-            path: first_rgb.to_path_buf(),
+            path: folder.name(first_rgb).to_path_buf(),
             source,
         })?;
-        return read_calibration(&calib, w, h);
+        return parse_calibration(&text, w, h);
     }
     if let Some(cam) = camera {
         return Ok(cam);
     }
-    let mut hints = vec![
-        dir.file_name()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default(),
-    ];
+    let mut hints = vec![folder.folder_name()];
     for name in ["rgb.txt", "depth.txt", "groundtruth.txt"] {
-        if let Ok(text) = std::fs::read_to_string(dir.join(name)) {
+        if let Some(text) = folder.read_own(name)? {
             hints.extend(
                 text.lines()
                     .filter(|l| l.trim_start().starts_with('#'))
@@ -255,25 +281,25 @@ fn resolve_camera(
         }
     }
     hints.iter().find_map(|h| preset(h)).ok_or_else(|| {
-        Error::Dataset(format!(
-            "{}: no intrinsics: add calibration.txt (fx fy cx cy [k1 k2 p1 p2 k3]), pass a camera, \
-             or name the folder after a TUM camera (freiburg1/2/3)",
-            dir.display()
-        ))
+        Error::Dataset(
+            "no intrinsics: add calibration.txt (fx fy cx cy [k1 k2 p1 p2 k3]), pass a camera, \
+             or name the folder after a TUM camera (freiburg1/2/3)"
+                .into(),
+        )
     })
 }
 
-/// Parses `calibration.txt`: the first non-comment line is `fx fy cx cy [k1 k2 p1 p2 k3]`.
-fn read_calibration(path: &Path, width: u32, height: u32) -> Result<PinholeCamera> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let (lineno, line) = data_lines(&text)
+/// Parses the text of `calibration.txt` for images of `width`×`height`: the first
+/// non-comment line is `fx fy cx cy [k1 k2 p1 p2 k3]`.
+pub fn parse_calibration(text: &str, width: u32, height: u32) -> Result<PinholeCamera> {
+    const SOURCE: &str = "calibration.txt";
+    let (lineno, line) = data_lines(text)
         .next()
-        .ok_or_else(|| Error::Dataset(format!("{}: no calibration line", path.display())))?;
-    let v = parse_numbers(line, path, lineno)?;
+        .ok_or_else(|| Error::Dataset(format!("{SOURCE}: no calibration line")))?;
+    let v = parse_numbers(line, SOURCE, lineno)?;
     if v.len() != 4 && v.len() != 9 {
         return Err(Error::Dataset(format!(
-            "{}:{lineno}: expected `fx fy cx cy [k1 k2 p1 p2 k3]`, got {} numbers",
-            path.display(),
+            "{SOURCE}:{lineno}: expected `fx fy cx cy [k1 k2 p1 p2 k3]`, got {} numbers",
             v.len()
         )));
     }
@@ -292,26 +318,23 @@ fn data_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
         .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
 }
 
-fn parse_numbers(line: &str, path: &Path, lineno: usize) -> Result<Vec<f64>> {
+fn parse_numbers(line: &str, source: &str, lineno: usize) -> Result<Vec<f64>> {
     line.split_whitespace()
         .map(|tok| {
             tok.parse::<f64>()
                 .ok()
                 .filter(|v| v.is_finite())
                 .ok_or_else(|| {
-                    Error::Dataset(format!(
-                        "{}:{lineno}: `{tok}` is not a number",
-                        path.display()
-                    ))
+                    Error::Dataset(format!("{source}:{lineno}: `{tok}` is not a number"))
                 })
         })
         .collect()
 }
 
-/// Parses an `rgb.txt` / `depth.txt` list: `timestamp relative/path` per line.
-fn read_file_list(path: &Path) -> Result<Vec<(f64, String)>> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    data_lines(&text)
+/// Parses the text of an `rgb.txt` / `depth.txt` list (`source` names it in errors):
+/// `timestamp relative/path` per line.
+pub fn parse_file_list(text: &str, source: &str) -> Result<Vec<(f64, String)>> {
+    data_lines(text)
         .map(|(lineno, line)| {
             let mut it = line.split_whitespace();
             let stamp = it
@@ -321,8 +344,7 @@ fn read_file_list(path: &Path) -> Result<Vec<(f64, String)>> {
             match (stamp, it.next(), it.next()) {
                 (Some(t), Some(file), None) => Ok((t, file.to_string())),
                 _ => Err(Error::Dataset(format!(
-                    "{}:{lineno}: expected `timestamp filename`, got `{line}`",
-                    path.display()
+                    "{source}:{lineno}: expected `timestamp filename`, got `{line}`"
                 ))),
             }
         })

@@ -87,9 +87,10 @@ fn tokens_scope_sessions_and_capacity_is_enforced() {
         .call();
     assert_eq!(reply(by_query).status, 200, "token as a query parameter");
 
-    // Capacity: two sessions at most, whoever owns them.
-    let second = create_session(&server, &seq, alice);
-    let refused = post_json(&server, "/v1/sessions", bob, &body);
+    // Capacity: two sessions at most, whoever owns them; and each token at most its share
+    // (quotas.max_active_sessions: half of them with auth on).
+    let bobs_first = create_session(&server, &seq, bob);
+    let refused = post_json(&server, "/v1/sessions", alice, &body);
     let message = refused.expect_error(503, "resource_exhausted", "third session");
     assert!(
         message.contains('2'),
@@ -98,10 +99,10 @@ fn tokens_scope_sessions_and_capacity_is_enforced() {
     assert_healthy(&server, "the 503");
     assert_eq!(send(&server, "DELETE", &mine, alice, "", b"").status, 204);
     let deadline = Instant::now() + Duration::from_secs(10);
-    loop {
-        let retry = post_json(&server, "/v1/sessions", bob, &body);
+    let again = loop {
+        let retry = post_json(&server, "/v1/sessions", alice, &body);
         if retry.status == 201 {
-            break;
+            break retry.json()["id"].as_str().expect("id").to_string();
         }
         assert!(
             Instant::now() < deadline,
@@ -109,9 +110,28 @@ fn tokens_scope_sessions_and_capacity_is_enforced() {
             retry.body
         );
         std::thread::sleep(Duration::from_millis(100));
-    }
+    };
+    // A free slot is not bob's to take twice: his second session is over his quota.
     assert_eq!(
-        get(&server, &format!("/v1/sessions/{second}"), alice).status,
+        send(
+            &server,
+            "DELETE",
+            &format!("/v1/sessions/{again}"),
+            alice,
+            "",
+            b""
+        )
+        .status,
+        204
+    );
+    std::thread::sleep(Duration::from_millis(200));
+    post_json(&server, "/v1/sessions", bob, &body).expect_error(
+        429,
+        "quota_exceeded",
+        "bob's second session",
+    );
+    assert_eq!(
+        get(&server, &format!("/v1/sessions/{bobs_first}"), bob).status,
         200
     );
 }

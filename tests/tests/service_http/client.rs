@@ -43,6 +43,7 @@ pub fn agent() -> ureq::Agent {
 }
 
 /// A response as (status, body text).
+#[derive(Debug)]
 pub struct Reply {
     pub status: u16,
     pub body: String,

@@ -12,6 +12,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::ServerError;
 
+mod limits;
+pub use limits::{HttpLimits, Limits, Quotas, Retention};
+
 /// The whole server configuration. Unknown keys are rejected so that typos are caught.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -20,8 +23,14 @@ pub struct Config {
     pub listen: SocketAddr,
     /// Where uploads, session metadata and results are stored.
     pub data_dir: PathBuf,
-    /// Admission control and the bound of every queue.
+    /// Admission control, request sizes, memory and the bound of every queue.
     pub limits: Limits,
+    /// Connections and request timeouts.
+    pub http: HttpLimits,
+    /// What one owner may hold.
+    pub quotas: Quotas,
+    /// How long finished sessions are kept.
+    pub retention: Retention,
     /// The GPU worker pool.
     pub pool: PoolConfig,
     /// The default depth model of sessions.
@@ -38,68 +47,13 @@ impl Default for Config {
             listen: SocketAddr::from(([127, 0, 0, 1], 8780)),
             data_dir: PathBuf::from("relfusion-data"),
             limits: Limits::default(),
+            http: HttpLimits::default(),
+            quotas: Quotas::default(),
+            retention: Retention::default(),
             pool: PoolConfig::default(),
             model: ModelSettings::default(),
             auth: AuthConfig::default(),
             zenoh: ZenohConfig::default(),
-        }
-    }
-}
-
-/// Every limit of the service. Memory use is bounded by these: per live session at most
-/// `frame_queue` decoded frames wait, per session at most `pool_job_queue` GPU jobs, per
-/// subscriber at most `event_buffer` events.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct Limits {
-    /// Sessions processing at the same time (live and uploads); a new live session beyond it
-    /// gets 503, an upload beyond it waits in the queue (state `queued`).
-    pub max_sessions: usize,
-    /// Acknowledged uploads waiting for a free session slot; more get 503.
-    pub max_queued_uploads: usize,
-    /// Decoded frames waiting per live session. Small on purpose: a live stream wants the
-    /// newest frames, and a frame that waited long is stale.
-    pub frame_queue: usize,
-    /// Events buffered per subscriber (SSE, WebSocket, Zenoh); a slower subscriber loses the
-    /// oldest ones (it is told), the pipeline never waits for it.
-    pub event_buffer: usize,
-    /// Largest upload archive in bytes (4 GiB).
-    pub max_upload_bytes: u64,
-    /// Largest total size of the files extracted from one upload (zip bombs), in bytes.
-    pub max_extracted_bytes: u64,
-    /// Most entries (files and folders) in one upload archive.
-    pub max_upload_entries: usize,
-    /// Largest single frame (encoded image) in bytes (32 MiB).
-    pub max_frame_bytes: u64,
-    /// GPU jobs queued per session in the worker pool; a session that has this many waiting
-    /// blocks until the pool serves one (backpressure onto its pipeline thread).
-    pub pool_job_queue: usize,
-    /// A live session that receives no frame for this long (seconds) is finished as if the
-    /// client had sent end-of-stream, so a vanished client does not hold a slot forever.
-    pub idle_timeout_s: u64,
-    /// Results (trajectory, keyframes, point cloud) are written to the store every this many
-    /// keyframes while a session runs, so a crash loses little of a live session.
-    pub checkpoint_keyframes: usize,
-    /// On shutdown, how long (seconds) live sessions get to finish their queued frames and
-    /// persist their results before the process exits anyway.
-    pub shutdown_grace_s: u64,
-}
-
-impl Default for Limits {
-    fn default() -> Self {
-        Self {
-            max_sessions: 4,
-            max_queued_uploads: 16,
-            frame_queue: 8,
-            event_buffer: 1024,
-            max_upload_bytes: 4 << 30,
-            max_extracted_bytes: 8 << 30,
-            max_upload_entries: 100_000,
-            max_frame_bytes: 32 << 20,
-            pool_job_queue: 4,
-            idle_timeout_s: 300,
-            checkpoint_keyframes: 10,
-            shutdown_grace_s: 30,
         }
     }
 }
@@ -143,6 +97,14 @@ impl ModelSettings {
     }
 }
 
+/// Whether `name` can name an owner: it appears in Zenoh keys and as a Zenoh user name.
+pub fn is_owner_name(name: &str) -> bool {
+    (1..=64).contains(&name.len())
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+}
+
 /// One bearer token and the name its sessions are owned by.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -156,6 +118,9 @@ pub struct TokenEntry {
 #[serde(default, deny_unknown_fields)]
 pub struct AuthConfig {
     pub tokens: Vec<TokenEntry>,
+    /// Refuse to start without tokens (deployments set it, so that a missing secret cannot
+    /// silently open the service to everyone).
+    pub required: bool,
 }
 
 impl AuthConfig {
@@ -201,6 +166,10 @@ pub struct ZenohConfig {
     pub scouting: bool,
     /// This node's name in `relfusion/nodes/<node>/status`; defaults to the host name.
     pub node: String,
+    /// The Zenoh user this node authenticates as when it connects to a router or peer that
+    /// requires it (deploy/zenoh); empty = none. Its password is `password`.
+    pub user: String,
+    pub password: String,
 }
 
 impl Default for ZenohConfig {
@@ -212,6 +181,8 @@ impl Default for ZenohConfig {
             connect: Vec::new(),
             scouting: false,
             node: host_name(),
+            user: String::new(),
+            password: String::new(),
         }
     }
 }
@@ -243,19 +214,22 @@ pub const ENV_VARS: &[&str] = &[
     "RELFUSIOND_ZENOH_LISTEN",
     "RELFUSIOND_ZENOH_CONNECT",
     "RELFUSIOND_TOKENS",
+    "RELFUSIOND_ZENOH_USER",
+    "RELFUSIOND_ZENOH_PASSWORD",
+    "RELFUSIOND_MEMORY_BUDGET_MB",
 ];
 
 impl Config {
-    /// Reads a TOML file; missing keys take their defaults.
+    /// Reads a TOML file; missing keys take their defaults. Values are validated by
+    /// [`Config::resolve`], once the environment and flags are applied (a file may leave the
+    /// tokens to the environment).
     pub fn load(path: &Path) -> Result<Self, ServerError> {
         let err = |message: String| ServerError::Config {
             path: path.display().to_string(),
             message,
         };
         let text = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
-        let config: Config = toml::from_str(&text).map_err(|e| err(e.to_string()))?;
-        config.validate().map_err(err)?;
-        Ok(config)
+        toml::from_str(&text).map_err(|e| err(e.to_string()))
     }
 
     /// The configuration in force: default, then `file`, then the environment (`env` looks a
@@ -319,6 +293,18 @@ impl Config {
             self.zenoh.connect = list(&v);
             self.zenoh.enabled = true;
         }
+        if let Some(v) = env("RELFUSIOND_ZENOH_USER") {
+            self.zenoh.user = v.trim().to_string();
+        }
+        if let Some(v) = env("RELFUSIOND_ZENOH_PASSWORD") {
+            self.zenoh.password = v.trim().to_string();
+        }
+        if let Some(v) = env("RELFUSIOND_MEMORY_BUDGET_MB") {
+            self.limits.memory_budget_mb = v
+                .trim()
+                .parse()
+                .map_err(|e| bad("RELFUSIOND_MEMORY_BUDGET_MB", format!("{v:?}: {e}")))?;
+        }
         if let Some(v) = env("RELFUSIOND_TOKENS") {
             self.auth.tokens = list(&v)
                 .into_iter()
@@ -353,25 +339,10 @@ impl Config {
         }
     }
 
-    /// Checks values serde cannot: positive limits, a known Zenoh mode, unique tokens.
+    /// Checks values serde cannot: positive limits, a known Zenoh mode, unique tokens whose
+    /// names are usable as Zenoh user names and key chunks.
     pub fn validate(&self) -> Result<(), String> {
-        let l = &self.limits;
-        for (name, v) in [
-            ("limits.max_sessions", l.max_sessions as u64),
-            ("limits.frame_queue", l.frame_queue as u64),
-            ("limits.event_buffer", l.event_buffer as u64),
-            ("limits.max_upload_bytes", l.max_upload_bytes),
-            ("limits.max_extracted_bytes", l.max_extracted_bytes),
-            ("limits.max_upload_entries", l.max_upload_entries as u64),
-            ("limits.max_frame_bytes", l.max_frame_bytes),
-            ("limits.pool_job_queue", l.pool_job_queue as u64),
-            ("limits.idle_timeout_s", l.idle_timeout_s),
-            ("limits.checkpoint_keyframes", l.checkpoint_keyframes as u64),
-        ] {
-            if v == 0 {
-                return Err(format!("{name} must be > 0"));
-            }
-        }
+        limits::validate(&self.limits, &self.http, &self.quotas, &self.retention)?;
         if !matches!(self.zenoh.mode.as_str(), "peer" | "client") {
             return Err(format!(
                 "zenoh.mode must be \"peer\" or \"client\", got {:?}",
@@ -383,13 +354,39 @@ impl Config {
         if tokens.windows(2).any(|w| w[0] == w[1]) {
             return Err("auth.tokens: the same token is listed twice".into());
         }
-        if self
-            .auth
-            .tokens
-            .iter()
-            .any(|t| t.token.is_empty() || t.name.is_empty())
-        {
-            return Err("auth.tokens: name and token must be non-empty".into());
+        if self.auth.required && self.auth.tokens.is_empty() {
+            return Err(
+                "auth.required is set but no tokens are configured: set RELFUSIOND_TOKENS \
+                 (name:token,...) or [auth] tokens"
+                    .into(),
+            );
+        }
+        for t in &self.auth.tokens {
+            if t.token.is_empty() || t.token.contains(char::is_whitespace) {
+                return Err(format!(
+                    "auth.tokens: the token of {:?} must be non-empty, without spaces",
+                    t.name
+                ));
+            }
+            if !is_owner_name(&t.name) {
+                return Err(format!(
+                    "auth.tokens: name {:?} must be 1-64 characters of a-z, A-Z, 0-9, '-', '_' \
+                     (it names the owner in Zenoh keys and Zenoh user names)",
+                    t.name
+                ));
+            }
+        }
+        let mut names: Vec<&str> = self.auth.tokens.iter().map(|t| t.name.as_str()).collect();
+        names.sort_unstable();
+        if self.zenoh.enabled && names.windows(2).any(|w| w[0] == w[1]) {
+            return Err(
+                "auth.tokens: with Zenoh on, each name has one token (it is the Zenoh password \
+                 of that user)"
+                    .into(),
+            );
+        }
+        if !self.zenoh.user.is_empty() && self.zenoh.password.is_empty() {
+            return Err("zenoh.user needs zenoh.password".into());
         }
         Ok(())
     }
@@ -485,7 +482,20 @@ mod tests {
     #[test]
     fn the_deployment_config_is_valid() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/relfusiond.toml");
-        let config = Config::load(&path).expect("deploy/relfusiond.toml loads");
+        let flags = FlagOverrides::default();
+        let no_tokens = Config::resolve(Some(&path), |_| None, &flags);
+        assert!(
+            no_tokens.is_err_and(|e| e.to_string().contains("RELFUSIOND_TOKENS")),
+            "the deployment refuses to start without tokens"
+        );
+        let env = |k: &str| match k {
+            "RELFUSIOND_TOKENS" => Some("alice:secret-a".to_string()),
+            "RELFUSIOND_ZENOH_USER" => Some("relfusiond".to_string()),
+            "RELFUSIOND_ZENOH_PASSWORD" => Some("node-secret".to_string()),
+            _ => None,
+        };
+        let config = Config::resolve(Some(&path), env, &flags).expect("deploy config loads");
+        assert!(config.auth.enabled() && config.auth.required);
         assert!(config.zenoh.enabled && config.zenoh.mode == "client");
         assert_eq!(config.data_dir, PathBuf::from("/data"));
     }

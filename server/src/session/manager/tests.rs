@@ -5,10 +5,11 @@ use std::sync::Arc;
 
 use serde_json::json;
 
-use super::persist::{SessionMeta, result_key};
 use super::*;
 use crate::config::Config;
 use crate::metrics::Metrics;
+use crate::session::persist::{SessionMeta, result_key};
+use crate::session::{FrameData, SessionEvent};
 use crate::storage::{FsStore, ObjectStore};
 
 fn temp_config(tag: &str, max_sessions: usize) -> Config {
@@ -216,6 +217,10 @@ async fn recovery_drops_unacknowledged_uploads_and_fails_interrupted_live_sessio
         dataset: None,
         total_frames: None,
         counters: Default::default(),
+        ended_unix: None,
+        notice: None,
+        upload_bytes: 0,
+        results_bytes: 0,
     };
     meta.save(&store).expect("save");
     store
@@ -270,7 +275,13 @@ async fn uploads_wait_for_a_slot_and_then_run() {
     let archive = m.temp_dir().join("a.tar");
     std::fs::write(&archive, tiny_dataset_tar(5)).expect("write archive");
     let up = m
-        .create_upload(&archive, ArchiveKind::Tar, None, json!({}), &me)
+        .create_upload(
+            m.reserve_upload(&me, None).expect("ticket"),
+            &archive,
+            ArchiveKind::Tar,
+            None,
+            json!({}),
+        )
         .await
         .expect("upload acknowledged");
     let info = up.info();
@@ -297,7 +308,13 @@ async fn uploads_wait_for_a_slot_and_then_run() {
     std::fs::write(&archive, b"not a tar").expect("write");
     let before = store.list("sessions/").expect("list").len();
     let e = m
-        .create_upload(&archive, ArchiveKind::Tar, None, json!({}), &me)
+        .create_upload(
+            m.reserve_upload(&me, None).expect("ticket"),
+            &archive,
+            ArchiveKind::Tar,
+            None,
+            json!({}),
+        )
         .await
         .expect_err("garbage archive");
     assert_eq!(e.status, 400, "{e}");

@@ -1,9 +1,11 @@
 //! [`SessionManager`]: creates, finds, lists and deletes sessions; admission control; the
 //! durable upload path; restart recovery; graceful shutdown.
 //!
-//! Admission: at most `limits.max_sessions` sessions process at once. A live session beyond
-//! that is refused (503: a live stream cannot wait), an upload is acknowledged and queued
-//! (state `queued`, at most `limits.max_queued_uploads`) and starts when a slot frees.
+//! Admission ([`super::admission`]): at most `limits.max_sessions` sessions process at once.
+//! A live session beyond that is refused (503: a live stream cannot wait), an upload is
+//! acknowledged and queued (state `queued`, at most `limits.max_queued_uploads`) and starts
+//! when a slot frees. Each owner's sessions, uploads and bytes are bounded by `[quotas]`; each
+//! session's map by its share of the memory budget ([`crate::memory`]).
 //!
 //! Recovery at start ([`SessionManager::open`]): every `sessions/<id>/meta.json` is read.
 //! Finished and failed sessions come back read-only (their results stay downloadable);
@@ -11,16 +13,22 @@
 //! the re-run gives the result the interrupted run would have); unfinished live sessions are
 //! marked failed (their client is gone), keeping their last checkpoint. Folders without
 //! `meta.json` are uploads that were never acknowledged and are removed.
+//!
+//! A session worker that panics fails its session and gives its slot back; the server goes on.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, RwLock, Weak};
-use std::time::Duration;
+use std::sync::{Arc, Mutex, MutexGuard, RwLock, RwLockReadGuard, RwLockWriteGuard, Weak};
+use std::time::{Duration, Instant};
 
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 
+use super::admission::{
+    Admission, NewSession, OwnerHoldings, SharedAdmission, UploadTicket, check_quota,
+    lock as lock_admission, under_active_quota,
+};
 use super::handle::{Session, SessionSpec};
 use super::overrides::merge_config;
 use super::persist::{META_VERSION, SessionMeta, meta_key, session_prefix, upload_key};
@@ -33,15 +41,16 @@ use super::upload::{ArchiveKind, ExtractLimits, stage_upload};
 use super::worker::{self, Outcome, WorkerEnv};
 use crate::config::Config;
 use crate::gpu_pool::{GpuPool, adapter_count};
+use crate::memory::{MemoryPlan, SessionCost, resident_bytes};
 use crate::metrics::Metrics;
 use crate::storage::{FsStore, ObjectStore};
 use crate::{ApiError, ServerError};
 
-#[derive(Debug, Default)]
-struct Admission {
-    active: usize,
-    queued: VecDeque<Arc<Session>>,
-}
+mod health;
+mod recover;
+mod retention;
+#[cfg(test)]
+mod tests;
 
 /// Every session of this node.
 pub struct SessionManager {
@@ -51,10 +60,15 @@ pub struct SessionManager {
     metrics: Arc<Metrics>,
     pool: GpuPool,
     model: Option<SharedModel>,
+    memory: MemoryPlan,
     sessions: RwLock<HashMap<SessionId, Arc<Session>>>,
-    admission: Mutex<Admission>,
+    /// Sessions whose data expired (`[retention]`): their ids answer 410 to their owner.
+    expired: RwLock<HashMap<SessionId, Owner>>,
+    admission: SharedAdmission,
     shutting_down: AtomicBool,
     temp_dir: PathBuf,
+    /// When the store last proved writable (health checks probe it at most every 10 s).
+    store_probe: Mutex<Option<(Instant, Result<(), String>)>>,
 }
 
 impl std::fmt::Debug for SessionManager {
@@ -76,9 +90,9 @@ fn now_unix() -> u64 {
         .map_or(0, |d| d.as_secs())
 }
 
-/// A fresh unguessable id: `s-` and 12 hex digits from the thread's CSPRNG.
+/// A fresh unguessable id: `s-` and 24 hex digits (96 bits) from the thread's CSPRNG.
 fn new_id() -> SessionId {
-    format!("s-{:012x}", rand::random::<u64>() & 0xffff_ffff_ffff)
+    format!("s-{:024x}", rand::random::<u128>() & ((1u128 << 96) - 1))
 }
 
 impl SessionManager {
@@ -108,11 +122,19 @@ impl SessionManager {
             metrics,
             pool,
             model,
+            memory: MemoryPlan::new(&config.limits),
             sessions: RwLock::new(HashMap::new()),
-            admission: Mutex::new(Admission::default()),
+            expired: RwLock::new(HashMap::new()),
+            admission: Arc::new(Mutex::new(Admission::default())),
             shutting_down: AtomicBool::new(false),
             temp_dir,
+            store_probe: Mutex::new(None),
         });
+        tracing::info!(
+            budget_mb = manager.memory.budget >> 20,
+            share_mb = manager.memory.share >> 20,
+            "memory budget"
+        );
         manager.recover()?;
         Ok(manager)
     }
@@ -142,9 +164,22 @@ impl SessionManager {
     /// Sessions processing now and the limit (for node status and readiness).
     pub fn load(&self) -> (usize, usize) {
         (
-            lock(&self.admission).active,
+            lock_admission(&self.admission).active,
             self.config.limits.max_sessions,
         )
+    }
+
+    /// The memory budget in force.
+    pub fn memory(&self) -> &MemoryPlan {
+        &self.memory
+    }
+
+    fn read_sessions(&self) -> RwLockReadGuard<'_, HashMap<SessionId, Arc<Session>>> {
+        self.sessions.read().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn write_sessions(&self) -> RwLockWriteGuard<'_, HashMap<SessionId, Arc<Session>>> {
+        self.sessions.write().unwrap_or_else(|e| e.into_inner())
     }
 
     /// Whether [`Self::shutdown`] has begun (readiness turns 503).
@@ -157,74 +192,7 @@ impl SessionManager {
         !self.is_shutting_down()
     }
 
-    fn recover(&self) -> Result<(), ServerError> {
-        let keys = self.store.list("sessions/")?;
-        let mut ids: Vec<String> = keys
-            .iter()
-            .filter_map(|k| k.strip_prefix("sessions/")?.split('/').next())
-            .map(String::from)
-            .collect();
-        ids.dedup();
-        let mut resumed = Vec::new();
-        for id in ids {
-            let meta = match SessionMeta::load(self.store.as_ref(), &id) {
-                Ok(Some(meta)) => meta,
-                Ok(None) => {
-                    tracing::info!(session = %id, "removing an unacknowledged upload");
-                    self.store.delete_prefix(&session_prefix(&id))?;
-                    continue;
-                }
-                Err(e) => {
-                    tracing::error!(session = %id, "unreadable metadata, skipped: {e}");
-                    continue;
-                }
-            };
-            let camera = match meta.camera.to_camera() {
-                Ok(c) => c,
-                Err(e) => {
-                    tracing::error!(session = %id, "stored camera invalid, skipped: {e}");
-                    continue;
-                }
-            };
-            let mut meta = meta;
-            let mut resume = false;
-            if !meta.state.is_terminal() {
-                match meta.kind {
-                    SessionKind::Upload => {
-                        // Re-run from scratch: progress restarts at zero.
-                        meta.state = SessionState::Queued;
-                        meta.counters = Default::default();
-                        resume = true;
-                    }
-                    SessionKind::Live => {
-                        meta.state = SessionState::Failed;
-                        meta.error = Some(
-                            "interrupted: the server stopped while this live session ran; \
-                             results up to the last checkpoint are kept"
-                                .into(),
-                        );
-                        meta.save(self.store.as_ref())?;
-                    }
-                }
-            }
-            let session = Arc::new(self.build(meta, camera));
-            if resume {
-                tracing::info!(session = %id, "re-running an unfinished upload");
-                resumed.push(session.clone());
-            }
-            self.sessions
-                .write()
-                .unwrap_or_else(|e| e.into_inner())
-                .insert(id, session);
-        }
-        resumed.sort_by_key(|s| s.info().created_unix);
-        for session in resumed {
-            self.admit_upload(session);
-        }
-        Ok(())
-    }
-
-    fn build(&self, meta: SessionMeta, camera: PinholeCamera) -> Session {
+    fn build(&self, meta: SessionMeta, camera: PinholeCamera, max_keyframes: usize) -> Session {
         Session::new(
             SessionSpec {
                 meta,
@@ -232,10 +200,38 @@ impl SessionManager {
                 frame_queue: self.config.limits.frame_queue,
                 event_buffer: self.config.limits.event_buffer,
                 max_frame_bytes: self.config.limits.max_frame_bytes,
+                max_timestamp_step: self.config.limits.max_timestamp_step_s,
+                max_keyframes,
             },
             self.store.clone(),
             self.metrics.clone(),
         )
+    }
+
+    /// 400 for a camera over `limits.max_image_pixels`.
+    fn check_image_size(&self, camera: &PinholeCamera) -> Result<(), ApiError> {
+        let pixels = u64::from(camera.width) * u64::from(camera.height);
+        let max = self.config.limits.max_image_pixels;
+        if pixels > max {
+            return Err(ApiError::bad_request(format!(
+                "a {}x{} camera has {pixels} pixels; this server takes at most {max} \
+                 (limits.max_image_pixels): send smaller images",
+                camera.width, camera.height
+            )));
+        }
+        Ok(())
+    }
+
+    /// How many keyframes a session of `camera` and `config` may map in its memory share
+    /// (400 when too few fit: the image is too large for this server).
+    fn map_limit(&self, camera: &PinholeCamera, config: &SlamConfig) -> Result<usize, ApiError> {
+        self.check_image_size(camera)?;
+        let pixels = u64::from(camera.width) * u64::from(camera.height);
+        let dense = &config.dense;
+        let dense_pixels = dense.enabled.then(|| (dense.width * dense.height) as u64);
+        self.memory
+            .keyframes_for(SessionCost::estimate(pixels, dense_pixels))
+            .map_err(ApiError::bad_request)
     }
 
     /// The model a request names: absent or `"default"` = the server's model (if any),
@@ -273,6 +269,7 @@ impl SessionManager {
     pub fn create(&self, req: CreateSession, owner: &Owner) -> Result<Arc<Session>, ApiError> {
         self.refuse_if_shutting_down()?;
         let camera = req.camera.to_camera()?;
+        self.check_image_size(&camera)?;
         let mut base = SlamConfig::default();
         // A live camera does not wait: tracking gives every frame its pose at frame rate and
         // the mapping thread observes the frames it has time for (skipped, never queued). A
@@ -280,17 +277,7 @@ impl SessionManager {
         base.pipeline.mapping_thread = req.policy == FramePolicy::DropOldest;
         let config = merge_config(&base, &req.config)?;
         let model = self.resolve_model(req.model.as_deref())?;
-        {
-            let mut admission = lock(&self.admission);
-            let max = self.config.limits.max_sessions;
-            if admission.active >= max {
-                return Err(ApiError::unavailable(format!(
-                    "at capacity: {max} sessions are processing (limits.max_sessions); retry later"
-                )));
-            }
-            admission.active += 1;
-            self.metrics.sessions_active.set(admission.active as i64);
-        }
+        let max_keyframes = self.map_limit(&camera, &config)?;
         let meta = SessionMeta {
             version: META_VERSION,
             id: new_id(),
@@ -308,12 +295,36 @@ impl SessionManager {
             dataset: None,
             total_frames: None,
             counters: Default::default(),
+            ended_unix: None,
+            notice: None,
+            upload_bytes: 0,
+            results_bytes: 0,
         };
-        let session = Arc::new(self.build(meta, camera));
-        self.sessions
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(session.id().to_string(), session.clone());
+        let session = {
+            // Quota, slot and registration under one lock: racing creates cannot both pass.
+            let mut admission = lock_admission(&self.admission);
+            let max = self.config.limits.max_sessions;
+            if admission.active >= max {
+                return Err(ApiError::unavailable(format!(
+                    "at capacity: {max} sessions are processing (limits.max_sessions); retry later"
+                )));
+            }
+            let holdings = OwnerHoldings::of(owner, self.read_sessions().values());
+            check_quota(
+                &self.config,
+                &admission,
+                owner,
+                holdings,
+                NewSession::Live,
+                0,
+            )?;
+            admission.active += 1;
+            self.metrics.sessions_active.set(admission.active as i64);
+            let session = Arc::new(self.build(meta, camera, max_keyframes));
+            self.write_sessions()
+                .insert(session.id().to_string(), session.clone());
+            session
+        };
         if let Err(e) = self.start(&session, model) {
             self.release(&session);
             return Err(e);
@@ -323,22 +334,26 @@ impl SessionManager {
 
     /// The session `id` if `owner` may see it; 404 otherwise (another owner's session does
     /// not exist for this caller).
+    /// An expired session of `owner` is 410.
     pub fn get(&self, id: &str, owner: &Owner) -> Result<Arc<Session>, ApiError> {
-        self.sessions
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(id)
-            .filter(|s| s.owner() == owner)
-            .cloned()
-            .ok_or_else(|| ApiError::not_found(format!("no session {id:?}")))
+        if let Some(session) = self.read_sessions().get(id).filter(|s| s.owner() == owner) {
+            return Ok(session.clone());
+        }
+        let expired = self.expired.read().unwrap_or_else(|e| e.into_inner());
+        if expired.get(id) == Some(owner) {
+            return Err(ApiError::gone(format!(
+                "session {id:?} has expired: finished sessions are kept {} s \
+                 (retention.finished_ttl_s)",
+                self.config.retention.finished_ttl_s
+            )));
+        }
+        Err(ApiError::not_found(format!("no session {id:?}")))
     }
 
     /// The sessions of `owner`, oldest first.
     pub fn list(&self, owner: &Owner) -> Vec<SessionInfo> {
         let mut infos: Vec<SessionInfo> = self
-            .sessions
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
+            .read_sessions()
             .values()
             .filter(|s| s.owner() == owner)
             .map(|s| s.info())
@@ -353,12 +368,11 @@ impl SessionManager {
         session.cancel();
         // The slot is free now, even if the worker still finishes its current frame.
         self.release(&session);
-        self.sessions
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .remove(id);
+        self.write_sessions().remove(id);
         // A queued upload holds no slot: dropping it from the queue is all it takes.
-        lock(&self.admission).queued.retain(|s| s.id() != id);
+        lock_admission(&self.admission)
+            .queued
+            .retain(|s| s.id() != id);
         // meta.json first: once it is gone the session cannot come back after a crash.
         self.store
             .delete_prefix(&meta_key(id))
@@ -381,18 +395,42 @@ impl SessionManager {
         Ok(())
     }
 
+    /// Reserves an upload of `owner` before its body is read: a place in the upload queue
+    /// and in the owner's quotas (`declared` bytes, or the largest allowed upload when none
+    /// is declared). 503 when the queue is full, 429 over a quota.
+    pub fn reserve_upload(
+        &self,
+        owner: &Owner,
+        declared: Option<u64>,
+    ) -> Result<UploadTicket, ApiError> {
+        self.refuse_if_shutting_down()?;
+        let adding = declared.unwrap_or(self.config.limits.max_upload_bytes);
+        UploadTicket::reserve(&self.admission, &self.config, owner, |admission| {
+            let holdings = OwnerHoldings::of(owner, self.read_sessions().values());
+            check_quota(
+                &self.config,
+                admission,
+                owner,
+                holdings,
+                NewSession::Upload,
+                adding,
+            )
+        })
+    }
+
     /// Accepts an uploaded dataset: extracts `archive` safely (400 for traversal, links,
-    /// a broken archive or no TUM layout), resolves the camera (the given one, else
-    /// `calibration.txt`, else a TUM preset from the folder name; 400 without any), stores it
-    /// durably, and only then returns (the acknowledgement). Processing starts on the pool
-    /// when a slot is free.
+    /// a broken archive or no TUM layout; 413 for more than the limits allow, zip bombs
+    /// included), resolves the camera (the given one, else `calibration.txt`, else a TUM
+    /// preset from the folder name; 400 without any, or one too large for this server),
+    /// stores it durably, and only then returns (the acknowledgement). Processing starts on
+    /// the pool when a slot is free.
     pub async fn create_upload(
         &self,
+        ticket: UploadTicket,
         archive: &Path,
         kind: ArchiveKind,
         camera: Option<CameraJson>,
         config: serde_json::Value,
-        owner: &Owner,
     ) -> Result<Arc<Session>, ApiError> {
         self.refuse_if_shutting_down()?;
         let camera = camera.map(|c| c.to_camera()).transpose()?;
@@ -402,15 +440,6 @@ impl SessionManager {
         base.pipeline.deterministic = true;
         let slam_config = merge_config(&base, &config)?;
         let model = self.resolve_model(None)?;
-        {
-            let admission = lock(&self.admission);
-            if admission.queued.len() >= self.config.limits.max_queued_uploads {
-                return Err(ApiError::unavailable(format!(
-                    "{} uploads are already waiting (limits.max_queued_uploads); retry later",
-                    admission.queued.len()
-                )));
-            }
-        }
         let id = new_id();
         let staging_key = format!("sessions/{id}/upload.partial");
         let (Some(staging), Some(final_dir)) = (
@@ -419,40 +448,42 @@ impl SessionManager {
         ) else {
             return Err(ApiError::internal("uploads need a filesystem store"));
         };
-        let limits = ExtractLimits {
-            max_bytes: self.config.limits.max_extracted_bytes,
-            max_entries: self.config.limits.max_upload_entries,
-        };
+        let limits = ExtractLimits::for_archive(&self.config.limits, archive)?;
         let archive = archive.to_path_buf();
+        let manager = self
+            .me
+            .upgrade()
+            .ok_or_else(|| ApiError::unavailable("the server is shutting down"))?;
+        let checked_config = slam_config.clone();
         let extracted = tokio::task::spawn_blocking(move || {
-            stage_upload(&archive, kind, &staging, &final_dir, limits, camera)
+            let check = |c: &PinholeCamera| manager.map_limit(c, &checked_config).map(|_| ());
+            stage_upload(&archive, kind, &staging, &final_dir, limits, camera, &check)
         })
         .await
         .map_err(|e| ApiError::internal(format!("extraction task failed: {e}")));
-        let (dataset_rel, camera, frames) = match extracted.and_then(|r| r) {
+        let staged = extracted.and_then(|r| r).and_then(|staged| {
+            let max_keyframes = self.map_limit(&staged.camera, &slam_config)?;
+            Ok((staged, max_keyframes))
+        });
+        let (staged, max_keyframes) = match staged {
             Ok(v) => v,
             Err(e) => {
                 let _ = self.store.delete_prefix(&session_prefix(&id));
                 return Err(e);
             }
         };
-        let camera_json = CameraJson::from_camera(&camera);
-        if let Err(e) = camera_json.to_camera() {
-            let _ = self.store.delete_prefix(&session_prefix(&id));
-            return Err(e);
-        }
         let mut dataset = String::from("upload");
-        for part in dataset_rel.components() {
+        for part in staged.dataset_rel.components() {
             dataset.push('/');
             dataset.push_str(&part.as_os_str().to_string_lossy());
         }
         let meta = SessionMeta {
             version: META_VERSION,
             id: id.clone(),
-            owner: owner.clone(),
+            owner: ticket.owner().clone(),
             kind: SessionKind::Upload,
             state: SessionState::Queued,
-            camera: camera_json,
+            camera: CameraJson::from_camera(&staged.camera),
             config: slam_config,
             model: model
                 .as_ref()
@@ -461,55 +492,66 @@ impl SessionManager {
             created_unix: now_unix(),
             error: None,
             dataset: Some(dataset),
-            total_frames: Some(frames as u64),
+            total_frames: Some(staged.frames as u64),
             counters: Default::default(),
+            ended_unix: None,
+            notice: None,
+            upload_bytes: staged.bytes,
+            results_bytes: 0,
         };
         // The acknowledgement point: once meta.json is durable, the upload exists.
         if let Err(e) = meta.save(self.store.as_ref()) {
             let _ = self.store.delete_prefix(&session_prefix(&id));
             return Err(ApiError::internal(format!("storing the upload: {e}")));
         }
-        let session = Arc::new(self.build(meta, camera));
-        self.sessions
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(id, session.clone());
-        self.admit_upload(session.clone());
+        let session = Arc::new(self.build(meta, staged.camera, max_keyframes));
+        let start = ticket.redeem(|admission| {
+            self.write_sessions().insert(id, session.clone());
+            self.queue_or_slot(admission, &session)
+        });
+        if start {
+            self.start_or_release(&session, self.model.clone());
+        }
         Ok(session)
     }
 
-    /// Starts an upload now if a slot is free, else queues it.
-    fn admit_upload(&self, session: Arc<Session>) {
-        let start_now = {
-            let mut admission = lock(&self.admission);
-            if admission.active < self.config.limits.max_sessions && !self.is_shutting_down() {
-                admission.active += 1;
-                self.metrics.sessions_active.set(admission.active as i64);
-                true
-            } else {
-                admission.queued.push_back(session.clone());
-                false
-            }
-        };
-        if start_now && let Err(e) = self.start(&session, self.model.clone()) {
-            tracing::error!(session = %session.id(), "cannot start: {}", e.message);
-            self.release(&session);
+    /// Gives an upload a slot now (`true`: the caller starts it) if one is free, else queues
+    /// it.
+    fn queue_or_slot(&self, admission: &mut Admission, session: &Arc<Session>) -> bool {
+        if admission.active < self.config.limits.max_sessions
+            && !self.is_shutting_down()
+            && self.may_start(session)
+        {
+            admission.active += 1;
+            self.metrics.sessions_active.set(admission.active as i64);
+            true
+        } else {
+            admission.queued.push_back(session.clone());
+            false
         }
     }
 
+    /// Whether `session`'s owner holds fewer slots than its quota (an upload of an owner at
+    /// its quota waits for one of the owner's own sessions to end).
+    fn may_start(&self, session: &Session) -> bool {
+        let holdings = OwnerHoldings::of(session.owner(), self.read_sessions().values());
+        under_active_quota(&self.config, holdings)
+    }
+
     /// `session` gives its slot back (its worker ended, or it was deleted; whichever comes
-    /// first): the slot goes to the oldest queued upload.
+    /// first): the slot goes to the oldest queued upload whose owner is under its quota.
     fn release(&self, session: &Session) {
         if !session.holds_slot.swap(false, Ordering::SeqCst) {
             return;
         }
         let next = {
-            let mut admission = lock(&self.admission);
+            let mut admission = lock_admission(&self.admission);
             admission.active = admission.active.saturating_sub(1);
             let next = if self.is_shutting_down() {
                 None
             } else {
-                admission.queued.pop_front()
+                let pos = admission.queued.iter().position(|s| self.may_start(s));
+                pos.and_then(|i| admission.queued.remove(i))
             };
             if next.is_some() {
                 admission.active += 1;
@@ -517,11 +559,15 @@ impl SessionManager {
             self.metrics.sessions_active.set(admission.active as i64);
             next
         };
-        if let Some(session) = next
-            && let Err(e) = self.start(&session, self.model.clone())
-        {
+        if let Some(session) = next {
+            self.start_or_release(&session, self.model.clone());
+        }
+    }
+
+    fn start_or_release(&self, session: &Arc<Session>, model: Option<SharedModel>) {
+        if let Err(e) = self.start(session, model) {
             tracing::error!(session = %session.id(), "cannot start: {}", e.message);
-            self.release(&session);
+            self.release(session);
         }
     }
 
@@ -538,6 +584,7 @@ impl SessionManager {
             metrics: self.metrics.clone(),
             checkpoint_keyframes: self.config.limits.checkpoint_keyframes,
             idle_timeout: Duration::from_secs(self.config.limits.idle_timeout_s),
+            min_frame_rate: self.config.limits.min_frame_rate,
         };
         let s = session.clone();
         let handle = std::thread::Builder::new()
@@ -546,7 +593,22 @@ impl SessionManager {
             // live on the heap anyway; 16 MiB matches a main thread with room to spare.
             .stack_size(16 << 20)
             .spawn(move || {
-                let outcome = worker::run(&s, env);
+                // A bug in one session's pipeline fails that session, never the server, and
+                // its slot is given back below either way.
+                let run = std::panic::AssertUnwindSafe(|| worker::run(&s, env));
+                let outcome = std::panic::catch_unwind(run).unwrap_or_else(|panic| {
+                    let what = panic
+                        .downcast_ref::<&str>()
+                        .map(|m| (*m).to_string())
+                        .or_else(|| panic.downcast_ref::<String>().cloned())
+                        .unwrap_or_else(|| "unknown panic".into());
+                    tracing::error!(session = %s.id(), "session worker panicked: {what}");
+                    s.conclude(
+                        SessionState::Failed,
+                        Some(format!("internal error in the session's pipeline: {what}")),
+                    );
+                    Outcome::Failed
+                });
                 s.close_input();
                 tracing::info!(session = %s.id(), ?outcome, "session worker ended");
                 if outcome == Outcome::Stopped {
@@ -566,13 +628,7 @@ impl SessionManager {
         if self.shutting_down.swap(true, Ordering::SeqCst) {
             return;
         }
-        let sessions: Vec<Arc<Session>> = self
-            .sessions
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .values()
-            .cloned()
-            .collect();
+        let sessions: Vec<Arc<Session>> = self.read_sessions().values().cloned().collect();
         for s in &sessions {
             match s.kind() {
                 SessionKind::Live => s.end_of_stream(),

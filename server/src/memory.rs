@@ -1,0 +1,188 @@
+//! The server's memory budget and what a session costs against it.
+//!
+//! The budget (`limits.memory_budget_mb`, by default three quarters of what the machine or
+//! its cgroup gives the process) is split into equal shares, one per session slot
+//! (`limits.max_sessions`), after the process's own base. A session's cost is a base that
+//! scales with its camera's pixels plus a cost per keyframe of its map (keyframes are kept
+//! for loop closure, re-integration and the final optimisation); its share therefore sets how
+//! many keyframes its map may hold. A camera whose base alone does not fit a share is refused
+//! before anything is allocated.
+//!
+//! The constants were measured with `relfusion run` on synthetic orbits (release build,
+//! lavapipe, peak RSS against keyframes; docs/tuning.md, 2026-11-26): at 640×480 a keyframe
+//! costs 34 MB without the dense layer (110 B per pixel) and 41 MB with it; at 320×240 11 and
+//! 14 MB. The estimate below rounds each term up.
+
+use crate::config::Limits;
+
+const MIB: u64 = 1 << 20;
+
+/// Process memory outside sessions: the GPU context (lavapipe's JIT and threads), the shared
+/// depth model, the HTTP and Zenoh runtimes.
+pub const PROCESS_BASE: u64 = 384 * MIB;
+
+/// Bytes per camera pixel a session holds whatever its map: tracking pyramids, the current
+/// keyframe's depth hypotheses and its propagation target, undistortion maps, queued frames.
+const BASE_PER_PIXEL: u64 = 400;
+/// Fixed part of a session: thread stacks, the back end, and (dense layer on) its GPU buffers
+/// and the fusion's block pool as first allocated.
+const BASE_FIXED: u64 = 64 * MIB;
+const BASE_DENSE: u64 = 160 * MIB;
+/// Bytes per camera pixel of one keyframe: frame pyramid and colour, semi-dense depth,
+/// tracking reference and constraint-search levels.
+const KEYFRAME_PER_PIXEL: u64 = 160;
+/// Bytes per dense-resolution pixel of one densified keyframe: dense depth and variance, its
+/// fusion input kept for re-integration, and its mesh blocks.
+const KEYFRAME_PER_DENSE_PIXEL: u64 = 56;
+
+/// Fewest keyframes a session's share must hold for the session to be worth starting.
+pub const MIN_KEYFRAMES: usize = 16;
+
+/// What one session costs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SessionCost {
+    pub base: u64,
+    pub per_keyframe: u64,
+}
+
+impl SessionCost {
+    /// The estimate for a camera of `pixels` with the dense layer at `dense_pixels` (`None`
+    /// when the dense layer is off).
+    pub fn estimate(pixels: u64, dense_pixels: Option<u64>) -> Self {
+        let dense = dense_pixels.unwrap_or(0);
+        Self {
+            base: BASE_FIXED
+                + BASE_PER_PIXEL * pixels
+                + if dense_pixels.is_some() {
+                    BASE_DENSE
+                } else {
+                    0
+                },
+            per_keyframe: KEYFRAME_PER_PIXEL * pixels + KEYFRAME_PER_DENSE_PIXEL * dense,
+        }
+    }
+
+    /// Memory of a map of `keyframes`.
+    pub fn at(&self, keyframes: usize) -> u64 {
+        self.base + self.per_keyframe * keyframes as u64
+    }
+}
+
+/// The budget and each session slot's share of it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MemoryPlan {
+    /// Everything the server may use, in bytes.
+    pub budget: u64,
+    /// One session slot's share.
+    pub share: u64,
+    /// `limits.max_keyframes` (0 = as many as the share holds).
+    max_keyframes: usize,
+}
+
+impl MemoryPlan {
+    /// The plan for `limits` on this machine.
+    pub fn new(limits: &Limits) -> Self {
+        let budget = match limits.memory_budget_mb {
+            0 => available_memory().saturating_mul(3) / 4,
+            mb => mb.saturating_mul(MIB),
+        };
+        let share = budget.saturating_sub(PROCESS_BASE) / limits.max_sessions.max(1) as u64;
+        Self {
+            budget,
+            share,
+            max_keyframes: limits.max_keyframes,
+        }
+    }
+
+    /// How many keyframes a session of `cost` may hold: what its share takes, capped by
+    /// `limits.max_keyframes`; `Err` with the reason when fewer than [`MIN_KEYFRAMES`] fit.
+    pub fn keyframes_for(&self, cost: SessionCost) -> Result<usize, String> {
+        let fits = self.share.saturating_sub(cost.base) / cost.per_keyframe.max(1);
+        let fits = usize::try_from(fits).unwrap_or(usize::MAX);
+        let allowed = match self.max_keyframes {
+            0 => fits,
+            n => n.min(fits),
+        };
+        if allowed < MIN_KEYFRAMES {
+            return Err(format!(
+                "a session of this camera needs {} MiB for a map of {MIN_KEYFRAMES} keyframes; \
+                 each of this server's {} MiB session shares holds {allowed} (limits.\
+                 memory_budget_mb / limits.max_sessions): use a smaller image",
+                cost.at(MIN_KEYFRAMES) / MIB,
+                self.share / MIB
+            ));
+        }
+        Ok(allowed)
+    }
+}
+
+/// Memory the machine gives this process: the smaller of physical memory and the cgroup's
+/// limit (containers).
+pub fn available_memory() -> u64 {
+    let physical = std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|text| {
+            text.lines()
+                .find(|l| l.starts_with("MemTotal:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<u64>().ok())
+        })
+        .map_or(8 << 30, |kb| kb * 1024);
+    let cgroup = [
+        "/sys/fs/cgroup/memory.max",
+        "/sys/fs/cgroup/memory/memory.limit_in_bytes",
+    ]
+    .iter()
+    .filter_map(|p| std::fs::read_to_string(p).ok())
+    .filter_map(|s| s.trim().parse::<u64>().ok())
+    .min();
+    cgroup.map_or(physical, |c| c.min(physical))
+}
+
+/// The process's resident memory in bytes (Linux), for metrics and health.
+pub fn resident_bytes() -> Option<u64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    Some(pages * 4096)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn limits(budget_mb: u64, max_sessions: usize, max_keyframes: usize) -> Limits {
+        Limits {
+            memory_budget_mb: budget_mb,
+            max_sessions,
+            max_keyframes,
+            ..Limits::default()
+        }
+    }
+
+    #[test]
+    fn shares_set_the_map_size_and_large_cameras_are_refused() {
+        let plan = MemoryPlan::new(&limits(16 * 1024, 4, 0));
+        let vga = SessionCost::estimate(640 * 480, Some(320 * 240));
+        let qvga = SessionCost::estimate(320 * 240, Some(320 * 240));
+        let vga_kf = plan.keyframes_for(vga).expect("fits");
+        let qvga_kf = plan.keyframes_for(qvga).expect("fits");
+        assert!(
+            vga_kf >= MIN_KEYFRAMES && qvga_kf > 2 * vga_kf,
+            "{vga_kf} {qvga_kf}"
+        );
+        assert!(vga.at(vga_kf) <= plan.share, "the map fits its share");
+        let huge = SessionCost::estimate(8192 * 8192, Some(320 * 240));
+        let e = plan.keyframes_for(huge).expect_err("8192² does not fit");
+        assert!(e.contains("smaller image"), "{e}");
+        let capped = MemoryPlan::new(&limits(16 * 1024, 4, 20));
+        assert_eq!(capped.keyframes_for(qvga), Ok(20));
+    }
+
+    #[test]
+    fn the_machine_reports_memory() {
+        assert!(available_memory() > 256 * MIB);
+        assert!(resident_bytes().is_some_and(|b| b > 0));
+        let derived = MemoryPlan::new(&limits(0, 4, 0));
+        assert!(derived.budget <= available_memory());
+    }
+}

@@ -1,0 +1,125 @@
+//! Hole 3: memory had no bound. An 8192² camera cost 855 MB before any frame, a PNG whose
+//! header claims 12000² pixels was decoded inside an upload, client-set parameters multiplied
+//! memory, and a live session grew without limit. Now cameras are checked against the pixel
+//! limit and each session's memory share before anything is allocated, images are refused from
+//! their headers, only bounded parameters are settable, and a session ends at its map limit.
+
+use relfusion_tests::attacks::{png_claiming, tar_of};
+
+use super::*;
+
+#[test]
+fn huge_cameras_images_and_parameters_are_refused_before_memory_is_spent() {
+    let dir = synth_sequence("hardening-memory", 6, 19);
+    let seq = TumSequence::open(&dir, None).expect("synth");
+    let server = spawn(
+        "memory",
+        Some("[limits]\nmemory_budget_mb = 1536\nmax_sessions = 2\n"),
+        &[],
+    );
+    let before = rss(server.pid());
+    let camera = |w: u32, h: u32| json!({"fx": 500, "fy": 500, "cx": w / 2, "cy": h / 2, "width": w, "height": h});
+    for (w, h, why) in [
+        (8192, 8192, "max_image_pixels"),
+        (4096, 4096, "max_image_pixels"),
+        (1920, 1080, "smaller image"),
+    ] {
+        let refused = post_json(
+            &server,
+            "/v1/sessions",
+            None,
+            &json!({"camera": camera(w, h)}),
+        );
+        let message = refused.expect_error(400, "invalid_argument", &format!("{w}x{h}"));
+        assert!(message.contains(why), "{w}x{h}: {message}");
+    }
+    for (config, key) in [
+        (
+            json!({"fusion": {"max_blocks": 4_000_000_000u64}}),
+            "fusion.max_blocks",
+        ),
+        (json!({"fusion": {"voxel_size": 1e-6}}), "fusion.voxel_size"),
+        (json!({"dense": {"width": 8192}}), "dense.width"),
+        (
+            json!({"dense": {"densify": {"iterations": 1_000_000}}}),
+            "dense.densify.iterations",
+        ),
+    ] {
+        let body = json!({"camera": camera_json(&seq), "config": config});
+        let message = post_json(&server, "/v1/sessions", None, &body).expect_error(
+            400,
+            "invalid_argument",
+            key,
+        );
+        assert!(message.contains(key), "{message}");
+    }
+
+    // An upload whose first image claims 12000² pixels: refused from its header.
+    let png = png_claiming(12000, 12000);
+    let bomb = tar_of(&[
+        ("seq/rgb.txt", b"0.0 rgb/bomb.png\n"),
+        ("seq/calibration.txt", b"500 500 6000 6000\n"),
+        ("seq/rgb/bomb.png", &png),
+    ]);
+    let message = upload(&server, None, &bomb).expect_error(400, "invalid_argument", "bomb");
+    assert!(message.contains("max_image_pixels"), "{message}");
+
+    // The same PNG as a later frame of a good upload: the session fails on that frame, from
+    // its header, without decoding it.
+    let mut list = rgb_txt(&dir);
+    list.push_str("99.0 rgb/bomb.png\n");
+    let calibration = std::fs::read(dir.join("calibration.txt")).expect("calibration");
+    let mut files: Vec<(String, Vec<u8>)> = vec![
+        ("seq/rgb.txt".into(), list.into_bytes()),
+        ("seq/calibration.txt".into(), calibration),
+        ("seq/rgb/bomb.png".into(), png.clone()),
+    ];
+    for f in &seq.frames {
+        let name = f.rgb.strip_prefix(&dir).expect("inside");
+        files.push((
+            format!("seq/{}", name.display()),
+            std::fs::read(&f.rgb).expect("image"),
+        ));
+    }
+    let entries: Vec<(&str, &[u8])> = files.iter().map(|(n, d)| (n.as_str(), &d[..])).collect();
+    let created = upload(&server, None, &tar_of(&entries));
+    assert_eq!(created.status, 201, "{}", created.body);
+    let id = created.json()["id"].as_str().expect("id").to_string();
+    let info = wait_info(&server, &id, None, |i| i["state"] == "failed");
+    let error = info["error"].as_str().unwrap_or_default();
+    assert!(error.contains("12000x12000 but the camera is"), "{info}");
+    assert!(
+        !error.contains(&*server.data_dir().to_string_lossy()),
+        "{error}"
+    );
+
+    let grown = rss(server.pid()).saturating_sub(before);
+    assert!(
+        grown < 200 << 20,
+        "the server grew by {} MiB refusing oversized input",
+        grown >> 20
+    );
+    assert_healthy(&server, "memory attacks");
+}
+
+#[test]
+fn a_session_ends_at_its_map_limit_with_its_results() {
+    const FRAMES: usize = 200;
+    let dir = synth_sequence("hardening-maplimit", FRAMES, 23);
+    let server = spawn("maplimit", Some("[limits]\nmax_keyframes = 16\n"), &[]);
+    let created = upload(&server, None, &tar_with_list(&dir, &rgb_txt(&dir)));
+    assert_eq!(created.status, 201, "{}", created.body);
+    let id = created.json()["id"].as_str().expect("id").to_string();
+    let info = wait_finished(&server, &id, None);
+    assert_eq!(info["keyframes"], 16, "{info}");
+    assert_eq!(info["max_keyframes"], 16, "{info}");
+    let notice = info["notice"].as_str().unwrap_or_default();
+    assert!(notice.contains("map limit"), "{info}");
+    let processed = info["frames_processed"].as_u64().expect("processed");
+    assert!(
+        processed < FRAMES as u64,
+        "the rest of the upload was not mapped: {info}"
+    );
+    let trajectory = get(&server, &format!("/v1/sessions/{id}/trajectory"), None);
+    assert_eq!(tum_lines(&trajectory.body).len() as u64, processed);
+}
