@@ -1,125 +1,35 @@
 //! The HTTP half of the client: one method per `/v1` route of `relfusiond` (Contract 2).
 //!
-//! Request and answer types mirror the server's JSON but are the client's own, and tolerant:
-//! fields the client does not know are kept in `other` rather than rejected, so a newer server
-//! does not break an older client.
+//! Request and answer types are the server's own, defined once in `relfusion_proto::http`;
+//! answers ignore fields the client does not know, so a newer server does not break an older
+//! client.
 
 use std::time::Duration;
 
 use bytes::Bytes;
+pub use relfusion_proto::http::{
+    CameraJson, CreateSession, CreatedSession, FrameAccepted, FramePolicy, Progress, SessionInfo,
+    SessionKind, SessionList, SessionState,
+};
 use relfusion_slam::geometry::PinholeCamera;
 use reqwest::{Method, RequestBuilder, Response, StatusCode};
 use serde::de::DeserializeOwned;
-use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use url::Url;
 
 use crate::error::ClientError;
 
-/// Intrinsics as the server's JSON (`POST /v1/sessions`' `camera`).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct CameraJson {
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    pub width: u32,
-    pub height: u32,
-    /// Brown-Conrady `k1 k2 p1 p2 k3`; absent for undistorted images.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub distortion: Option<[f64; 5]>,
-}
-
-impl From<&PinholeCamera> for CameraJson {
-    fn from(c: &PinholeCamera) -> Self {
-        Self {
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-            width: c.width,
-            height: c.height,
-            distortion: c.distortion.map(|d| [d.k1, d.k2, d.p1, d.p2, d.k3]),
-        }
+/// The API's JSON form of `camera`.
+pub fn camera_json(c: &PinholeCamera) -> CameraJson {
+    CameraJson {
+        fx: c.fx,
+        fy: c.fy,
+        cx: c.cx,
+        cy: c.cy,
+        width: c.width,
+        height: c.height,
+        distortion: c.distortion.map(|d| [d.k1, d.k2, d.p1, d.p2, d.k3]),
     }
-}
-
-/// What a session does with a frame that arrives while its queue is full.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum FramePolicy {
-    /// Live streams: the oldest queued frame is dropped (and counted), latency stays low.
-    #[default]
-    DropOldest,
-    /// Replays: the server stops reading until there is room, so every frame is processed.
-    Wait,
-}
-
-/// Body of `POST /v1/sessions`.
-#[derive(Clone, Debug, Serialize)]
-pub struct CreateSessionRequest {
-    pub camera: CameraJson,
-    /// Partial pipeline config as a JSON object (`{"pipeline":{"deterministic":true}}`);
-    /// `null` keeps every default.
-    #[serde(skip_serializing_if = "Value::is_null")]
-    pub config: Value,
-    /// `"none"`, `"default"` or a model name the server knows; `None`: the server default.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub model: Option<String>,
-    pub policy: FramePolicy,
-}
-
-/// Progress of an upload session.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Progress {
-    #[serde(default)]
-    pub processed: u64,
-    /// Frames in the uploaded sequence (absent for live sessions).
-    #[serde(default)]
-    pub total: Option<u64>,
-}
-
-/// A session as the server describes it (`GET /v1/sessions/{id}`).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct SessionInfo {
-    pub id: String,
-    /// `live` or `upload`.
-    #[serde(default)]
-    pub kind: String,
-    /// `queued`, `running`, `finishing`, `finished` or `failed`.
-    #[serde(default)]
-    pub state: String,
-    #[serde(default)]
-    pub frames_received: u64,
-    #[serde(default)]
-    pub frames_processed: u64,
-    #[serde(default)]
-    pub frames_dropped: u64,
-    #[serde(default)]
-    pub frames_lost: u64,
-    #[serde(default)]
-    pub keyframes: u64,
-    #[serde(default)]
-    pub progress: Option<Progress>,
-    #[serde(default)]
-    pub error: Option<String>,
-    /// Every other field the server sent (camera, model, created_unix, ...).
-    #[serde(flatten)]
-    pub other: serde_json::Map<String, Value>,
-}
-
-impl SessionInfo {
-    /// Finished or failed: nothing will change any more.
-    pub fn is_done(&self) -> bool {
-        matches!(self.state.as_str(), "finished" | "failed")
-    }
-}
-
-/// Answer of `POST /v1/sessions` and `POST /v1/uploads`.
-#[derive(Clone, Debug, Deserialize)]
-struct Created {
-    id: String,
-    session: SessionInfo,
 }
 
 /// A connection to one `relfusiond` (cheap to clone: the HTTP connection pool is shared).
@@ -242,13 +152,10 @@ impl Client {
     }
 
     /// `POST /v1/sessions`: opens a live session.
-    pub async fn create_session(
-        &self,
-        req: &CreateSessionRequest,
-    ) -> Result<SessionInfo, ClientError> {
-        let created: Created =
+    pub async fn create_session(&self, req: &CreateSession) -> Result<SessionInfo, ClientError> {
+        let created: CreatedSession =
             Self::json(self.request(Method::POST, "v1/sessions")?.json(req)).await?;
-        Ok(with_id(created))
+        Ok(created.session)
     }
 
     /// `POST /v1/sessions/{id}/frames`: one encoded image (JPEG or PNG). `frame_id` must be
@@ -261,10 +168,6 @@ impl Client {
         timestamp: f64,
         image: Bytes,
     ) -> Result<u64, ClientError> {
-        #[derive(Deserialize)]
-        struct Accepted {
-            frame_index: u64,
-        }
         let mut query = vec![("timestamp", timestamp.to_string())];
         if let Some(fid) = frame_id {
             query.push(("frame_id", fid.to_string()));
@@ -279,7 +182,7 @@ impl Client {
             .query(&query)
             .header(reqwest::header::CONTENT_TYPE, content_type)
             .body(image);
-        let accepted: Accepted = Self::json(rb).await?;
+        let accepted: FrameAccepted = Self::json(rb).await?;
         Ok(accepted.frame_index)
     }
 
@@ -297,11 +200,7 @@ impl Client {
 
     /// `GET /v1/sessions`: the sessions this token may see.
     pub async fn list(&self) -> Result<Vec<SessionInfo>, ClientError> {
-        #[derive(Deserialize)]
-        struct List {
-            sessions: Vec<SessionInfo>,
-        }
-        let list: List = Self::json(self.request(Method::GET, "v1/sessions")?).await?;
+        let list: SessionList = Self::json(self.request(Method::GET, "v1/sessions")?).await?;
         Ok(list.sessions)
     }
 
@@ -344,7 +243,7 @@ impl Client {
         loop {
             let info = self.session(id).await?;
             on_info(&info);
-            if info.is_done() {
+            if info.state.is_terminal() {
                 return Ok(info);
             }
             tokio::time::sleep(every).await;
@@ -362,18 +261,9 @@ impl Client {
             .query(query)
             .header(reqwest::header::CONTENT_TYPE, "application/x-tar")
             .body(body);
-        let created: Created = Self::json(rb).await?;
-        Ok(with_id(created))
+        let created: CreatedSession = Self::json(rb).await?;
+        Ok(created.session)
     }
-}
-
-/// The answer's session info, with the id filled in from `id` if the info lacked it.
-fn with_id(created: Created) -> SessionInfo {
-    let mut info = created.session;
-    if info.id.is_empty() {
-        info.id = created.id;
-    }
-    info
 }
 
 /// `v1/sessions/{id}` or `v1/sessions/{id}/{tail}`, the id percent-encoded so that an
@@ -426,28 +316,35 @@ mod tests {
     }
 
     #[test]
-    fn session_info_tolerates_unknown_fields() {
-        let info: SessionInfo = serde_json::from_str(
-            r#"{"id":"s-1","kind":"upload","state":"running","frames_received":3,
-                "progress":{"processed":2,"total":10},"camera":{"fx":1},"model":"none"}"#,
-        )
+    fn session_info_ignores_fields_it_does_not_know() {
+        let info: SessionInfo = serde_json::from_value(serde_json::json!({
+            "id": "s-1", "kind": "upload", "state": "running", "frames_received": 3,
+            "frames_processed": 2, "frames_dropped": 0, "frames_lost": 0, "keyframes": 1,
+            "keyframes_densified": 0, "mesh_revision": 0, "mesh_triangles": 0,
+            "dense_mode": "off", "progress": {"processed": 2, "total": 10},
+            "created_unix": 1, "model": "none", "a_field_of_a_newer_server": [1, 2],
+            "camera": {"fx": 1, "fy": 1, "cx": 1, "cy": 1, "width": 16, "height": 16}
+        }))
         .expect("parses");
         assert_eq!(
             info.progress,
-            Some(Progress {
+            Progress {
                 processed: 2,
                 total: Some(10)
-            })
+            }
         );
-        assert!(info.other.contains_key("camera"));
-        assert!(!info.is_done());
+        assert_eq!(
+            (info.kind, info.state),
+            (SessionKind::Upload, SessionState::Running)
+        );
+        assert!(!info.state.is_terminal());
     }
 
     #[test]
     fn create_request_matches_the_servers_json() {
         let cam = PinholeCamera::new(262.5, 262.5, 159.5, 119.5, 320, 240).expect("camera");
-        let req = CreateSessionRequest {
-            camera: (&cam).into(),
+        let req = CreateSession {
+            camera: camera_json(&cam),
             config: serde_json::json!({"pipeline": {"deterministic": true}}),
             model: None,
             policy: FramePolicy::Wait,

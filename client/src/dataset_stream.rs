@@ -17,7 +17,7 @@ use serde::Serialize;
 use serde_json::Value;
 use tokio::sync::mpsc;
 
-use crate::api::{Client, CreateSessionRequest, FramePolicy, SessionInfo};
+use crate::api::{Client, CreateSession, FramePolicy, SessionInfo};
 use crate::error::ClientError;
 use crate::link::{SessionLink, Transport, end_of_stream, frame_message, open_session};
 
@@ -113,9 +113,9 @@ pub async fn stream_dataset(
         .iter()
         .map(|f| (f.timestamp, f.rgb.clone()))
         .collect();
-    let req = CreateSessionRequest {
+    let req = CreateSession {
         // The dataset's calibration.txt wins inside `open`; an explicit override wins here.
-        camera: (&opts.camera.unwrap_or(seq.camera)).into(),
+        camera: crate::api::camera_json(&opts.camera.unwrap_or(seq.camera)),
         config: opts.config.clone(),
         model: opts.model.clone(),
         policy: opts.policy,

@@ -7,8 +7,6 @@
 
 use std::path::PathBuf;
 
-use serde::Deserialize;
-
 /// A failed client operation.
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
@@ -94,16 +92,7 @@ impl ClientError {
     /// The error of a non-2xx answer with body `body`: the server's JSON error when the body
     /// is one, else the body text itself (a proxy's HTML page, say), shortened.
     pub fn from_response(status: u16, body: &[u8]) -> Self {
-        #[derive(Deserialize)]
-        struct Envelope {
-            error: Inner,
-        }
-        #[derive(Deserialize)]
-        struct Inner {
-            code: String,
-            message: String,
-        }
-        match serde_json::from_slice::<Envelope>(body) {
+        match serde_json::from_slice::<relfusion_proto::http::ErrorBody>(body) {
             Ok(e) => Self::Api {
                 status,
                 code: e.error.code,

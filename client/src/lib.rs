@@ -18,7 +18,10 @@ pub mod upload;
 pub mod ws;
 pub mod zenoh_transport;
 
-pub use api::{CameraJson, Client, CreateSessionRequest, FramePolicy, SessionInfo};
+pub use api::{
+    CameraJson, Client, CreateSession, FramePolicy, SessionInfo, SessionKind, SessionState,
+    camera_json,
+};
 pub use dataset_stream::{StreamEvent, StreamOptions, StreamSummary, stream_dataset};
 pub use error::ClientError;
 pub use fetch::{Fetched, fetch};

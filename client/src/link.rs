@@ -13,7 +13,7 @@ use relfusion_proto::v1::{
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 
-use crate::api::{Client, CreateSessionRequest, SessionInfo};
+use crate::api::{Client, CreateSession, SessionInfo};
 use crate::error::ClientError;
 
 /// Frames buffered between the producer and the transport's writer.
@@ -69,7 +69,7 @@ impl Drop for TaskGuard {
 pub async fn open_session(
     client: &Client,
     transport: &Transport,
-    req: &CreateSessionRequest,
+    req: &CreateSession,
 ) -> Result<SessionLink, ClientError> {
     match transport {
         Transport::Http => {
@@ -86,7 +86,7 @@ pub async fn open_session(
 async fn open_zenoh(
     client: &Client,
     endpoint: &str,
-    req: &CreateSessionRequest,
+    req: &CreateSession,
 ) -> Result<SessionLink, ClientError> {
     crate::zenoh_transport::open(endpoint, &client.zenoh_identity(), req).await
 }

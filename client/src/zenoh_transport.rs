@@ -33,7 +33,7 @@ use zenoh::handlers::FifoChannel;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::Locality;
 
-use crate::api::{CameraJson, CreateSessionRequest, FramePolicy};
+use crate::api::{CameraJson, CreateSession, FramePolicy};
 use crate::error::ClientError;
 use crate::link::{FRAME_CHANNEL, SessionLink, TaskGuard, UPDATE_CHANNEL};
 
@@ -118,7 +118,7 @@ pub fn api_error(error: &v1::Error) -> ClientError {
 }
 
 /// The protobuf `SessionConfig` for an HTTP-style create request.
-pub fn session_config(req: &CreateSessionRequest) -> SessionConfig {
+pub fn session_config(req: &CreateSession) -> SessionConfig {
     let CameraJson {
         fx,
         fy,
@@ -257,7 +257,7 @@ pub async fn map_snapshot(
 pub async fn open(
     endpoint: &str,
     identity: &Identity,
-    req: &CreateSessionRequest,
+    req: &CreateSession,
 ) -> Result<SessionLink, ClientError> {
     let zenoh = connect(endpoint, identity).await?;
     let session_id = create_session(&zenoh, identity, &session_config(req)).await?;
@@ -397,7 +397,7 @@ pub struct IngestRate {
 pub async fn ingest_rate<B: AsRef<[u8]>>(
     endpoint: &str,
     identity: &Identity,
-    req: &CreateSessionRequest,
+    req: &CreateSession,
     frames: &[(f64, B)],
 ) -> Result<IngestRate, ClientError> {
     let zenoh = connect(endpoint, identity).await?;
@@ -454,7 +454,7 @@ mod tests {
 
     #[test]
     fn create_request_becomes_a_session_config() {
-        let req = CreateSessionRequest {
+        let req = CreateSession {
             camera: CameraJson {
                 fx: 300.0,
                 fy: 301.0,

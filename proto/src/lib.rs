@@ -4,6 +4,8 @@
 //! generated from them at build time with protox + prost (no system `protoc`). Clients in other
 //! languages can take the sources from [`PROTO_FILES`] (the server also serves them).
 //!
+//! The HTTP API's JSON is the second contract, defined once in [`http`].
+//!
 //! Conventions are documented in the sources: poses are `world_from_camera` Sim(3) transforms
 //! (camera-to-world, scale-last), inverse depth and mesh geometry are packed little-endian
 //! `float32`, lengths are map units.
@@ -15,6 +17,7 @@ pub mod v1 {
 
 pub use prost::Message;
 
+pub mod http;
 pub mod zenoh_keys;
 
 /// The schema sources as `(path relative to the proto root, contents)`, in dependency order.

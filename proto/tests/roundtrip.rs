@@ -170,7 +170,7 @@ fn update_messages_roundtrip() {
 fn session_config_roundtrips() {
     roundtrip(&SessionConfig {
         camera: Some(camera()),
-        config_json: r#"{"tracking":{"max_iterations":20}}"#.into(),
+        config_json: r#"{"tracking":{"affine_lighting":false}}"#.into(),
         model_name: "midas_v21_small_256".into(),
         policy: FramePolicy::Wait as i32,
     });

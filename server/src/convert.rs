@@ -6,11 +6,11 @@ use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use relfusion_proto::v1;
 use relfusion_slam::dataset::trajectory::{format_tum_trajectory, stamped_se3};
 use relfusion_slam::export::ColoredPoint;
-use relfusion_slam::geometry::{Distortion, PinholeCamera, SO3, Sim3};
+use relfusion_slam::geometry::{PinholeCamera, SO3, Sim3};
 use relfusion_slam::pipeline::TrackingState;
 
 use crate::ApiError;
-use crate::session::{CameraJson, PoseJson};
+use crate::session::types::checked_camera;
 
 /// `Sim3` → protobuf `Sim3Pose`.
 pub fn sim3_to_proto(pose: &Sim3) -> v1::Sim3Pose {
@@ -58,34 +58,6 @@ pub fn sim3_from_proto(pose: &v1::Sim3Pose) -> Result<Sim3, ApiError> {
     ))
 }
 
-/// `Sim3` → the JSON pose of events.
-pub fn pose_json(pose: &Sim3) -> PoseJson {
-    let q = pose.rotation.quaternion();
-    PoseJson {
-        t: [pose.translation.x, pose.translation.y, pose.translation.z],
-        q: [q.i, q.j, q.k, q.w],
-        s: pose.scale,
-    }
-}
-
-/// The pose of a JSON event as protobuf.
-pub fn pose_json_to_proto(pose: &PoseJson) -> v1::Sim3Pose {
-    v1::Sim3Pose {
-        translation: Some(v1::Vector3 {
-            x: pose.t[0],
-            y: pose.t[1],
-            z: pose.t[2],
-        }),
-        rotation: Some(v1::Quaternion {
-            x: pose.q[0],
-            y: pose.q[1],
-            z: pose.q[2],
-            w: pose.q[3],
-        }),
-        scale: pose.s,
-    }
-}
-
 /// `PinholeCamera` → protobuf `Camera`.
 pub fn camera_to_proto(camera: &PinholeCamera) -> v1::Camera {
     v1::Camera {
@@ -105,30 +77,17 @@ pub fn camera_to_proto(camera: &PinholeCamera) -> v1::Camera {
     }
 }
 
-/// Protobuf `Camera` → the API's camera JSON (validate it with [`CameraJson::to_camera`]).
-pub fn camera_json_from_proto(camera: &v1::Camera) -> CameraJson {
-    CameraJson {
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-        width: camera.width,
-        height: camera.height,
-        distortion: camera
+/// Protobuf `Camera` → validated `PinholeCamera` (400 on invalid intrinsics).
+pub fn camera_from_proto(camera: &v1::Camera) -> Result<PinholeCamera, ApiError> {
+    checked_camera(
+        [camera.fx, camera.fy, camera.cx, camera.cy],
+        camera.width,
+        camera.height,
+        camera
             .distortion
             .as_ref()
             .map(|d| [d.k1, d.k2, d.p1, d.p2, d.k3]),
-    }
-}
-
-/// Protobuf `Camera` → validated `PinholeCamera` (400 on invalid intrinsics).
-pub fn camera_from_proto(camera: &v1::Camera) -> Result<PinholeCamera, ApiError> {
-    camera_json_from_proto(camera).to_camera()
-}
-
-/// A distortion as the proto's five coefficients.
-pub fn distortion_from_array(k: [f64; 5]) -> Distortion {
-    Distortion::new(k[0], k[1], k[2], k[3], k[4])
+    )
 }
 
 /// Tracking state → protobuf (the wire has no "relocalized": such a frame is tracked).
@@ -165,8 +124,6 @@ mod tests {
         );
         let back = sim3_from_proto(&sim3_to_proto(&pose)).expect("valid");
         assert!((back.matrix() - pose.matrix()).norm() < 1e-12);
-        let j = pose_json(&pose);
-        assert_eq!(pose_json_to_proto(&j), sim3_to_proto(&pose));
         let mut bad = sim3_to_proto(&pose);
         bad.scale = 0.0;
         assert!(sim3_from_proto(&bad).is_err());

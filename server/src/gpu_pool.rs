@@ -1,5 +1,10 @@
-//! The GPU worker pool: one worker thread per GPU adapter runs the sessions' accelerator jobs
-//! (today the depth-prior inference; the dense layer and fusion add kernels), fairly.
+//! The GPU worker pool: sessions are placed on the node's GPUs, and worker threads run their
+//! pool jobs (the depth-prior inference) fairly.
+//!
+//! Placement: each session ([`PoolClient`]) is given the device with the fewest sessions when
+//! it is created; its pipeline's kernels (dense layer, fusion) run on that device's context
+//! ([`PoolClient::gpu`]), and its pool jobs run on the workers of that device (worker `i`
+//! serves device `i mod devices`). A node without a real GPU has one device: the CPU fallback.
 //!
 //! Fairness: each session ([`PoolClient`]) has its own bounded job queue, and workers serve
 //! the sessions with waiting jobs in round robin, one job at a time. A session that submits a
@@ -11,6 +16,8 @@ use std::collections::{HashMap, VecDeque};
 use std::panic::AssertUnwindSafe;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, mpsc};
 use std::thread::JoinHandle;
+
+use relfusion_slam::gpu::GpuContext;
 
 use crate::metrics::Metrics;
 
@@ -29,8 +36,10 @@ pub enum PoolError {
 struct PoolState {
     /// Waiting jobs per client.
     queues: HashMap<u64, VecDeque<Job>>,
-    /// Clients with waiting jobs, in the order they will be served.
-    rotation: VecDeque<u64>,
+    /// Per device: its clients with waiting jobs, in the order they will be served.
+    rotation: Vec<VecDeque<u64>>,
+    /// Per device: its live clients.
+    clients: Vec<usize>,
     next_client: u64,
     queued: usize,
     completed: u64,
@@ -67,34 +76,47 @@ pub struct GpuPool {
     shared: Arc<Shared>,
     workers: Mutex<Vec<JoinHandle<()>>>,
     count: usize,
+    devices: usize,
 }
 
 impl std::fmt::Debug for GpuPool {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("GpuPool")
             .field("workers", &self.count)
+            .field("devices", &self.devices)
             .field("queued", &self.queued())
             .finish()
     }
 }
 
 impl GpuPool {
-    /// A pool of `workers` threads (at least one) with `job_queue` waiting jobs per client.
-    pub fn new(workers: usize, job_queue: usize, metrics: Option<Arc<Metrics>>) -> Self {
+    /// A pool of `workers` threads (at least one) over `devices` devices (at least one, at
+    /// most one per worker) with `job_queue` waiting jobs per client.
+    pub fn new(
+        workers: usize,
+        devices: usize,
+        job_queue: usize,
+        metrics: Option<Arc<Metrics>>,
+    ) -> Self {
+        let count = workers.max(1);
+        let devices = devices.clamp(1, count);
         let shared = Arc::new(Shared {
-            state: Mutex::new(PoolState::default()),
+            state: Mutex::new(PoolState {
+                rotation: vec![VecDeque::new(); devices],
+                clients: vec![0; devices],
+                ..PoolState::default()
+            }),
             work: Condvar::new(),
             space: Condvar::new(),
             job_queue: job_queue.max(1),
             metrics,
         });
-        let count = workers.max(1);
         let handles = (0..count)
             .filter_map(|i| {
                 let shared = shared.clone();
                 std::thread::Builder::new()
                     .name(format!("gpu-worker-{i}"))
-                    .spawn(move || worker_loop(&shared))
+                    .spawn(move || worker_loop(&shared, i % devices))
                     .map_err(|e| tracing::error!("cannot start GPU worker {i}: {e}"))
                     .ok()
             })
@@ -103,7 +125,13 @@ impl GpuPool {
             shared,
             workers: Mutex::new(handles),
             count,
+            devices,
         }
+    }
+
+    /// Number of devices sessions are placed on.
+    pub fn devices(&self) -> usize {
+        self.devices
     }
 
     /// Number of worker threads.
@@ -131,15 +159,21 @@ impl GpuPool {
         self.shared.lock().completed
     }
 
-    /// A new client (one per session) with its own queue.
+    /// A new client (one per session) with its own queue, placed on the device with the
+    /// fewest clients (the lowest index among equals).
     pub fn client(&self) -> PoolClient {
         let mut state = self.shared.lock();
         let id = state.next_client;
         state.next_client += 1;
         state.queues.insert(id, VecDeque::new());
+        let device = (0..state.clients.len())
+            .min_by_key(|&d| (state.clients[d], d))
+            .unwrap_or(0);
+        state.clients[device] += 1;
         PoolClient {
             shared: self.shared.clone(),
             id,
+            device,
         }
     }
 
@@ -161,12 +195,12 @@ impl Drop for GpuPool {
     }
 }
 
-fn worker_loop(shared: &Shared) {
+fn worker_loop(shared: &Shared, device: usize) {
     loop {
         let job = {
             let mut state = shared.lock();
             loop {
-                if let Some(job) = next_job(&mut state) {
+                if let Some(job) = next_job(&mut state, device) {
                     break job;
                 }
                 if state.closed {
@@ -191,10 +225,10 @@ fn worker_loop(shared: &Shared) {
     }
 }
 
-/// Round robin: the next client in the rotation gives one job and goes to the back if it has
-/// more.
-fn next_job(state: &mut PoolState) -> Option<Job> {
-    while let Some(id) = state.rotation.pop_front() {
+/// Round robin on `device`: the next client in its rotation gives one job and goes to the back
+/// if it has more.
+fn next_job(state: &mut PoolState, device: usize) -> Option<Job> {
+    while let Some(id) = state.rotation[device].pop_front() {
         let Some(queue) = state.queues.get_mut(&id) else {
             continue;
         };
@@ -202,7 +236,7 @@ fn next_job(state: &mut PoolState) -> Option<Job> {
             continue;
         };
         if !queue.is_empty() {
-            state.rotation.push_back(id);
+            state.rotation[device].push_back(id);
         }
         state.queued -= 1;
         return Some(job);
@@ -215,11 +249,15 @@ fn next_job(state: &mut PoolState) -> Option<Job> {
 pub struct PoolClient {
     shared: Arc<Shared>,
     id: u64,
+    device: usize,
 }
 
 impl std::fmt::Debug for PoolClient {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("PoolClient").field("id", &self.id).finish()
+        f.debug_struct("PoolClient")
+            .field("id", &self.id)
+            .field("device", &self.device)
+            .finish()
     }
 }
 
@@ -235,6 +273,19 @@ impl<R> JobHandle<R> {
 }
 
 impl PoolClient {
+    /// The device the session is placed on.
+    pub fn device(&self) -> usize {
+        self.device
+    }
+
+    /// The GPU context of the session's device, for its pipeline's kernels (`None` when it
+    /// cannot be opened: the pipeline then falls back as it would without a pool).
+    pub fn gpu(&self) -> Option<Arc<GpuContext>> {
+        relfusion_slam::gpu::context_for(self.device)
+            .map_err(|e| tracing::warn!(device = self.device, "no GPU context: {e}"))
+            .ok()
+    }
+
     /// Queues `job`, blocking while this client already has `pool_job_queue` jobs waiting.
     pub fn submit<R, F>(&self, job: F) -> Result<JobHandle<R>, PoolError>
     where
@@ -263,13 +314,14 @@ impl PoolClient {
         let queue = state.queues.entry(self.id).or_default();
         queue.push_back(boxed);
         if queue.len() == 1 {
-            state.rotation.push_back(self.id);
+            state.rotation[self.device].push_back(self.id);
         }
         state.queued += 1;
         let queued = state.queued;
         drop(state);
         self.shared.set_gauge(queued);
-        self.shared.work.notify_one();
+        // Every worker wakes: only those of this client's device can take the job.
+        self.shared.work.notify_all();
         Ok(JobHandle(rx))
     }
 
@@ -289,7 +341,8 @@ impl Drop for PoolClient {
         if let Some(queue) = state.queues.remove(&self.id) {
             state.queued -= queue.len();
         }
-        state.rotation.retain(|&id| id != self.id);
+        state.rotation[self.device].retain(|&id| id != self.id);
+        state.clients[self.device] -= 1;
         let queued = state.queued;
         drop(state);
         self.shared.set_gauge(queued);
@@ -297,31 +350,12 @@ impl Drop for PoolClient {
     }
 }
 
-/// Worker count for `pool.workers = 0`: the real GPU adapters (discrete, integrated, virtual)
-/// on the primary backends, or 1 when there is none (lavapipe or no adapter at all: the
-/// depth prior then runs on the CPU, still one job at a time).
-pub fn adapter_count() -> usize {
-    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
-    // Vulkan/Metal/DX12 only: GL would list the same GPUs again (and probes EGL noisily).
-    desc.backends &= wgpu::Backends::PRIMARY;
-    let instance = wgpu::Instance::new(desc);
-    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY));
-    let mut real: Vec<(u32, u32, String)> = adapters
-        .iter()
-        .map(|a| a.get_info())
-        .filter(|i| {
-            matches!(
-                i.device_type,
-                wgpu::DeviceType::DiscreteGpu
-                    | wgpu::DeviceType::IntegratedGpu
-                    | wgpu::DeviceType::VirtualGpu
-            )
-        })
-        .map(|i| (i.vendor, i.device, i.name))
-        .collect();
-    real.sort();
-    real.dedup();
-    real.len().max(1)
+/// The devices of this node: its real GPUs (discrete, integrated, virtual) of the preferred
+/// kind, or 1 when there is none (lavapipe or no adapter at all: the kernels then run on the
+/// CPU fallback, and the depth prior still one job at a time). Also the worker count for
+/// `pool.workers = 0`.
+pub fn device_count() -> usize {
+    relfusion_slam::gpu::gpu_adapter_count(&relfusion_slam::gpu::GpuConfig::default()).max(1)
 }
 
 #[cfg(test)]
@@ -331,7 +365,7 @@ mod tests {
 
     #[test]
     fn two_sessions_are_served_round_robin() {
-        let pool = GpuPool::new(1, 4, None);
+        let pool = GpuPool::new(1, 1, 4, None);
         let a = pool.client();
         let b = pool.client();
         // Hold the only worker so both queues fill before anything runs.
@@ -392,7 +426,7 @@ mod tests {
 
     #[test]
     fn a_full_queue_blocks_only_its_own_session() {
-        let pool = GpuPool::new(1, 1, None);
+        let pool = GpuPool::new(1, 1, 1, None);
         let a = pool.client();
         let b = pool.client();
         let release = Arc::new(AtomicBool::new(false));
@@ -424,8 +458,43 @@ mod tests {
     }
 
     #[test]
+    fn sessions_are_spread_over_devices_and_run_on_their_own() {
+        let pool = GpuPool::new(4, 2, 2, None);
+        assert_eq!(pool.devices(), 2);
+        let clients: Vec<PoolClient> = (0..3).map(|_| pool.client()).collect();
+        let devices: Vec<usize> = clients.iter().map(PoolClient::device).collect();
+        assert_eq!(devices, [0, 1, 0], "the least loaded device first");
+        for c in &clients {
+            for _ in 0..4 {
+                let worker = c
+                    .run(|| std::thread::current().name().map(String::from))
+                    .expect("job")
+                    .expect("named worker");
+                let index: usize = worker
+                    .strip_prefix("gpu-worker-")
+                    .and_then(|i| i.parse().ok())
+                    .expect("worker index");
+                assert_eq!(
+                    index % 2,
+                    c.device(),
+                    "{worker} ran a job of device {}",
+                    c.device()
+                );
+            }
+        }
+        // A departed session frees its place.
+        drop(clients);
+        assert_eq!(pool.client().device(), 0);
+        assert_eq!(
+            GpuPool::new(1, 8, 1, None).devices(),
+            1,
+            "a device needs a worker"
+        );
+    }
+
+    #[test]
     fn panicking_job_reports_and_worker_survives() {
-        let pool = GpuPool::new(1, 2, None);
+        let pool = GpuPool::new(1, 1, 2, None);
         let c = pool.client();
         let r: Result<(), _> = c.run(|| panic!("boom"));
         assert_eq!(r, Err(PoolError::Panicked));

@@ -1,22 +1,28 @@
 //! relfusion-slam: the DeepRelativeFusion pipeline as a library with no networking.
 //!
-//! Module map (see ARCHITECTURE.md):
-//! - [`geometry`]: Lie groups (`SO3`, `SE3`, `Sim3`) and the pinhole camera with distortion.
+//! Module map, lower layers first: a module uses only those above it (ARCHITECTURE.md has the
+//! table of what each may use).
+//! - [`error`]: the crate's `Error` and `Result`.
+//! - [`background`]: one background-worker pattern (`Service`, `Worker`, `Link`) with the
+//!   threads' priorities below the frame path.
 //! - [`image`]: grayscale float images, pyramids and gradients (CPU references of the GPU kernels).
-//! - [`dataset`]: TUM RGB-D reader, trajectory files, the synthetic room renderer.
-//! - [`eval`]: ATE / RPE with Umeyama alignment, percentage of correct depth.
-//! - [`gpu`]: the wgpu context and one runner per WGSL kernel.
-//! - [`dense`]: the dense layer (depth prior runtime, scale/shift alignment, ...).
-//! - [`background`]: the dense and fusion threads at the lowest priority, so tracking runs first.
+//! - [`geometry`]: Lie groups (`SO3`, `SE3`, `Sim3`) and the pinhole camera with distortion.
 //! - [`frame`]: an undistorted frame with its pyramid, shared by every stage.
+//! - [`npy`]: minimal NumPy `.npy` float32 reader/writer for depth maps and benchmarks.
+//! - [`optim`]: the Levenberg–Marquardt schedule and loop, and the photometric residual model,
+//!   shared by tracking and the back end.
+//! - [`scale_shift`]: the robust eq. (3) scale/shift fit of one depth map to another.
+//! - [`gpu`]: the wgpu contexts (one per adapter) and the pyramid kernel's runner.
+//! - [`dataset`]: TUM RGB-D reader, trajectory files, the synthetic room renderer.
+//! - [`mapping`]: the semi-dense inverse-depth filter of each keyframe, keyframe selection.
+//! - [`tracking`]: coarse-to-fine SE(3) direct image alignment against the keyframe.
+//! - [`graph`]: keyframe-to-keyframe Sim(3) constraints, the pose graph, the back end.
+//! - [`dense`]: the dense layer (depth prior, filter, densification, two-view consistency).
 //! - [`fusion`]: TSDF fusion of the dense keyframes (sparse blocks, GPU kernels), marching
 //!   cubes, mesh deltas.
-//! - [`tracking`]: coarse-to-fine SE(3) direct image alignment against the keyframe.
-//! - [`mapping`]: the semi-dense inverse-depth filter of each keyframe, keyframe selection.
-//! - [`graph`]: keyframe-to-keyframe Sim(3) constraints and the pose graph.
 //! - [`export`]: PLY point clouds and meshes, glTF binary meshes, for people to open.
-//! - [`pipeline`]: `Pipeline::push(frame) -> events` over tracking, mapping and the back end.
-//! - [`npy`]: minimal NumPy `.npy` float32 reader/writer for depth maps and benchmarks.
+//! - [`pipeline`]: `Pipeline::push(frame) -> events` over all of the above.
+//! - [`eval`]: ATE / RPE with Umeyama alignment, depth and mesh accuracy, diagnostics.
 //!
 //! Conventions used everywhere: poses are named by their frames (`world_from_camera`,
 //! `T_w_c`); Lie-group tangents are perturbed on the right (`T · exp(δ)`); SE(3) tangents are
@@ -36,7 +42,9 @@ pub mod graph;
 pub mod image;
 pub mod mapping;
 pub mod npy;
+pub mod optim;
 pub mod pipeline;
+pub mod scale_shift;
 pub mod tracking;
 
 pub use error::{Error, Result};

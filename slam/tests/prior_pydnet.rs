@@ -8,10 +8,10 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use relfusion_slam::dataset::{TumSequence, shared_data_dir};
-use relfusion_slam::dense::align::fit_scale_shift_unconstrained;
 use relfusion_slam::dense::model_config::{Layout, ModelConfig, OutputKind, ResizeMode};
 use relfusion_slam::dense::{DepthPrior, OnnxDepthPrior, Recognition, runtime_library_path};
 use relfusion_slam::image::ImageF32;
+use relfusion_slam::scale_shift::fit_scale_shift_unconstrained;
 
 fn pydnet_path() -> PathBuf {
     shared_data_dir()

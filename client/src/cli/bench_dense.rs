@@ -70,21 +70,20 @@ pub fn dense(args: &DenseArgs) -> anyhow::Result<()> {
         };
         if first {
             // Warm-up: pipeline compilation and buffer allocation are not per-keyframe costs.
-            filter_semidense(&inputs, &config.filter, Some(&gpu_filter))?;
+            filter_semidense(&inputs, &config.filter, &gpu_filter)?;
             first = false;
         }
         let t = Instant::now();
-        let (filtered, filtered_var) =
-            filter_semidense(&inputs, &config.filter, Some(&gpu_filter))?;
+        let (filtered, filtered_var) = filter_semidense(&inputs, &config.filter, &gpu_filter)?;
         filt_gpu.push(ms(t));
         let t = Instant::now();
         adaptive_filter_cpu(&inputs, &config.filter)?;
         filt_cpu.push(ms(t));
         let problem =
             DensifyProblem::with_prior(&aligned, &filtered, &filtered_var, &config.densify)?;
-        densify(&problem, &config.densify, Some(&gpu_densify))?;
+        densify(&problem, &config.densify, &gpu_densify)?;
         let t = Instant::now();
-        densify(&problem, &config.densify, Some(&gpu_densify))?;
+        densify(&problem, &config.densify, &gpu_densify)?;
         dens_gpu.push(ms(t));
         let t = Instant::now();
         densify_cpu(&problem, &config.densify)?;

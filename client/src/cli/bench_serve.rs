@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context as _;
 use bytes::Bytes;
 use relfusion_client::link::{end_of_stream, frame_message, open_session};
-use relfusion_client::{Client, CreateSessionRequest, FramePolicy, Transport};
+use relfusion_client::{Client, CreateSession, FramePolicy, Transport};
 use relfusion_proto::v1::server_message;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::synth::{SynthConfig, render_sequence};
@@ -169,7 +169,7 @@ fn load_frames(args: &ServeArgs) -> anyhow::Result<Frames> {
     }
     let bytes_mean = items.iter().map(|(_, b)| b.len() as f64).sum::<f64>() / items.len() as f64;
     Ok(Frames {
-        camera: (&seq.camera).into(),
+        camera: relfusion_client::camera_json(&seq.camera),
         width: seq.camera.width,
         height: seq.camera.height,
         items,
@@ -177,8 +177,8 @@ fn load_frames(args: &ServeArgs) -> anyhow::Result<Frames> {
     })
 }
 
-fn request(frames: &Frames, policy: FramePolicy, args: &ServeArgs) -> CreateSessionRequest {
-    CreateSessionRequest {
+fn request(frames: &Frames, policy: FramePolicy, args: &ServeArgs) -> CreateSession {
+    CreateSession {
         camera: frames.camera,
         config: Value::Null,
         model: args.model.clone(),
@@ -263,7 +263,7 @@ async fn zenoh_ingest(
             (i as f64 / args.fps, bytes.clone())
         })
         .collect();
-    let req = CreateSessionRequest {
+    let req = CreateSession {
         camera: frames.camera,
         config: Value::Null,
         model: None,
@@ -289,7 +289,7 @@ async fn live_session(
     client: Client,
     frames: Arc<Frames>,
     fps: f64,
-    req: CreateSessionRequest,
+    req: CreateSession,
 ) -> LiveRun {
     let mut run = LiveRun::default();
     let mut link = match open_session(&client, &Transport::Http, &req).await {

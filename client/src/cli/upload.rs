@@ -13,6 +13,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
+use relfusion_client::SessionState;
 use relfusion_client::upload::{UploadOptions, UploadPlan, upload_dataset};
 use serde_json::json;
 
@@ -76,15 +77,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let mut last = None;
         let done = client
             .wait_finished(&id, Duration::from_millis(args.poll_ms.max(10)), |info| {
-                let progress = info.progress.unwrap_or_default();
-                let now = (info.state.clone(), progress.processed);
+                let progress = &info.progress;
+                let now = (info.state, progress.processed);
                 if last.as_ref() == Some(&now) {
                     return;
                 }
                 match &frame_bar {
                     Some(bar) => {
                         bar.set_position(progress.processed);
-                        bar.set_message(info.state.clone());
+                        bar.set_message(json!(info.state).as_str().unwrap_or_default().to_string());
                     }
                     None => print_line(&json!({ "progress": {
                         "state": info.state,
@@ -101,7 +102,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let mut line = serde_json::to_value(&done)?;
         line["session"] = json!(id);
         print_line(&line);
-        if done.state == "failed" {
+        if done.state == SessionState::Failed {
             anyhow::bail!(
                 "session {id} failed: {}",
                 done.error.as_deref().unwrap_or("no reason given")

@@ -63,7 +63,8 @@ impl Default for Config {
 #[serde(default, deny_unknown_fields)]
 pub struct PoolConfig {
     /// Worker threads; 0 = one per GPU adapter (a CPU adapter such as lavapipe counts as one
-    /// when there is no real GPU).
+    /// when there is no real GPU). Sessions are placed on the adapters whatever the count;
+    /// each adapter needs at least one worker, so fewer workers than GPUs leaves GPUs unused.
     pub workers: usize,
 }
 

@@ -7,28 +7,12 @@ use axum::extract::{FromRequest, FromRequestParts, Request};
 use axum::http::request::Parts;
 use axum::http::{StatusCode, Uri};
 use axum::response::{IntoResponse, Response};
-use serde::Serialize;
+
 use serde::de::DeserializeOwned;
-use utoipa::ToSchema;
 
 use crate::ApiError;
 
-/// The body of every error response.
-#[derive(Debug, Serialize, ToSchema)]
-pub struct ErrorBody {
-    pub error: ErrorDetail,
-}
-
-/// What went wrong, for programs (`code`) and for people (`message`).
-#[derive(Debug, Serialize, ToSchema)]
-pub struct ErrorDetail {
-    /// Stable code: `invalid_argument`, `unauthorized`, `forbidden`, `not_found`, `conflict`,
-    /// `payload_too_large`, `unsupported_media_type`, `resource_exhausted`, `internal`.
-    #[schema(example = "invalid_argument")]
-    pub code: String,
-    /// Says what was wrong and what to do about it.
-    pub message: String,
-}
+pub use relfusion_proto::http::{ErrorBody, ErrorDetail};
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {

@@ -2,6 +2,7 @@
 //! hold a WebSocket open (scripts, curl). The image is decoded and checked against the session
 //! camera before the 202, so a bad frame is refused here and never reaches the pipeline.
 
+use relfusion_proto::http::FrameAccepted;
 use std::sync::Arc;
 
 use axum::Json;
@@ -9,8 +10,8 @@ use axum::body::Bytes;
 use axum::extract::rejection::BytesRejection;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, StatusCode, header};
-use serde::{Deserialize, Serialize};
-use utoipa::{IntoParams, ToSchema};
+use serde::Deserialize;
+use utoipa::IntoParams;
 
 use super::auth::Auth;
 use super::error::{ApiQuery, ErrorBody};
@@ -27,13 +28,6 @@ pub struct FrameParams {
     /// Client frame id, strictly increasing within the session; omitted: the server numbers
     /// frames 0, 1, 2, ...
     pub frame_id: Option<u64>,
-}
-
-/// A frame was accepted (queued for the pipeline).
-#[derive(Debug, Serialize, ToSchema)]
-pub struct FrameAccepted {
-    /// Index of the frame in the session (0 for the first accepted frame).
-    pub frame_index: u64,
 }
 
 /// Content types a frame may be sent as (the format itself is sniffed from the bytes).

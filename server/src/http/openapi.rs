@@ -6,10 +6,9 @@ use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi, ToSchema};
 
 use super::error::{ErrorBody, ErrorDetail};
-use super::frames::FrameAccepted;
-use super::sessions::{CreatedSession, SessionList};
 use super::{Version, downloads, events_sse, frames, sessions, stream_ws, uploads};
 use crate::session::{CameraJson, CreateSession, FramePolicy, SessionInfo};
+use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
 
 /// The relfusiond HTTP API.
 #[derive(Debug, OpenApi)]

@@ -1,32 +1,17 @@
 //! Session lifecycle: create, list, inspect, finish, delete.
 
+use relfusion_proto::http::{CreatedSession, SessionList};
 use std::sync::Arc;
 
 use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use serde::Serialize;
-use utoipa::ToSchema;
 
 use super::auth::Auth;
 use super::error::{ApiJson, ErrorBody};
-use crate::session::{CreateSession, SessionInfo};
+use crate::session::{CreateSession, SessionInfo, SessionRequest};
 use crate::{ApiError, AppState};
-
-/// Answer to a successful create (live session or upload).
-#[derive(Debug, Serialize, ToSchema)]
-pub struct CreatedSession {
-    /// The new session's id (unguessable; use it in every `/v1/sessions/{id}` path).
-    pub id: String,
-    pub session: SessionInfo,
-}
-
-/// Every session the caller owns.
-#[derive(Debug, Serialize, ToSchema)]
-pub struct SessionList {
-    pub sessions: Vec<SessionInfo>,
-}
 
 /// `201 Created` with a `Location` header pointing at the session.
 pub(super) fn created(info: SessionInfo) -> Response {
@@ -66,7 +51,9 @@ pub async fn create_session(
     Auth(owner): Auth,
     ApiJson(request): ApiJson<CreateSession>,
 ) -> Result<Response, ApiError> {
-    let session = state.sessions.create(request, &owner)?;
+    let session = state
+        .sessions
+        .create(SessionRequest::from_http(request)?, &owner)?;
     Ok(created(session.info()))
 }
 

@@ -23,8 +23,14 @@ use utoipa::IntoParams;
 use super::auth::Auth;
 use super::error::{ApiQuery, ErrorBody};
 use super::openapi::Binary;
-use super::sessions::{CreatedSession, created};
-use crate::session::{ArchiveKind, CameraJson};
+use super::sessions::created;
+use relfusion_proto::http::CreatedSession;
+use relfusion_slam::geometry::PinholeCamera;
+use relfusion_slam::pipeline::Config as SlamConfig;
+
+use crate::session::ArchiveKind;
+use crate::session::overrides::upload_config;
+use crate::session::types::checked_camera;
 use crate::{ApiError, AppState};
 
 /// Query parameters of an upload. Intrinsics are all-or-nothing; without them the camera comes
@@ -46,19 +52,11 @@ pub struct UploadParams {
 }
 
 impl UploadParams {
-    fn camera(&self) -> Result<Option<CameraJson>, ApiError> {
+    fn camera(&self) -> Result<Option<PinholeCamera>, ApiError> {
         match (self.fx, self.fy, self.cx, self.cy, self.width, self.height) {
             (None, None, None, None, None, None) => Ok(None),
             (Some(fx), Some(fy), Some(cx), Some(cy), Some(width), Some(height)) => {
-                Ok(Some(CameraJson {
-                    fx,
-                    fy,
-                    cx,
-                    cy,
-                    width,
-                    height,
-                    distortion: None,
-                }))
+                checked_camera([fx, fy, cx, cy], width, height, None).map(Some)
             }
             _ => Err(ApiError::bad_request(
                 "give all of fx, fy, cx, cy, width, height, or none of them",
@@ -66,15 +64,17 @@ impl UploadParams {
         }
     }
 
-    fn config(&self) -> Result<serde_json::Value, ApiError> {
-        let Some(text) = &self.config else {
-            return Ok(serde_json::Value::Null);
+    /// The upload's pipeline configuration: the `config` overrides over the upload defaults.
+    fn config(&self) -> Result<SlamConfig, ApiError> {
+        let overrides = match &self.config {
+            None => serde_json::Value::Null,
+            Some(text) => match serde_json::from_str(text) {
+                Ok(value @ serde_json::Value::Object(_)) => value,
+                Ok(_) => return Err(ApiError::bad_request("config must be a JSON object")),
+                Err(e) => return Err(ApiError::bad_request(format!("config is not JSON: {e}"))),
+            },
         };
-        match serde_json::from_str(text) {
-            Ok(value @ serde_json::Value::Object(_)) => Ok(value),
-            Ok(_) => Err(ApiError::bad_request("config must be a JSON object")),
-            Err(e) => Err(ApiError::bad_request(format!("config is not JSON: {e}"))),
-        }
+        upload_config(&overrides)
     }
 }
 

@@ -8,8 +8,10 @@ use relfusion_slam::fusion::{BlockIndex, BlockMesh, MeshDelta};
 use relfusion_slam::pipeline::TrackingState;
 use serde::Serialize;
 
-use super::types::{PoseJson, SessionInfo};
-use crate::convert::{pose_json_to_proto, tracking_state_to_proto};
+use relfusion_slam::geometry::Sim3;
+
+use super::types::{SessionInfo, pose_as_json};
+use crate::convert::{camera_to_proto, sim3_to_proto, tracking_state_to_proto};
 
 /// A keyframe's pose after a pose-graph optimisation.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -18,7 +20,8 @@ pub struct KeyframePose {
     /// The (client's) frame the keyframe was made from.
     pub frame_id: u64,
     pub timestamp: f64,
-    pub pose: PoseJson,
+    #[serde(serialize_with = "pose_as_json")]
+    pub pose: Sim3,
 }
 
 /// One event of a session's stream. Frame ids are the client's.
@@ -29,7 +32,8 @@ pub enum SessionEvent {
     Pose {
         frame_id: u64,
         timestamp: f64,
-        pose: PoseJson,
+        #[serde(serialize_with = "pose_as_json")]
+        pose: Sim3,
         state: TrackingState,
         is_keyframe: bool,
         keyframe_id: u64,
@@ -39,7 +43,8 @@ pub enum SessionEvent {
         keyframe_id: u64,
         frame_id: u64,
         timestamp: f64,
-        pose: PoseJson,
+        #[serde(serialize_with = "pose_as_json")]
+        pose: Sim3,
     },
     /// The pose graph moved keyframes (loop closure, final optimisation): the current pose of
     /// every keyframe, so subscribers can re-anchor the frames tracked against them.
@@ -50,7 +55,8 @@ pub enum SessionEvent {
         keyframe_id: u64,
         frame_id: u64,
         timestamp: f64,
-        pose: PoseJson,
+        #[serde(serialize_with = "pose_as_json")]
+        pose: Sim3,
         mode: DenseMode,
         width: usize,
         height: usize,
@@ -102,13 +108,13 @@ impl SessionEvent {
     /// MeshUpdated → `MeshUpdate`, Failed → `Error`; the others have no wire form.
     pub fn to_proto(&self, session_id: &str) -> Vec<v1::ServerMessage> {
         use v1::server_message::Message;
-        let keyframe = |keyframe_id: u64, frame_id: u64, timestamp: f64, pose: &PoseJson| {
+        let keyframe = |keyframe_id: u64, frame_id: u64, timestamp: f64, pose: &Sim3| {
             Message::Keyframe(v1::KeyframeUpdate {
                 session_id: session_id.to_string(),
                 keyframe_id,
                 frame_id,
                 timestamp,
-                world_from_camera: Some(pose_json_to_proto(pose)),
+                world_from_camera: Some(sim3_to_proto(pose)),
                 depth: None,
             })
         };
@@ -124,7 +130,7 @@ impl SessionEvent {
                 session_id: session_id.to_string(),
                 frame_id: *frame_id,
                 timestamp: *timestamp,
-                world_from_camera: Some(pose_json_to_proto(pose)),
+                world_from_camera: Some(sim3_to_proto(pose)),
                 tracking_state: tracking_state_to_proto(*state) as i32,
                 is_keyframe: *is_keyframe,
             })],
@@ -151,7 +157,7 @@ impl SessionEvent {
                 keyframe_id: *keyframe_id,
                 frame_id: *frame_id,
                 timestamp: *timestamp,
-                world_from_camera: Some(pose_json_to_proto(pose)),
+                world_from_camera: Some(sim3_to_proto(pose)),
                 depth: Some(keyframe_depth(dense)),
             })],
             SessionEvent::MeshUpdated { delta, .. } => {
@@ -215,21 +221,12 @@ fn keyframe_depth(dense: &DenseKeyframe) -> v1::KeyframeDepth {
             .flat_map(|v| v.to_le_bytes())
             .collect::<Vec<u8>>()
     };
-    let c = &dense.camera;
     v1::KeyframeDepth {
         width: dense.idepth.width as u32,
         height: dense.idepth.height as u32,
         inverse_depth: bytes(&dense.idepth.data),
         variance: bytes(&dense.variance.data),
-        camera: Some(v1::Camera {
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-            width: c.width,
-            height: c.height,
-            distortion: None,
-        }),
+        camera: Some(camera_to_proto(&dense.camera)),
         mode: match dense.mode {
             DenseMode::Prior => v1::DenseMode::Prior,
             DenseMode::NoModel => v1::DenseMode::NoModel,
@@ -243,11 +240,11 @@ mod tests {
 
     #[test]
     fn json_and_proto_forms() {
-        let pose = PoseJson {
-            t: [1.0, 2.0, 3.0],
-            q: [0.0, 0.0, 0.0, 1.0],
-            s: 1.0,
-        };
+        let pose = Sim3::new(
+            relfusion_slam::geometry::SO3::identity(),
+            nalgebra::Vector3::new(1.0, 2.0, 3.0),
+            1.0,
+        );
         let e = SessionEvent::Pose {
             frame_id: 7,
             timestamp: 1.5,
@@ -260,6 +257,8 @@ mod tests {
         assert_eq!(json["type"], "pose");
         assert_eq!(json["frame_id"], 7);
         assert_eq!(json["state"], "tracking");
+        assert_eq!(json["pose"]["t"], serde_json::json!([1.0, 2.0, 3.0]));
+        assert_eq!(json["pose"]["q"], serde_json::json!([0.0, 0.0, 0.0, 1.0]));
         let messages = e.to_proto("s-1");
         let [
             v1::ServerMessage {

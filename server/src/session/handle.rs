@@ -5,38 +5,21 @@
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
-use std::time::Instant;
 
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 use tokio::sync::{broadcast, watch};
 
-use super::decode::decode_frame;
 use super::events::SessionEvent;
+use super::input::QueuedFrame;
 use super::persist::{CounterSnapshot, SessionMeta};
 use super::queue::FrameQueue;
+use super::types::camera_json;
 use super::types::{
-    CameraJson, FrameData, FramePolicy, Owner, Progress, SessionId, SessionInfo, SessionKind,
-    SessionState,
+    FramePolicy, Owner, Progress, SessionId, SessionInfo, SessionKind, SessionState,
 };
-use crate::ApiError;
-use crate::metrics::{Metrics, Stage};
+use crate::metrics::Metrics;
 use crate::storage::ObjectStore;
-
-/// Largest timestamp magnitude accepted, in seconds (year ~5000 as Unix time): trajectories
-/// print timestamps with six decimals, which `f64` keeps exactly up to about here.
-const MAX_TIMESTAMP: f64 = 1e11;
-
-/// A decoded frame waiting for the pipeline.
-#[derive(Debug)]
-pub struct QueuedFrame {
-    /// The client's frame id (pose events carry it).
-    pub frame_id: u64,
-    pub timestamp: f64,
-    pub rgb: image::RgbImage,
-    /// When the server accepted it (frame-to-pose latency).
-    pub received: Instant,
-}
 
 /// Live counters of a session.
 #[derive(Debug, Default)]
@@ -90,13 +73,12 @@ pub(crate) struct Status {
 
 /// One session. Shared (`Arc`) by the manager, request handlers and its worker thread.
 pub struct Session {
-    id: SessionId,
+    pub(super) id: SessionId,
     owner: Owner,
-    kind: SessionKind,
-    camera: PinholeCamera,
-    camera_json: CameraJson,
+    pub(super) kind: SessionKind,
+    pub(super) camera: PinholeCamera,
     model: String,
-    policy: FramePolicy,
+    pub(super) policy: FramePolicy,
     created_unix: u64,
     /// The resolved pipeline configuration.
     pub(crate) config: SlamConfig,
@@ -108,9 +90,9 @@ pub struct Session {
     pub(crate) queue: Option<FrameQueue<QueuedFrame>>,
     /// Serialises pushes so frames enter the queue in id order; holds the last frame's id
     /// and timestamp.
-    push_order: tokio::sync::Mutex<Option<(u64, f64)>>,
+    pub(super) push_order: tokio::sync::Mutex<Option<(u64, f64)>>,
     /// Largest step between consecutive timestamps (`limits.max_timestamp_step_s`).
-    max_timestamp_step: f64,
+    pub(super) max_timestamp_step: f64,
     /// Most keyframes its map may hold (memory share, `limits.max_keyframes`).
     pub(crate) max_keyframes: usize,
     /// Bytes of its extracted upload and of its last saved results.
@@ -118,19 +100,19 @@ pub struct Session {
     results_bytes: AtomicU64,
     /// When it ended (seconds since the epoch; 0 while it runs).
     ended_unix: AtomicU64,
-    ended: AtomicBool,
+    pub(super) ended: AtomicBool,
     /// Deleted: the worker stops and discards everything.
     pub(crate) cancelled: AtomicBool,
     /// Server shutdown: an upload stops where it is (it re-runs on restart).
     pub(crate) stop: AtomicBool,
     /// Holds one of the `limits.max_sessions` slots (released once, by delete or worker end).
     pub(crate) holds_slot: AtomicBool,
-    status: watch::Sender<Status>,
+    pub(super) status: watch::Sender<Status>,
     events: broadcast::Sender<SessionEvent>,
     pub(super) track: Mutex<super::track::Track>,
     pub(crate) store: Arc<dyn ObjectStore>,
     pub(crate) metrics: Arc<Metrics>,
-    max_frame_bytes: u64,
+    pub(super) max_frame_bytes: u64,
     /// Serialises metadata writes with deletion (a deleted session is never re-written).
     meta_lock: Mutex<()>,
     pub(crate) worker: Mutex<Option<JoinHandle<()>>>,
@@ -154,7 +136,6 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 #[derive(Debug)]
 pub(crate) struct SessionSpec {
     pub meta: SessionMeta,
-    pub camera: PinholeCamera,
     pub frame_queue: usize,
     pub event_buffer: usize,
     pub max_frame_bytes: u64,
@@ -182,8 +163,7 @@ impl Session {
             id: meta.id,
             owner: meta.owner,
             kind: meta.kind,
-            camera: spec.camera,
-            camera_json: meta.camera,
+            camera: meta.camera,
             model: meta.model,
             policy: meta.policy,
             created_unix: meta.created_unix,
@@ -261,7 +241,7 @@ impl Session {
                 total: self.total_frames,
             },
             created_unix: self.created_unix,
-            camera: self.camera_json.clone(),
+            camera: camera_json(&self.camera),
             model: self.model.clone(),
             error: status.error,
             notice: status.notice,
@@ -277,179 +257,6 @@ impl Session {
     /// When it finished or failed (seconds since the epoch), if it has.
     pub fn ended_unix(&self) -> Option<u64> {
         Some(self.ended_unix.load(Ordering::Relaxed)).filter(|&t| t > 0)
-    }
-
-    /// [`Session::push_frame`] for a protobuf `Frame` (WebSocket, Zenoh): the frame may
-    /// repeat the session camera but not change it (the pipeline has one camera), and every
-    /// error names the frame.
-    pub async fn push_proto_frame(
-        &self,
-        frame: relfusion_proto::v1::Frame,
-    ) -> Result<u64, ApiError> {
-        let frame_id = frame.frame_id;
-        let result = match &frame.camera {
-            Some(camera) => self.check_same_camera(camera),
-            None => Ok(()),
-        };
-        let result = match result {
-            Ok(()) => {
-                self.push_frame(FrameData {
-                    frame_id: Some(frame_id),
-                    timestamp: frame.timestamp,
-                    bytes: frame.image.into(),
-                })
-                .await
-            }
-            Err(e) => Err(e),
-        };
-        result.map_err(|e| ApiError {
-            message: format!("frame {frame_id}: {}", e.message),
-            ..e
-        })
-    }
-
-    fn check_same_camera(&self, camera: &relfusion_proto::v1::Camera) -> Result<(), ApiError> {
-        let own = &self.camera;
-        let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(1.0);
-        let same = camera.width == own.width
-            && camera.height == own.height
-            && close(camera.fx, own.fx)
-            && close(camera.fy, own.fy)
-            && close(camera.cx, own.cx)
-            && close(camera.cy, own.cy);
-        if same {
-            return Ok(());
-        }
-        Err(ApiError::bad_request(format!(
-            "the frame's camera ({}x{}, fx {} fy {} cx {} cy {}) differs from the session's \
-             ({}x{}, fx {} fy {} cx {} cy {}); open a new session for another camera",
-            camera.width,
-            camera.height,
-            camera.fx,
-            camera.fy,
-            camera.cx,
-            camera.cy,
-            own.width,
-            own.height,
-            own.fx,
-            own.fy,
-            own.cx,
-            own.cy
-        )))
-    }
-
-    /// Decodes and checks one frame now (400 for a corrupt image or a size that does not match
-    /// the camera, 413 beyond `limits.max_frame_bytes`), then queues it for the pipeline:
-    /// with `drop_oldest` a full queue loses its oldest frame (counted), with `wait` the call
-    /// waits for room. Returns the frame's id. 409 after end of stream.
-    pub async fn push_frame(&self, frame: FrameData) -> Result<u64, ApiError> {
-        let Some(queue) = &self.queue else {
-            return Err(self.not_accepting());
-        };
-        if self.ended.load(Ordering::SeqCst) {
-            return Err(self.not_accepting());
-        }
-        if frame.bytes.len() as u64 > self.max_frame_bytes {
-            return Err(ApiError::payload_too_large(format!(
-                "frame of {} bytes exceeds limits.max_frame_bytes = {}",
-                frame.bytes.len(),
-                self.max_frame_bytes
-            )));
-        }
-        if !(frame.timestamp.is_finite() && frame.timestamp.abs() <= MAX_TIMESTAMP) {
-            return Err(ApiError::bad_request(format!(
-                "timestamp must be a finite number of seconds within ±{MAX_TIMESTAMP:e}, got {}",
-                frame.timestamp
-            )));
-        }
-        let mut last = self.push_order.lock().await;
-        let frame_id = match (frame.frame_id, *last) {
-            (Some(id), Some((prev, _))) if id <= prev => {
-                return Err(ApiError::bad_request(format!(
-                    "frame_id {id} is not greater than the previous frame_id {prev}; \
-                     frame ids must strictly increase"
-                )));
-            }
-            (Some(id), _) => id,
-            (None, Some((prev, _))) => prev.checked_add(1).ok_or_else(|| {
-                ApiError::bad_request(format!(
-                    "frame ids are used up: the previous frame_id is {prev}; open a new session"
-                ))
-            })?,
-            (None, None) => 0,
-        };
-        if let Some((_, prev_t)) = *last {
-            let step = frame.timestamp - prev_t;
-            if !(step > 0.0 && step <= self.max_timestamp_step) {
-                return Err(ApiError::bad_request(format!(
-                    "timestamp {} follows {prev_t}: timestamps must increase, by at most {} s \
-                     per frame (limits.max_timestamp_step_s)",
-                    frame.timestamp, self.max_timestamp_step
-                )));
-            }
-        }
-        let start = Instant::now();
-        let (w, h) = (self.camera.width, self.camera.height);
-        let bytes = frame.bytes;
-        let rgb = tokio::task::spawn_blocking(move || decode_frame(&bytes, w, h))
-            .await
-            .map_err(|e| ApiError::internal(format!("decoding task failed: {e}")))??;
-        self.metrics
-            .observe_stage(Stage::Decode, start.elapsed().as_secs_f64());
-        let queued = QueuedFrame {
-            frame_id,
-            timestamp: frame.timestamp,
-            rgb,
-            received: Instant::now(),
-        };
-        match self.policy {
-            FramePolicy::DropOldest => {
-                let dropped = queue
-                    .push_drop_oldest(queued)
-                    .map_err(|_| self.not_accepting())?;
-                self.metrics.frame_queue_depth.inc();
-                if dropped.is_some() {
-                    self.metrics.frame_queue_depth.dec();
-                    let total = self.counters.dropped.fetch_add(1, Ordering::Relaxed) + 1;
-                    self.metrics.frames_dropped.inc();
-                    self.emit(SessionEvent::Dropped {
-                        frames_dropped: total,
-                    });
-                }
-            }
-            FramePolicy::Wait => {
-                queue
-                    .push_wait(queued)
-                    .await
-                    .map_err(|_| self.not_accepting())?;
-                self.metrics.frame_queue_depth.inc();
-            }
-        }
-        *last = Some((frame_id, frame.timestamp));
-        self.counters.received.fetch_add(1, Ordering::Relaxed);
-        self.metrics.frames_received.inc();
-        Ok(frame_id)
-    }
-
-    fn not_accepting(&self) -> ApiError {
-        let status = self.status.borrow().clone();
-        if status.state == SessionState::Failed {
-            return ApiError::conflict(format!(
-                "session {} failed ({}); it takes no more frames",
-                self.id,
-                status.error.as_deref().unwrap_or("no reason recorded")
-            ));
-        }
-        match self.kind {
-            SessionKind::Upload => ApiError::conflict(format!(
-                "session {} is an upload; it takes no frames",
-                self.id
-            )),
-            SessionKind::Live => ApiError::conflict(format!(
-                "session {} has ended (end of stream); it takes no more frames",
-                self.id
-            )),
-        }
     }
 
     /// End of stream: the worker processes the frames already queued, finishes the map,
@@ -550,7 +357,7 @@ impl Session {
             owner: self.owner.clone(),
             kind: self.kind,
             state: status.state,
-            camera: self.camera_json.clone(),
+            camera: self.camera,
             config: self.config.clone(),
             model: self.model.clone(),
             policy: self.policy,

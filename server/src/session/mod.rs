@@ -1,8 +1,10 @@
 //! Sessions: one `slam::Pipeline` each, fed by a bounded frame queue (live) or an uploaded
 //! dataset, on its own thread; events broadcast to subscribers; results in the store.
 //!
-//! - [`types`]: the JSON of sessions (create request, info, camera, policy).
+//! - [`types`]: the JSON of sessions (create request, info, camera, policy) and the typed
+//!   request it parses into.
 //! - [`handle`]: [`Session`], the shared handle request handlers use.
+//! - [`input`]: frames into a live session: checked, decoded, queued.
 //! - [`manager`]: [`SessionManager`]: sessions, uploads, recovery, retention, health.
 //! - [`admission`]: slots, the upload queue, per-owner quotas, upload tickets.
 //! - [`track`]: what a session has produced (poses, keyframes, mesh) and its result files.
@@ -19,6 +21,7 @@ pub mod admission;
 pub mod decode;
 pub mod events;
 pub mod handle;
+pub mod input;
 pub mod manager;
 pub mod overrides;
 pub mod persist;
@@ -36,6 +39,6 @@ pub use overrides::merge_config;
 pub use prior::{PooledPrior, SharedModel};
 pub use types::{
     CameraJson, CreateSession, FrameData, FramePolicy, Owner, PoseJson, Progress, SessionId,
-    SessionInfo, SessionKind, SessionState,
+    SessionInfo, SessionKind, SessionRequest, SessionState,
 };
 pub use upload::ArchiveKind;

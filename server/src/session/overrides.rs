@@ -10,6 +10,7 @@
 use relfusion_slam::pipeline::Config as SlamConfig;
 use serde_json::Value;
 
+use super::types::FramePolicy;
 use crate::ApiError;
 
 /// What values a settable key takes.
@@ -153,6 +154,24 @@ pub fn merge_config(base: &SlamConfig, overrides: &Value) -> Result<SlamConfig, 
         .validate()
         .map_err(|e| ApiError::bad_request(e.to_string()))?;
     Ok(config)
+}
+
+/// A live session's configuration: `overrides` over the live defaults for `policy`.
+pub fn live_config(overrides: &Value, policy: FramePolicy) -> Result<SlamConfig, ApiError> {
+    let mut base = SlamConfig::default();
+    // A live camera does not wait: tracking gives every frame its pose at frame rate and the
+    // mapping thread observes the frames it has time for (skipped, never queued). A replay
+    // that waits for room loses nothing, and maps every frame in step.
+    base.pipeline.mapping_thread = policy == FramePolicy::DropOldest;
+    merge_config(&base, overrides)
+}
+
+/// An upload's configuration: `overrides` over deterministic defaults (a re-run after a
+/// crash must give the result the interrupted run would have given).
+pub fn upload_config(overrides: &Value) -> Result<SlamConfig, ApiError> {
+    let mut base = SlamConfig::default();
+    base.pipeline.deterministic = true;
+    merge_config(&base, overrides)
 }
 
 #[cfg(test)]

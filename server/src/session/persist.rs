@@ -6,11 +6,12 @@
 //! `sessions/<id>/results/` holds the trajectory, keyframes, point cloud and a summary,
 //! written on finish and every few keyframes while running.
 
+use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 use serde::{Deserialize, Serialize};
 
 use super::types::{
-    CameraJson, FramePolicy, Owner, Progress, SessionInfo, SessionKind, SessionState, dense_mode,
+    FramePolicy, Owner, Progress, SessionInfo, SessionKind, SessionState, camera_json, dense_mode,
 };
 use crate::storage::{ObjectStore, StoreError};
 
@@ -64,8 +65,10 @@ pub struct SessionMeta {
     pub owner: Owner,
     pub kind: SessionKind,
     pub state: SessionState,
-    /// The resolved camera (for uploads: from the request, calibration.txt or a preset).
-    pub camera: CameraJson,
+    /// The resolved camera (for uploads: from the request, calibration.txt or a preset),
+    /// stored in the API's camera JSON layout and checked again when read.
+    #[serde(with = "super::types::camera_as_json")]
+    pub camera: PinholeCamera,
     /// The resolved pipeline configuration; a re-run uses exactly this.
     pub config: SlamConfig,
     pub model: String,
@@ -132,7 +135,7 @@ impl SessionMeta {
                 total: self.total_frames,
             },
             created_unix: self.created_unix,
-            camera: self.camera.clone(),
+            camera: camera_json(&self.camera),
             model: self.model.clone(),
             error: self.error.clone(),
             notice: self.notice.clone(),

@@ -7,13 +7,13 @@ use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
 use std::sync::{Mutex, MutexGuard};
 
+use relfusion_slam::dataset::trajectory::{StampedPose, format_tum_trajectory, stamped_se3};
 use relfusion_slam::export::{mesh_glb_bytes, mesh_ply_bytes};
 use relfusion_slam::fusion::{BlockIndex, BlockMesh, Mesh, MeshDelta};
 use relfusion_slam::geometry::Sim3;
 
 use super::handle::Session;
 use super::persist::result_key;
-use crate::convert::tum_text;
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
@@ -59,12 +59,29 @@ impl MeshState {
     }
 }
 
+/// A session's poses: the stored file once it has ended (final, optimised), else the poses
+/// reported so far as stamped SE(3) (the scale acts on the map, not on the camera centre).
+#[derive(Clone, Debug)]
+pub enum Poses {
+    Stored(String),
+    Live(Vec<StampedPose>),
+}
+
+impl Poses {
+    /// The TUM text, exactly as `relfusion run` writes it.
+    pub fn into_tum(self) -> String {
+        match self {
+            Poses::Stored(text) => text,
+            Poses::Live(poses) => format_tum_trajectory(&poses),
+        }
+    }
+}
+
 impl Session {
-    /// The trajectory in TUM format: final (optimised) once finished, else the poses as
-    /// tracked so far.
-    pub fn trajectory_tum(&self) -> String {
+    /// The trajectory: final (optimised) once finished, else the poses as tracked so far.
+    pub fn trajectory(&self) -> Poses {
         if let Some(text) = self.stored_text("trajectory.txt") {
-            return text;
+            return Poses::Stored(text);
         }
         let track = lock(&self.track);
         let poses: Vec<(f64, Sim3)> = track
@@ -73,17 +90,27 @@ impl Session {
             .filter(|(_, _, lost)| !lost)
             .map(|(t, p, _)| (*t, *p))
             .collect();
-        tum_text(&poses)
+        Poses::Live(stamped_se3(&poses))
     }
 
-    /// The keyframe poses in TUM format (final once finished).
-    pub fn keyframes_tum(&self) -> String {
+    /// The keyframe poses (final once finished).
+    pub fn keyframes(&self) -> Poses {
         if let Some(text) = self.stored_text("keyframes.txt") {
-            return text;
+            return Poses::Stored(text);
         }
         let track = lock(&self.track);
         let poses: Vec<(f64, Sim3)> = track.keyframes.values().copied().collect();
-        tum_text(&poses)
+        Poses::Live(stamped_se3(&poses))
+    }
+
+    /// [`Session::trajectory`] in TUM format.
+    pub fn trajectory_tum(&self) -> String {
+        self.trajectory().into_tum()
+    }
+
+    /// [`Session::keyframes`] in TUM format.
+    pub fn keyframes_tum(&self) -> String {
+        self.keyframes().into_tum()
     }
 
     /// The semi-dense point cloud (PLY): final once finished, else the last checkpoint

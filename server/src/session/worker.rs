@@ -3,8 +3,9 @@
 //! results every few keyframes and persists the final ones.
 //!
 //! Tracking is CPU work, so each session gets a plain thread (not a tokio task: a 50 ms
-//! tracking step would stall the async runtime that serves `/healthz`). Accelerator work goes
-//! through the GPU pool ([`super::prior::PooledPrior`]).
+//! tracking step would stall the async runtime that serves `/healthz`). The pipeline's kernels
+//! run on the GPU the pool placed the session on ([`PoolClient::gpu`]); its depth-prior
+//! inference is a job on that device's pool workers ([`super::prior::PooledPrior`]).
 //!
 //! Bounds: a live session that receives fewer than `limits.min_frame_rate` frames per second
 //! over `limits.idle_timeout_s` ends as idle; a session whose map reaches its keyframe limit
@@ -23,12 +24,13 @@ use relfusion_slam::pipeline::{Event, FrameInput, Pipeline, Stats, TrackingState
 use serde_json::json;
 
 use super::events::{KeyframePose, SessionEvent};
-use super::handle::{QueuedFrame, Session};
+use super::handle::Session;
+use super::input::QueuedFrame;
 use super::persist::Results;
 use super::prior::SharedModel;
 use super::queue::Pop;
 use super::types::{SessionKind, SessionState};
-use crate::convert::{points_ply, pose_json, tum_text};
+use crate::convert::{points_ply, tum_text};
 use crate::gpu_pool::PoolClient;
 use crate::metrics::{Metrics, Stage};
 
@@ -65,7 +67,8 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         .model
         .as_ref()
         .map(|m| Box::new(m.pooled(env.pool.clone(), env.metrics.clone())) as Box<dyn DepthPrior>);
-    let pipeline = match Pipeline::new(session.config.clone(), *session.camera(), prior) {
+    let gpu = env.pool.gpu();
+    let pipeline = match Pipeline::with_gpu(session.config.clone(), *session.camera(), prior, gpu) {
         Ok(p) => p,
         Err(e) => return fail(session, None, format!("starting the pipeline: {e}")),
     };
@@ -129,7 +132,7 @@ impl Runner<'_> {
                         keyframe_id: id,
                         frame_id,
                         timestamp,
-                        pose: pose_json(p),
+                        pose: *p,
                     })
                 })
                 .collect(),
@@ -165,7 +168,7 @@ impl Runner<'_> {
             keyframe_id: id,
             frame_id,
             timestamp: dense.timestamp,
-            pose: pose_json(&dense.world_from_keyframe),
+            pose: dense.world_from_keyframe,
             mode: dense.mode,
             width: dense.idepth.width,
             height: dense.idepth.height,
@@ -299,7 +302,7 @@ impl Runner<'_> {
                     s.emit(SessionEvent::Pose {
                         frame_id: frame.frame_id,
                         timestamp: p.timestamp,
-                        pose: pose_json(&p.world_from_camera),
+                        pose: p.world_from_camera,
                         state: p.state,
                         is_keyframe: p.is_keyframe,
                         keyframe_id: p.keyframe_id as u64,
@@ -314,7 +317,7 @@ impl Runner<'_> {
                         keyframe_id: k.keyframe_id as u64,
                         frame_id: frame.frame_id,
                         timestamp: k.timestamp,
-                        pose: pose_json(&k.world_from_keyframe),
+                        pose: k.world_from_keyframe,
                     });
                     self.since_checkpoint += 1;
                 }

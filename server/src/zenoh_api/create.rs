@@ -18,8 +18,8 @@ use tokio::task::JoinHandle;
 use zenoh::query::Query;
 
 use super::{Shared, bump, proto_error, serve_queryable};
-use crate::convert::camera_json_from_proto;
-use crate::session::{CreateSession, FramePolicy};
+use crate::convert::camera_from_proto;
+use crate::session::types::{FramePolicy, SessionRequest};
 use crate::{ApiError, ServerError};
 
 /// Declares `tenant`'s queryable and serves it until shutdown.
@@ -90,8 +90,9 @@ async fn create(shared: &Arc<Shared>, query: &Query, tenant: &str) -> Result<Str
     Ok(session.id().to_string())
 }
 
-/// The HTTP API's create request for a protobuf `SessionConfig`.
-pub fn create_request(config: &SessionConfig) -> Result<CreateSession, ApiError> {
+/// The typed create request of a protobuf `SessionConfig` (what HTTP's `CreateSession` parses
+/// into).
+pub fn create_request(config: &SessionConfig) -> Result<SessionRequest, ApiError> {
     let camera = config
         .camera
         .as_ref()
@@ -108,12 +109,7 @@ pub fn create_request(config: &SessionConfig) -> Result<CreateSession, ApiError>
         v1::FramePolicy::Wait => FramePolicy::Wait,
         v1::FramePolicy::DropOldest | v1::FramePolicy::Unspecified => FramePolicy::DropOldest,
     };
-    Ok(CreateSession {
-        camera: camera_json_from_proto(camera),
-        config: overrides,
-        model,
-        policy,
-    })
+    SessionRequest::live(camera_from_proto(camera)?, &overrides, model, policy)
 }
 
 #[cfg(test)]
@@ -133,7 +129,7 @@ mod tests {
     }
 
     #[test]
-    fn session_config_becomes_the_http_create_request() {
+    fn session_config_becomes_the_typed_create_request() {
         let req = create_request(&SessionConfig {
             camera: Some(camera()),
             config_json: r#"{"pipeline":{"deterministic":true}}"#.into(),
@@ -142,7 +138,11 @@ mod tests {
         })
         .expect("valid");
         assert_eq!(req.camera.width, 320);
-        assert_eq!(req.config["pipeline"]["deterministic"], true);
+        assert!(req.config.pipeline.deterministic);
+        assert!(
+            !req.config.pipeline.mapping_thread,
+            "a waiting stream maps in step"
+        );
         assert_eq!(req.model.as_deref(), Some("none"));
         assert_eq!(req.policy, FramePolicy::Wait);
 
@@ -151,7 +151,8 @@ mod tests {
             ..Default::default()
         })
         .expect("valid");
-        assert!(defaults.config.is_null() && defaults.model.is_none());
+        assert!(defaults.model.is_none());
+        assert!(defaults.config.pipeline.mapping_thread);
         assert_eq!(defaults.policy, FramePolicy::DropOldest);
     }
 

@@ -18,6 +18,10 @@ use tokio::task::JoinHandle;
 use zenoh::query::Query;
 
 use super::{Shared, bump, proto_error, serve_queryable};
+use relfusion_slam::geometry::Sim3;
+
+use crate::convert::sim3_to_proto;
+use crate::session::track::Poses;
 use crate::session::{Session, SessionState, mesh_block};
 use crate::{ApiError, ServerError};
 
@@ -74,8 +78,8 @@ pub fn snapshot(session: &Session) -> Result<MapSnapshot, ApiError> {
         frames_processed: info.frames_processed,
         frames_received: info.frames_received,
         frames_dropped: info.frames_dropped,
-        trajectory: parse_tum(&session.trajectory_tum())?,
-        keyframes: parse_tum(&session.keyframes_tum())?,
+        trajectory: stamped_poses(session.trajectory())?,
+        keyframes: stamped_poses(session.keyframes())?,
         mesh_blocks: blocks.iter().map(mesh_block).collect(),
         block_size,
         mesh_revision,
@@ -90,7 +94,23 @@ pub fn state_name(state: SessionState) -> String {
         .unwrap_or_default()
 }
 
-/// TUM trajectory text → stamped poses, value for value (no re-normalisation: a client gets
+/// A session's poses on the wire: converted from the typed poses while it runs, parsed from
+/// the stored file once it has ended (the same values either way: the files print every
+/// `f64` exactly, and carry no scale).
+fn stamped_poses(poses: Poses) -> Result<Vec<StampedPose>, ApiError> {
+    match poses {
+        Poses::Stored(text) => parse_tum(&text),
+        Poses::Live(poses) => Ok(poses
+            .iter()
+            .map(|p| StampedPose {
+                timestamp: p.timestamp,
+                world_from_camera: Some(sim3_to_proto(&Sim3::from_se3(&p.world_from_camera, 1.0))),
+            })
+            .collect()),
+    }
+}
+
+/// A stored TUM trajectory text → stamped poses, value for value (no re-normalisation: a client gets
 /// exactly the numbers of the downloadable file).
 fn parse_tum(text: &str) -> Result<Vec<StampedPose>, ApiError> {
     let mut poses = Vec::new();
@@ -158,6 +178,29 @@ mod tests {
         );
         assert!(parse_tum("1 2 3").is_err());
         assert!(parse_tum("1 2 3 4 5 6 7 x").is_err());
+    }
+
+    #[test]
+    fn live_poses_equal_their_tum_text_value_for_value() {
+        use relfusion_slam::dataset::trajectory::stamped_se3;
+        use relfusion_slam::geometry::SO3;
+        let poses: Vec<(f64, Sim3)> = (0..5)
+            .map(|i| {
+                let f = f64::from(i);
+                let pose = Sim3::new(
+                    SO3::exp(&nalgebra::Vector3::new(0.1 * f, -0.03, 0.2)),
+                    nalgebra::Vector3::new(f / 3.0, -0.7, 1e-3 * f),
+                    0.8 + 0.1 * f,
+                );
+                (1.0 + f / 30.0, pose)
+            })
+            .collect();
+        let live = Poses::Live(stamped_se3(&poses));
+        let text = live.clone().into_tum();
+        assert_eq!(
+            stamped_poses(live).expect("typed"),
+            stamped_poses(Poses::Stored(text)).expect("parsed")
+        );
     }
 
     #[test]

@@ -6,6 +6,8 @@
 
 use serde::{Deserialize, Serialize};
 
+pub use crate::scale_shift::AlignParams;
+
 use crate::{Error, Result};
 
 /// Where the dense kernels run.
@@ -18,30 +20,6 @@ pub enum DenseCompute {
     Gpu,
     /// The CPU reference implementations (the ground truth the GPU kernels are tested against).
     Cpu,
-}
-
-/// Robust eq. (3) alignment of the prior to the semi-dense inverse depth.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct AlignParams {
-    /// Fewest semi-dense pixels (at the working resolution) a fit needs. Default 200: the
-    /// semi-dense map of a converged keyframe has thousands; a few hundred cannot pin down
-    /// scale and shift of the whole prior.
-    pub min_pixels: usize,
-    /// Re-fits after dropping outliers (residual > `outlier_k` × 1.4826 × MAD). Default 3.
-    pub outlier_rounds: usize,
-    /// Outlier threshold in robust standard deviations. Default 3.
-    pub outlier_k: f64,
-}
-
-impl Default for AlignParams {
-    fn default() -> Self {
-        Self {
-            min_pixels: 200,
-            outlier_rounds: 3,
-            outlier_k: 3.0,
-        }
-    }
 }
 
 /// The semi-dense structure adaptive filter (§III-C, eqs. 4–9; §IV values).
@@ -200,7 +178,10 @@ impl Default for TwoViewParams {
     }
 }
 
-/// The `[dense]` section of the pipeline config.
+/// The `[dense]` section of the pipeline config. User settings: `enabled`, `width` / `height`
+/// (working resolution), `compute`, `two_view.ground_truth_depth` (the Table III baseline)
+/// and the energy's `densify.terms` (the Table II ablation); the filter's, the energy's and
+/// the consistency test's parameters are expert level (the paper's §IV values).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DenseConfig {
@@ -221,13 +202,9 @@ pub struct DenseConfig {
     /// Relative variance `(σ_ρ/ρ)²` a densified pixel gains per pixel (working resolution) of
     /// distance to the nearest filtered semi-dense pixel, in the published
     /// [`super::DenseKeyframe::variance`] that the fusion weighs by (`dense::support`). Eq.
-    /// (16)'s variance is flat across the image while the densified error grows away from
-    /// the semi-dense depth (synthetic orbit: 2 % rms on it, 6.6 % at 3–4 px, 12 % beyond
-    /// 20 px). Default 0.001, fitted to that growth; 0 publishes the paper's variance.
-    /// Measured before `mapping.propagation_var_inc` existed: on the synthetic orbit's mesh
-    /// (no model) it took accuracy / completeness from 0.618 / 0.749 to 0.746 / 0.731; on
-    /// 7-Scenes redkitchen, where the scale drift dominated, from 0.088 / 0.180 to
-    /// 0.109 / 0.121.
+    /// (16)'s variance is flat across the image while the densified error grows away from the
+    /// semi-dense depth. Default 0.001, fitted to that growth on the synthetic orbit; 0
+    /// publishes the paper's variance (docs/tuning.md, "Support variance").
     pub support_variance: f32,
     pub align: AlignParams,
     pub filter: FilterParams,
@@ -318,7 +295,7 @@ impl DenseConfig {
         if !(self.two_view.tau_e.is_finite() && self.two_view.tau_e > 0.0) {
             return bad("two_view.tau_e must be > 0");
         }
-        if self.align.min_pixels < super::align::MIN_ALIGN_PIXELS {
+        if self.align.min_pixels < crate::scale_shift::MIN_ALIGN_PIXELS {
             return bad("align.min_pixels is below the fit's minimum");
         }
         Ok(())

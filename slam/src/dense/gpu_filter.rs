@@ -15,7 +15,7 @@ use std::sync::{Arc, Mutex};
 use bytemuck::{Pod, Zeroable};
 
 use super::FilterParams;
-use super::filter::{FilterInputs, FilterRaw, Prepared, check_params};
+use super::filter::{FilterInputs, FilterRaw, FilterStep, Prepared, check_params};
 use crate::gpu::GpuContext;
 use crate::image::ImageF32;
 use crate::{Error, Result};
@@ -260,6 +260,12 @@ impl GpuAdaptiveFilter {
             _pad1: 0,
             _pad2: 0,
         })
+    }
+}
+
+impl FilterStep for GpuAdaptiveFilter {
+    fn run(&self, inputs: &FilterInputs, params: &FilterParams) -> Result<FilterRaw> {
+        GpuAdaptiveFilter::run(self, inputs, params)
     }
 }
 

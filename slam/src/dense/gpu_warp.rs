@@ -14,7 +14,7 @@ use std::sync::{Arc, Mutex};
 
 use bytemuck::{Pod, Zeroable};
 
-use super::two_view::WarpMatrix;
+use super::two_view::{InverseDepthWarp, WarpMatrix};
 use crate::geometry::{PinholeCamera, Sim3};
 use crate::gpu::GpuContext;
 use crate::image::ImageF32;
@@ -96,10 +96,39 @@ impl GpuWarp {
         &self.ctx
     }
 
+    fn allocate(&self, pixels: usize) -> Buffers {
+        let device = self.ctx.device();
+        let bytes = 4 * pixels as u64;
+        let storage = |label: &str, extra: wgpu::BufferUsages| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | extra,
+                mapped_at_creation: false,
+            })
+        };
+        Buffers {
+            pixels,
+            params: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("two_view_warp params"),
+                size: std::mem::size_of::<WarpParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            src: storage("two_view_warp src", wgpu::BufferUsages::empty()),
+            // Bound even without an exclusion map (the kernel then never reads it).
+            exclude: storage("two_view_warp exclude", wgpu::BufferUsages::empty()),
+            dst: storage("two_view_warp dst", wgpu::BufferUsages::COPY_SRC),
+            staging: self.ctx.staging_buffer("two_view_warp readback", bytes),
+        }
+    }
+}
+
+impl InverseDepthWarp for GpuWarp {
     /// Forward-warps `src` into the other view on the GPU; same contract and checks as
     /// [`super::two_view::warp_inverse_depth_cpu`]. Upload, clear, kernel and readback are one
     /// submission.
-    pub fn warp(
+    fn warp(
         &self,
         src: &ImageF32,
         exclude: Option<&ImageF32>,
@@ -193,33 +222,6 @@ impl GpuWarp {
             bytemuck::cast_slice::<u8, f32>(&raw[..4 * n]).to_vec()
         })?;
         ImageF32::from_vec(w, h, data)
-    }
-
-    fn allocate(&self, pixels: usize) -> Buffers {
-        let device = self.ctx.device();
-        let bytes = 4 * pixels as u64;
-        let storage = |label: &str, extra: wgpu::BufferUsages| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: bytes,
-                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | extra,
-                mapped_at_creation: false,
-            })
-        };
-        Buffers {
-            pixels,
-            params: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("two_view_warp params"),
-                size: std::mem::size_of::<WarpParams>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
-            src: storage("two_view_warp src", wgpu::BufferUsages::empty()),
-            // Bound even without an exclusion map (the kernel then never reads it).
-            exclude: storage("two_view_warp exclude", wgpu::BufferUsages::empty()),
-            dst: storage("two_view_warp dst", wgpu::BufferUsages::COPY_SRC),
-            staging: self.ctx.staging_buffer("two_view_warp readback", bytes),
-        }
     }
 }
 

@@ -4,10 +4,10 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use super::align::ScaleShift;
 use crate::geometry::{PinholeCamera, Sim3};
 use crate::graph::KeyframeId;
 use crate::image::ImageF32;
+use crate::scale_shift::ScaleShift;
 
 /// How a keyframe was densified.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

@@ -2,16 +2,20 @@
 //! adaptive filter → densification → two-view consistency, whose result refines the pose
 //! graph.
 //!
-//! [`DenseLayer`] does one keyframe at a time; [`DenseWorker`] runs it on its own thread behind
-//! a bounded queue so that the network and the kernels never hold up tracking (the paper runs
-//! prediction and densification in separate processes, §IV). A full queue skips the keyframe
-//! rather than waiting (counted by the caller).
+//! [`DenseLayer`] does one keyframe at a time. As a [`Service`] the pipeline runs it on its own
+//! thread behind a bounded queue, so that the network and the kernels never hold up tracking
+//! (the paper runs prediction and densification in separate processes, §IV); a full queue
+//! skips the keyframe rather than waiting (counted by the caller).
+//!
+//! This is the one place that chooses between the CPU references and their GPU kernels: each
+//! algorithm module takes its step as a trait object ([`FilterStep`], [`DensifySolver`],
+//! [`InverseDepthWarp`]) and knows nothing of the runners.
 
-use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use super::filter::{FilterInputs, filter_semidense};
+use super::densify::{CpuDensifier, DensifySolver};
+use super::filter::{CpuFilter, FilterInputs, FilterStep, filter_semidense};
 use super::gpu_densify::GpuDensifier;
 use super::gpu_filter::GpuAdaptiveFilter;
 use super::gpu_warp::GpuWarp;
@@ -19,11 +23,14 @@ use super::keyframe::{DenseKeyframe, DenseMode, DenseStages, DenseTimings};
 use super::prior::DepthPrior;
 use super::resample::{box_downsample, downsample_depth, working_camera, working_size};
 use super::two_view::{
-    TwoViewInputs, pose_variance, sensor_depth_map, to_depth_map, two_view_consistency,
+    CpuWarp, InverseDepthWarp, TwoViewInputs, pose_variance, sensor_depth_map, to_depth_map,
+    two_view_consistency,
 };
 use super::{DenseCompute, DenseConfig, ScaleShift, densify, fit_scale_shift_robust, support};
+use crate::background::Service;
 use crate::frame::Frame;
 use crate::geometry::{Matrix7, Sim3};
+use crate::gpu::GpuContext;
 use crate::graph::KeyframeId;
 use crate::image::ImageF32;
 use crate::mapping::DepthMap;
@@ -68,12 +75,42 @@ struct Previous {
     dense: Arc<ImageF32>,
 }
 
-/// GPU runners of the layer's kernels.
-#[derive(Debug)]
-struct Kernels {
-    filter: GpuAdaptiveFilter,
-    densify: GpuDensifier,
-    warp: GpuWarp,
+/// The layer's three swappable steps: the GPU kernels, or the CPU references.
+struct Steps {
+    filter: Box<dyn FilterStep + Send>,
+    densify: Box<dyn DensifySolver + Send>,
+    warp: Box<dyn InverseDepthWarp + Send>,
+    gpu: bool,
+}
+
+impl Steps {
+    fn cpu() -> Self {
+        Self {
+            filter: Box::new(CpuFilter),
+            densify: Box::new(CpuDensifier),
+            warp: Box::new(CpuWarp),
+            gpu: false,
+        }
+    }
+
+    fn gpu(ctx: Arc<GpuContext>) -> Result<Self> {
+        Ok(Self {
+            filter: Box::new(GpuAdaptiveFilter::new(ctx.clone())?),
+            densify: Box::new(GpuDensifier::new(ctx.clone())?),
+            warp: Box::new(GpuWarp::new(ctx)?),
+            gpu: true,
+        })
+    }
+}
+
+impl std::fmt::Debug for Steps {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.gpu {
+            "gpu kernels"
+        } else {
+            "cpu references"
+        })
+    }
 }
 
 /// The dense layer of one session.
@@ -81,24 +118,34 @@ struct Kernels {
 pub struct DenseLayer {
     config: DenseConfig,
     prior: Option<SharedPrior>,
-    kernels: Option<Kernels>,
+    steps: Steps,
     previous: Option<Previous>,
     no_model_reported: bool,
 }
 
 impl DenseLayer {
-    /// A layer with `config`; the kernels run on the process's shared GPU context unless
-    /// `config.compute` is `Cpu` or no adapter can be opened (then the CPU references, with a
-    /// warning).
-    pub fn new(config: DenseConfig, prior: Option<SharedPrior>) -> Result<Self> {
+    /// A layer with `config`; the kernels run on `gpu` (the session's GPU; the process's
+    /// shared context when `None`) unless `config.compute` is `Cpu` or no adapter can be
+    /// opened (then the CPU references, with a warning).
+    pub fn new(
+        config: DenseConfig,
+        prior: Option<SharedPrior>,
+        gpu: Option<Arc<GpuContext>>,
+    ) -> Result<Self> {
         config.validate()?;
-        let kernels = match config.compute {
-            DenseCompute::Cpu => None,
-            DenseCompute::Gpu => match open_kernels() {
-                Ok(k) => Some(k),
+        let steps = match config.compute {
+            DenseCompute::Cpu => Steps::cpu(),
+            DenseCompute::Gpu => match gpu.map_or_else(crate::gpu::shared_context, Ok) {
+                Ok(ctx) => match Steps::gpu(ctx) {
+                    Ok(steps) => steps,
+                    Err(e) => {
+                        tracing::warn!(error = %e, "dense layer: GPU kernels unavailable, using the CPU references");
+                        Steps::cpu()
+                    }
+                },
                 Err(e) => {
                     tracing::warn!(error = %e, "dense layer: no GPU, using the CPU references");
-                    None
+                    Steps::cpu()
                 }
             },
         };
@@ -111,7 +158,7 @@ impl DenseLayer {
         Ok(Self {
             config,
             prior,
-            kernels,
+            steps,
             previous: None,
             no_model_reported: false,
         })
@@ -119,7 +166,7 @@ impl DenseLayer {
 
     /// Whether the kernels run on the GPU.
     pub fn uses_gpu(&self) -> bool {
-        self.kernels.is_some()
+        self.steps.gpu
     }
 
     /// Densifies one keyframe.
@@ -174,11 +221,8 @@ impl DenseLayer {
             variance: &semidense_var,
             prior: prior_aligned.as_ref(),
         };
-        let (filtered, filtered_var) = filter_semidense(
-            &inputs,
-            &cfg.filter,
-            self.kernels.as_ref().map(|k| &k.filter),
-        )?;
+        let (filtered, filtered_var) =
+            filter_semidense(&inputs, &cfg.filter, self.steps.filter.as_ref())?;
         timings.filter_ms = ms(t);
 
         // §III-D: densification.
@@ -197,7 +241,7 @@ impl DenseLayer {
         let dense = Arc::new(densify::densify(
             &problem,
             &cfg.densify,
-            self.kernels.as_ref().map(|k| &k.densify),
+            self.steps.densify.as_ref(),
         )?);
         timings.densify_ms = ms(t);
 
@@ -232,7 +276,7 @@ impl DenseLayer {
                     pose_covariance: job.pose_covariance,
                 },
                 &cfg.two_view,
-                self.kernels.as_ref().map(|k| &k.warp),
+                self.steps.warp.as_ref(),
             )?;
             consistent_pixels = result.consistent_semi + result.consistent_dense;
             if consistent_pixels >= cfg.two_view.min_pixels {
@@ -293,13 +337,25 @@ impl DenseLayer {
     }
 }
 
-fn open_kernels() -> Result<Kernels> {
-    let ctx = crate::gpu::shared_context()?;
-    Ok(Kernels {
-        filter: GpuAdaptiveFilter::new(ctx.clone())?,
-        densify: GpuDensifier::new(ctx.clone())?,
-        warp: GpuWarp::new(ctx)?,
-    })
+/// The layer as a background service: one keyframe per job, its answer as the reply.
+impl Service for DenseLayer {
+    type Job = DenseJob;
+    type Reply = (KeyframeId, Result<DenseOutput>);
+
+    fn handle(&mut self, jobs: Vec<DenseJob>, reply: &mut dyn FnMut(Self::Reply)) -> Result<()> {
+        for job in jobs {
+            let id = job.keyframe_id;
+            reply((id, self.process(job)));
+        }
+        Ok(())
+    }
+
+    fn unavailable(job: DenseJob, error: &str) -> Option<Self::Reply> {
+        Some((
+            job.keyframe_id,
+            Err(Error::Config(format!("dense layer: {error}"))),
+        ))
+    }
 }
 
 /// Runs the shared depth prior on one image (the raw relative inverse depth).
@@ -371,9 +427,9 @@ fn merge_variances(
 
 /// The map the back end gets: LSD-SLAM's own semi-dense estimates where it has them, the
 /// two-view consistent dense depth elsewhere. The paper keeps the semi-dense structure when
-/// warping (§III-E); measured on 7-Scenes, replacing the semi-dense pixels by their (much
-/// smaller) consistent subset weakened the constraints and raised the keyframe ATE
-/// (0.082 → 0.097 m; 0.083 m with the gaps filled only), so only the gaps are filled.
+/// warping (§III-E); replacing the semi-dense pixels by their (much smaller) consistent
+/// subset weakened the constraints (docs/tuning.md, "Refined depth"), so only the gaps are
+/// filled.
 fn keep_semidense(semidense: &DepthMap, mut consistent: DepthMap) -> DepthMap {
     for (c, s) in consistent.pixels.iter_mut().zip(&semidense.pixels) {
         if s.estimate().is_some() {
@@ -381,96 +437,4 @@ fn keep_semidense(semidense: &DepthMap, mut consistent: DepthMap) -> DepthMap {
         }
     }
     consistent
-}
-
-/// Messages from the worker thread.
-type Reply = (KeyframeId, Result<DenseOutput>);
-
-/// [`DenseLayer`] on its own thread behind a bounded queue.
-#[derive(Debug)]
-pub struct DenseWorker {
-    jobs: Option<SyncSender<DenseJob>>,
-    replies: Receiver<Reply>,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-impl DenseWorker {
-    /// Starts the thread; the layer is built there (opening the GPU can take a while).
-    pub fn spawn(config: DenseConfig, prior: Option<SharedPrior>) -> Result<Self> {
-        config.validate()?;
-        let (jobs, job_rx) = std::sync::mpsc::sync_channel::<DenseJob>(config.queue);
-        let (reply_tx, replies) = std::sync::mpsc::channel::<Reply>();
-        let thread = std::thread::Builder::new()
-            .name("relfusion-dense".into())
-            .spawn(move || {
-                crate::background::lower_current_thread_priority(
-                    crate::background::Priority::Dense,
-                );
-                let mut layer = match DenseLayer::new(config, prior) {
-                    Ok(layer) => layer,
-                    Err(e) => {
-                        let msg = e.to_string();
-                        for job in job_rx {
-                            let err = Err(Error::Config(format!("dense layer: {msg}")));
-                            if reply_tx.send((job.keyframe_id, err)).is_err() {
-                                return;
-                            }
-                        }
-                        return;
-                    }
-                };
-                for job in job_rx {
-                    let id = job.keyframe_id;
-                    if reply_tx.send((id, layer.process(job))).is_err() {
-                        return;
-                    }
-                }
-            })
-            .map_err(|e| Error::Config(format!("cannot start the dense worker: {e}")))?;
-        Ok(Self {
-            jobs: Some(jobs),
-            replies,
-            thread: Some(thread),
-        })
-    }
-
-    /// Queues a keyframe; `false` when the queue is full (the keyframe is not densified).
-    pub fn submit(&self, job: DenseJob) -> Result<bool> {
-        let jobs = self
-            .jobs
-            .as_ref()
-            .ok_or_else(|| Error::Config("dense worker already finished".into()))?;
-        match jobs.try_send(job) {
-            Ok(()) => Ok(true),
-            Err(TrySendError::Full(_)) => Ok(false),
-            Err(TrySendError::Disconnected(_)) => {
-                Err(Error::Config("the dense worker stopped".into()))
-            }
-        }
-    }
-
-    /// Results ready now, without waiting.
-    pub fn poll(&self) -> Vec<Reply> {
-        self.replies.try_iter().collect()
-    }
-
-    /// Processes what is queued, stops the thread and returns the remaining results.
-    pub fn finish(&mut self) -> Vec<Reply> {
-        self.jobs = None;
-        if let Some(thread) = self.thread.take()
-            && thread.join().is_err()
-        {
-            tracing::error!("the dense worker panicked");
-        }
-        self.replies.try_iter().collect()
-    }
-}
-
-impl Drop for DenseWorker {
-    fn drop(&mut self) {
-        self.jobs = None;
-        if let Some(thread) = self.thread.take() {
-            let _ = thread.join();
-        }
-    }
 }

@@ -21,7 +21,6 @@
 //! - [`layer`]: the per-keyframe orchestration and its worker thread.
 //! - [`store`]: the on-disk layout of densified keyframes (`OUT/keyframes/`).
 
-pub mod align;
 pub mod config;
 pub mod densify;
 pub mod filter;
@@ -37,7 +36,7 @@ pub mod store;
 pub mod support;
 pub mod two_view;
 
-pub use align::{
+pub use crate::scale_shift::{
     ScaleShift, aligned_depth, fit_scale_shift, fit_scale_shift_robust,
     fit_scale_shift_unconstrained, inverse_depth_target,
 };

@@ -40,7 +40,7 @@ pub const ORT_SYSTEM_PATH: &str = "/opt/relfusion/ort/onnxruntime/capi/libonnxru
 
 /// A relative inverse-depth map (`D_CNN`, larger = nearer) at the resolution of the image it
 /// was predicted from. Its scale and shift are unknown until aligned with eq. (3)
-/// ([`super::align::fit_scale_shift`]). Pixels without a usable prediction hold 0.
+/// ([`crate::scale_shift::fit_scale_shift`]). Pixels without a usable prediction hold 0.
 #[derive(Clone, Debug, PartialEq)]
 pub struct InverseDepth(pub ImageF32);
 

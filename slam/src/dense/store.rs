@@ -24,11 +24,11 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::align::ScaleShift;
 use super::keyframe::{DenseKeyframe, DenseMode, DenseTimings};
 use crate::geometry::{PinholeCamera, SO3, Sim3};
 use crate::graph::KeyframeId;
 use crate::image::ImageF32;
+use crate::scale_shift::ScaleShift;
 use crate::{Error, Result};
 
 /// Name of the index inside the store folder.

@@ -3,13 +3,9 @@
 //!
 //! Eq. (16)'s `V_opt` carries only the keyframe's pose uncertainty, so it is nearly flat
 //! across the image; but the densified depth is interpolated from the filtered semi-dense
-//! pixels by the prior's gradients, and its error grows with the distance to them. Measured on
-//! the synthetic orbit (seed 1, 300 frames, keyframes 4–21, against ground truth at the
-//! trajectory's Sim(3) scale): the relative depth error is 2.0 % rms on semi-dense pixels,
-//! 3.9 % at 1 px, 5.8 % at 2 px, 6.6 % at 3–4 px, 7.6 % at 5–7 px, 9.2 % at 8–12 px and
-//! 12 % beyond 20 px (working resolution), while `V_opt` stayed at about 1 % throughout. An
+//! pixels by the prior's gradients, and its error grows with the distance to them. An
 //! interpolation's error behaves like a random walk away from its anchors: its variance grows
-//! about linearly with the distance, here by about 0.001 (relative) per pixel.
+//! about linearly with the distance (docs/tuning.md, "Support variance").
 
 use crate::image::ImageF32;
 

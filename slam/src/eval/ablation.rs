@@ -15,7 +15,7 @@ use serde::Serialize;
 
 use super::dense_depth::{DenseRun, StageScore, StageTally, score_depth};
 use crate::dense::config::{DensifyParams, EnergyTerms};
-use crate::dense::densify::{DensifyProblem, densify};
+use crate::dense::densify::{CpuDensifier, DensifyProblem, densify};
 use crate::dense::gpu_densify::GpuDensifier;
 use crate::{Error, Result};
 
@@ -145,7 +145,10 @@ pub fn run_ablation(
                 (&raw, &raw_var)
             };
             let problem = DensifyProblem::with_prior(&prior_aligned, semi, var, &p)?;
-            let idepth = densify(&problem, &p, gpu)?;
+            let idepth = match gpu {
+                Some(gpu) => densify(&problem, &p, gpu)?,
+                None => densify(&problem, &p, &CpuDensifier)?,
+            };
             let est = run.map_depth(kf, &idepth);
             if let Some(acc) = score_depth(&est, &gt, s, threshold, None)? {
                 tally.add(&acc);

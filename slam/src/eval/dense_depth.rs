@@ -39,10 +39,10 @@ use super::depth::{DepthAccuracy, percent_correct_depth};
 use super::depth_slope::{KeyframeSlopes, depth_range_slope};
 use crate::dataset::trajectory::read_tum_trajectory;
 use crate::dataset::tum::TumSequence;
-use crate::dense::align::{aligned_depth, fit_scale_shift_unconstrained, inverse_depth_target};
 use crate::dense::store::{DenseStore, StoredKeyframe, depth_from_idepth};
 use crate::geometry::PinholeCamera;
 use crate::image::ImageF32;
+use crate::scale_shift::{aligned_depth, fit_scale_shift_unconstrained, inverse_depth_target};
 use crate::{Error, Result};
 use nalgebra::Vector2;
 

@@ -1,5 +1,5 @@
 //! Depth accuracy: the paper's reconstruction metric (§V.A). The scale/shift fit of eq. (3) lives in
-//! [`crate::dense::align`].
+//! [`crate::scale_shift`].
 //!
 //! **Percentage of correct depth** (CNN-SLAM, Tateno et al. CVPR 2017, §5; DeepRelativeFusion
 //! §V.A): the share of pixels whose depth has a relative error below 10 %. The paper counts over

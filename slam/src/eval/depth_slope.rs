@@ -12,14 +12,7 @@
 //! correct depth hardly says why, and the error couples into the poses. Over a narrow field of
 //! view, rotation and translation explain nearly the same image motion (the rotation–translation
 //! ambiguity of two-view geometry), and the depths of the map decide the split
-//! ([`super::rotation_gain`]). Measured on 7-Scenes redkitchen (deterministic default run,
-//! `relfusion eval depth --dataset --run`): the PyDNet++ prior is compressed (0.62 on the first
-//! keyframe, 0.3–0.9 up to 6 s), the first keyframe initialised from it starts at 0.70, the
-//! tracked maps stay at 0.58–0.77 until 5.1 s and then stretch to 1.03–1.14 from 6.5 s. The
-//! trajectory's local Sim(3) scale ([`super::scale_drift`], 1 s windows) jumps by 36 % at the
-//! same time (0.84 in 5–6 s, 1.14–1.17 after 6 s), while each window on its own fits the
-//! ground truth to 2–13 mm. On the synthetic orbit, whose images fit its geometry exactly, a
-//! random initialisation converges to 0.94–1.03 within 1.2 s and stays there.
+//! ([`super::rotation_gain`]). Figures on the shared sequences: docs/tuning.md, "Diagnostics".
 
 use serde::Serialize;
 

@@ -14,19 +14,10 @@
 //! about f·θ pixels, so a tracker given a focal length f′ recovers f/f′ of it, while a roll
 //! (about the optical axis, z) moves pixels independently of f. Gains below 1 about x and y
 //! with a z gain near 1 are therefore the signature of a focal length set too long, or of
-//! rotation mistaken for translation; tracking noise alone leaves all three near 1. Measured
-//! with `relfusion eval traj` (Δ = 10) on deterministic default runs: calibrated TUM fr1/rpy
-//! (1.01, 0.99, 0.89), the synthetic orbit (1.02, 1.00, 1.01), and 7-Scenes redkitchen, whose
-//! colour camera has no calibration and runs with the depth camera's nominal 585 px,
-//! (0.80, 0.85, 1.00). There the cause is the map's depth, not the data nor the focal length.
-//! Initialising the first keyframe from the prior raised to the power 1.45, which makes its
-//! depth ratios match the sensor's ([`super::depth_slope`] 1.0 instead of 0.71), gives
-//! (1.05, 0.99, 0.99) — with a worse ATE (0.13 m), because the later maps stretch to a slope
-//! of 3 and the scale drifts by 2×. Over a narrow field of view a yaw and a sideways
-//! translation move the image almost alike, and the depths decide the split. The relative
-//! rotations of essential matrices from SIFT matches over frame pairs 10 apart (OpenCV,
-//! RANSAC) show the same ambiguity: (0.84, 0.84, 1.03) at 585 px, pitch or yaw at or below
-//! 0.91 at 480 and 525 px too (fr1/rpy: (1.01, 1.02, 0.94), synthetic: (1.01, 0.99, 1.00)).
+//! rotation mistaken for translation; tracking noise alone leaves all three near 1. Over a
+//! narrow field of view a yaw and a sideways translation move the image almost alike, and the
+//! map's depths decide the split (figures on the shared sequences: docs/tuning.md,
+//! "Diagnostics").
 //!
 //! Relative rotations do not depend on the world frame, so no alignment is applied. A fixed
 //! rotation between the estimate's and the ground truth's camera axes (e.g. a colour camera

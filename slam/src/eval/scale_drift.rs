@@ -11,10 +11,7 @@
 //! - `drift` is the largest ratio over the smallest: 1 for a constant scale;
 //! - each window's own ATE shows how good the shape is once its scale is right.
 //!
-//! Measured with `relfusion eval traj` (60-pose windows) on the default deterministic run of
-//! 7-Scenes redkitchen with the dense layer off: window ATEs of 5–15 mm against 0.046 m for the
-//! whole trajectory, and window ratios from 0.89 to 1.18 (drift 1.33); the synthetic orbit
-//! gives 1.01. Most of redkitchen's ATE is the path's local scale changing, not its shape.
+//! Figures on the shared sequences: docs/tuning.md, "Diagnostics".
 //!
 //! A window whose ground-truth positions hardly move (RMS spread below
 //! [`MIN_WINDOW_SPREAD_M`]) has no observable scale and gets no ratio.

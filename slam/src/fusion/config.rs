@@ -10,7 +10,8 @@ use serde::{Deserialize, Serialize};
 use crate::dense::DenseCompute;
 use crate::{Error, Result};
 
-/// TSDF volume, integration weights, re-integration and meshing.
+/// TSDF volume, integration weights, re-integration and meshing. User settings: `enabled`,
+/// `voxel_size` / `voxels_per_median_depth`; the rest is expert level.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FusionConfig {
@@ -23,10 +24,8 @@ pub struct FusionConfig {
     /// divided by `voxels_per_median_depth`.
     pub voxel_size: Option<f64>,
     /// Voxels across the median depth when `voxel_size` is automatic. Default 64 (about 3 cm
-    /// at 2 m). Finer voxels resolve mostly noise: the monocular dense depth and poses are off
-    /// by several centimetres, so on the rendered 320×240 orbit a 128-voxel grid fused 5× the
-    /// vertices with 14 % of them within 2 voxels of the true surface, against 29 % at 64
-    /// (`relfusion eval mesh --refuse`, issue 5's note); from exact depth both exceed 95 %.
+    /// at 2 m): the monocular dense depth and poses are off by several centimetres, and finer
+    /// voxels resolve mostly noise (docs/tuning.md, "Fusion").
     pub voxels_per_median_depth: f64,
     /// Truncation distance in voxels. Default 4.
     pub truncation_voxels: f64,
@@ -51,10 +50,8 @@ pub struct FusionConfig {
     pub min_view_cosine: f32,
     /// A cell is meshed only where all eight corners have more than this weight. Default 0.5:
     /// one confident observation (relative σ below `weight_sigma`) or two uncertain ones, so
-    /// surfaces that a single uncertain keyframe put in free space are not meshed. On the
-    /// rendered 640×480 orbit it raised the share of vertices within 2 voxels of the true
-    /// surface from 34 % to 41 % at the same completeness (74 %); from exact depth it changes
-    /// nothing (weights 1).
+    /// surfaces that a single uncertain keyframe put in free space are not meshed
+    /// (docs/tuning.md, "Fusion").
     pub min_mesh_weight: f32,
     /// Most voxel blocks the pool may hold (8³ voxels, 12 bytes each: 6 KiB per block).
     /// Default 65536 (33.5 M voxels, 384 MiB).

@@ -117,8 +117,21 @@ impl GpuContext {
     /// The device gets the adapter's full limits (large storage buffers for whole pyramids and
     /// depth maps) and `TIMESTAMP_QUERY` when supported and [`GpuConfig::timestamps`] is set.
     pub fn new(config: &GpuConfig) -> Result<Self> {
+        Self::on_adapter(config, 0)
+    }
+
+    /// [`GpuContext::new`] on the `index`-th of the equally preferred adapters (a node with
+    /// several GPUs of one kind gives each of them an index, in enumeration order).
+    pub fn on_adapter(config: &GpuConfig, index: usize) -> Result<Self> {
         let choice = config.effective_adapter()?;
-        let adapter = pollster::block_on(select_adapter(choice))?;
+        let mut adapters = pollster::block_on(select_adapters(choice))?;
+        let count = adapters.len();
+        if index >= count {
+            return Err(Error::Gpu(format!(
+                "adapter {index} requested, but only {count} equally preferred adapter(s) exist"
+            )));
+        }
+        let adapter = adapters.swap_remove(index);
         let info = adapter.get_info();
         let limits = adapter.limits();
         let timestamps =
@@ -353,8 +366,9 @@ fn rank(choice: AdapterChoice, info: &wgpu::AdapterInfo) -> Option<(u8, u8)> {
 }
 
 /// Enumerates adapters on the primary backends (Vulkan, Metal, DX12), then on GL only if
-/// those offer none acceptable, and returns the best per [`rank`].
-async fn select_adapter(choice: AdapterChoice) -> Result<wgpu::Adapter> {
+/// those offer none acceptable, and returns every adapter of the best [`rank`] (several on a
+/// multi-GPU node), in enumeration order.
+async fn select_adapters(choice: AdapterChoice) -> Result<Vec<wgpu::Adapter>> {
     let mut seen = Vec::new();
     for backends in [wgpu::Backends::PRIMARY, wgpu::Backends::SECONDARY] {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
@@ -364,17 +378,22 @@ async fn select_adapter(choice: AdapterChoice) -> Result<wgpu::Adapter> {
             continue;
         }
         let instance = wgpu::Instance::new(desc);
-        let adapters = instance.enumerate_adapters(backends).await;
-        let best = adapters
+        let ranked: Vec<_> = instance
+            .enumerate_adapters(backends)
+            .await
             .into_iter()
             .filter_map(|a| {
                 let info = a.get_info();
                 seen.push(describe(&info));
                 rank(choice, &info).map(|r| (r, a))
             })
-            .min_by_key(|(r, _)| *r);
-        if let Some((_, adapter)) = best {
-            return Ok(adapter);
+            .collect();
+        if let Some(best) = ranked.iter().map(|(r, _)| *r).min() {
+            return Ok(ranked
+                .into_iter()
+                .filter(|(r, _)| *r == best)
+                .map(|(_, a)| a)
+                .collect());
         }
     }
     let hint = match choice {
@@ -389,6 +408,31 @@ async fn select_adapter(choice: AdapterChoice) -> Result<wgpu::Adapter> {
         seen.join("; ")
     };
     Err(Error::Gpu(format!("{hint} [adapters seen: {seen}]")))
+}
+
+/// How many real GPUs (discrete, integrated, virtual) of the preferred kind `config` would
+/// choose among: 0 on a machine with none (the CPU fallback is not counted).
+pub fn gpu_adapter_count(config: &GpuConfig) -> usize {
+    let Ok(choice) = config.effective_adapter() else {
+        return 0;
+    };
+    if choice == AdapterChoice::Cpu {
+        return 0;
+    }
+    match pollster::block_on(select_adapters(choice)) {
+        Ok(adapters) => adapters
+            .iter()
+            .filter(|a| {
+                matches!(
+                    a.get_info().device_type,
+                    wgpu::DeviceType::DiscreteGpu
+                        | wgpu::DeviceType::IntegratedGpu
+                        | wgpu::DeviceType::VirtualGpu
+                )
+            })
+            .count(),
+        Err(_) => 0,
+    }
 }
 
 #[cfg(test)]
@@ -434,6 +478,21 @@ mod tests {
         assert_eq!(rank(AdapterChoice::Cpu, &discrete), None);
         assert!(rank(AdapterChoice::Cpu, &cpu).is_some());
         assert_eq!(rank(auto, &info(T::Cpu, B::Noop)), None);
+    }
+
+    #[test]
+    fn gpu_adapters_are_indexed_and_a_missing_index_is_an_error() {
+        let config = GpuConfig::default();
+        let first = GpuContext::on_adapter(&config, 0).expect("an adapter (lavapipe at least)");
+        let same = crate::gpu::context_for(0).expect("cached");
+        assert_eq!(first.adapter_info().name, same.adapter_info().name);
+        assert!(std::sync::Arc::ptr_eq(
+            &same,
+            &crate::gpu::shared_context().expect("shared")
+        ));
+        let err = GpuContext::on_adapter(&config, 1000).expect_err("no 1001st adapter");
+        assert!(err.to_string().contains("adapter 1000"), "{err}");
+        assert!(crate::gpu::context_for(1000).is_err());
     }
 
     #[test]

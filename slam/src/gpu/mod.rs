@@ -14,22 +14,31 @@ pub mod context;
 pub mod pyramid;
 pub mod timer;
 
-pub use context::{AdapterChoice, GpuConfig, GpuContext};
+pub use context::{AdapterChoice, GpuConfig, GpuContext, gpu_adapter_count};
 pub use pyramid::{GpuPyramid, PyramidKernel};
 pub use timer::PassTimer;
 
-/// The process-wide GPU context with the default [`GpuConfig`], opened on first use and shared
-/// by every session (a wgpu device is thread-safe; one per process keeps the pipeline cache
-/// and driver memory single). The error, if opening failed, is returned to every caller.
+/// The process-wide GPU context on the first preferred adapter ([`context_for`]`(0)`): what a
+/// single-session process (the CLI) uses.
 pub fn shared_context() -> crate::Result<std::sync::Arc<GpuContext>> {
-    static SHARED: std::sync::OnceLock<std::result::Result<std::sync::Arc<GpuContext>, String>> =
-        std::sync::OnceLock::new();
-    SHARED
-        .get_or_init(|| {
-            GpuContext::new(&GpuConfig::default())
-                .map(std::sync::Arc::new)
-                .map_err(|e| e.to_string())
-        })
-        .clone()
-        .map_err(crate::Error::Gpu)
+    context_for(0)
+}
+
+/// The process-wide context of the `index`-th preferred adapter (see
+/// [`GpuContext::on_adapter`]) with the default [`GpuConfig`], opened on first use and shared
+/// by every session placed on that adapter (a wgpu device is thread-safe; one per adapter
+/// keeps the pipeline cache and driver memory single). The error, if opening failed, is
+/// returned to every caller.
+pub fn context_for(index: usize) -> crate::Result<std::sync::Arc<GpuContext>> {
+    type Opened = std::result::Result<std::sync::Arc<GpuContext>, String>;
+    static CONTEXTS: std::sync::Mutex<Vec<(usize, Opened)>> = std::sync::Mutex::new(Vec::new());
+    let mut contexts = CONTEXTS.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((_, opened)) = contexts.iter().find(|(i, _)| *i == index) {
+        return opened.clone().map_err(crate::Error::Gpu);
+    }
+    let opened = GpuContext::on_adapter(&GpuConfig::default(), index)
+        .map(std::sync::Arc::new)
+        .map_err(|e| e.to_string());
+    contexts.push((index, opened.clone()));
+    opened.map_err(crate::Error::Gpu)
 }

@@ -1,7 +1,7 @@
 //! The back end: keyframe store, constraint search and pose-graph optimisation, run either
-//! synchronously ([`Backend::process`], deterministic, used by the pipeline in tests) or on its
-//! own thread behind a bounded channel ([`Backend::spawn`]), so that it never blocks the frame
-//! path (LSD-SLAM runs the same work in its `constraintSearchThread` and `optimizationThread`).
+//! synchronously ([`Backend::process`], deterministic) or on its own thread behind a bounded
+//! channel ([`super::BackendLink`]), so that it never blocks the frame path (LSD-SLAM runs the
+//! same work in its `constraintSearchThread` and `optimizationThread`).
 //!
 //! Flow per keyframe: the pipeline sends it once its depth map is final (when the *next*
 //! keyframe is created), with the tracking estimate of its pose relative to its parent. The
@@ -12,10 +12,7 @@
 //! (DeepRelativeFusion's refined depth) re-estimates the constraints it takes part in.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
-use std::sync::{Arc, Mutex, RwLock};
-use std::thread::JoinHandle;
+use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
@@ -82,22 +79,6 @@ pub struct NewKeyframe {
     /// the graph.
     pub world_from_keyframe: Sim3,
     pub parent: Option<ParentEdge>,
-}
-
-/// Commands of a spawned back end.
-#[derive(Debug)]
-pub enum BackendCommand {
-    AddKeyframe(Box<NewKeyframe>),
-    /// Replace a keyframe's depth map and re-estimate the constraints it takes part in
-    /// ([`Backend::update_keyframe_depth`]).
-    UpdateDepth {
-        id: KeyframeId,
-        depth: Arc<DepthMap>,
-    },
-    /// Process pending keyframes, then optimise the whole graph even without new edges.
-    Optimize,
-    /// Process what is pending and stop the thread.
-    Shutdown,
 }
 
 /// What one [`Backend::process`] call did.
@@ -519,178 +500,6 @@ impl Backend {
         }
         if let Some(e) = self.keyframes.get_mut(&b) {
             e.neighbours.insert(a);
-        }
-    }
-
-    /// Starts a back end on its own thread.
-    pub fn spawn(config: BackendConfig) -> Result<BackendHandle> {
-        let backend = Backend::new(config)?;
-        let (sender, receiver) = sync_channel(backend.config.channel_capacity);
-        let shared = Arc::new(Shared::default());
-        let thread_shared = Arc::clone(&shared);
-        let thread = std::thread::Builder::new()
-            .name("relfusion-backend".into())
-            .spawn(move || {
-                crate::background::lower_current_thread_priority(
-                    crate::background::Priority::Graph,
-                );
-                run(backend, receiver, &thread_shared)
-            })
-            .map_err(|e| Error::Backend(format!("cannot start the back-end thread: {e}")))?;
-        Ok(BackendHandle {
-            sender: Some(sender),
-            shared,
-            thread: Some(thread),
-        })
-    }
-}
-
-/// State published by the back-end thread.
-#[derive(Debug, Default)]
-struct Shared {
-    poses: RwLock<HashMap<KeyframeId, Sim3>>,
-    /// Commands handled so far.
-    handled: AtomicU64,
-    last_error: Mutex<Option<String>>,
-}
-
-/// The thread body: batches all queued commands, processes, publishes, repeats.
-fn run(mut backend: Backend, receiver: Receiver<BackendCommand>, shared: &Shared) -> Backend {
-    while let Ok(first) = receiver.recv() {
-        let (mut stop, mut force, mut handled) = (false, false, 0u64);
-        let mut next = Some(first);
-        while let Some(cmd) = next.take() {
-            handled += 1;
-            match cmd {
-                BackendCommand::AddKeyframe(k) => {
-                    if let Err(e) = backend.add_keyframe(*k) {
-                        record(shared, &e);
-                    }
-                }
-                BackendCommand::UpdateDepth { id, depth } => {
-                    if let Err(e) = backend.update_keyframe_depth(id, depth) {
-                        record(shared, &e);
-                    }
-                }
-                BackendCommand::Optimize => force = true,
-                BackendCommand::Shutdown => stop = true,
-            }
-            if !stop {
-                next = receiver.try_recv().ok();
-            }
-        }
-        let result = if force {
-            backend.optimize_full().map(|_| ())
-        } else {
-            backend.process().map(|_| ())
-        };
-        if let Err(e) = result {
-            record(shared, &e);
-        }
-        if let Ok(mut poses) = shared.poses.write() {
-            *poses = backend.poses();
-        }
-        shared.handled.fetch_add(handled, Ordering::SeqCst);
-        if stop {
-            break;
-        }
-    }
-    backend
-}
-
-fn record(shared: &Shared, e: &Error) {
-    tracing::error!(error = %e, "back end");
-    if let Ok(mut slot) = shared.last_error.lock() {
-        *slot = Some(e.to_string());
-    }
-}
-
-/// Handle on a spawned back end. Dropping it shuts the thread down (after it processed what
-/// was queued).
-#[derive(Debug)]
-pub struct BackendHandle {
-    sender: Option<SyncSender<BackendCommand>>,
-    shared: Arc<Shared>,
-    thread: Option<JoinHandle<Backend>>,
-}
-
-impl BackendHandle {
-    fn stopped() -> Error {
-        Error::Backend("the back-end thread has stopped".into())
-    }
-
-    /// Queues a command; waits only while the channel is full
-    /// ([`BackendConfig::channel_capacity`] commands behind).
-    pub fn send(&self, command: BackendCommand) -> Result<()> {
-        let sender = self.sender.as_ref().ok_or_else(Self::stopped)?;
-        sender.send(command).map_err(|_| Self::stopped())
-    }
-
-    /// Queues a command without ever waiting; gives it back when the channel is full.
-    pub fn try_send(&self, command: BackendCommand) -> Result<Option<BackendCommand>> {
-        let sender = self.sender.as_ref().ok_or_else(Self::stopped)?;
-        match sender.try_send(command) {
-            Ok(()) => Ok(None),
-            Err(TrySendError::Full(c)) => Ok(Some(c)),
-            Err(TrySendError::Disconnected(_)) => Err(Self::stopped()),
-        }
-    }
-
-    /// Convenience for `send(AddKeyframe(..))`.
-    pub fn add_keyframe(&self, keyframe: NewKeyframe) -> Result<()> {
-        self.send(BackendCommand::AddKeyframe(Box::new(keyframe)))
-    }
-
-    /// Snapshot of the latest optimised poses (never waits for an optimisation: the thread
-    /// swaps the map in after each batch).
-    pub fn poses(&self) -> HashMap<KeyframeId, Sim3> {
-        self.shared
-            .poses
-            .read()
-            .map(|p| p.clone())
-            .unwrap_or_default()
-    }
-
-    /// Number of commands fully handled (processed and published) so far.
-    pub fn handled_commands(&self) -> u64 {
-        self.shared.handled.load(Ordering::SeqCst)
-    }
-
-    /// The last error the thread met (e.g. a rejected keyframe), if any.
-    pub fn last_error(&self) -> Option<String> {
-        self.shared.last_error.lock().ok().and_then(|e| e.clone())
-    }
-
-    /// Processes what is queued, stops the thread and returns the back end for inspection.
-    pub fn shutdown(mut self) -> Result<Backend> {
-        self.stop()
-    }
-
-    /// Ends the session: processes what is queued, runs the final full optimisation, stops the
-    /// thread and returns the final poses (also what [`BackendHandle::poses`] returns from then
-    /// on). Later sends fail.
-    pub fn finish(&mut self) -> Result<HashMap<KeyframeId, Sim3>> {
-        self.send(BackendCommand::Optimize)?;
-        let backend = self.stop()?;
-        Ok(backend.poses())
-    }
-
-    fn stop(&mut self) -> Result<Backend> {
-        if let Some(sender) = self.sender.take() {
-            // A closed channel means the thread already ended; join reports how.
-            let _ = sender.send(BackendCommand::Shutdown);
-        }
-        let thread = self.thread.take().ok_or_else(Self::stopped)?;
-        thread
-            .join()
-            .map_err(|_| Error::Backend("the back-end thread panicked".into()))
-    }
-}
-
-impl Drop for BackendHandle {
-    fn drop(&mut self) {
-        if self.thread.is_some() {
-            let _ = self.stop();
         }
     }
 }

@@ -9,7 +9,8 @@
 //!   reciprocal consistency test;
 //! - [`pose_graph`]: the graph and its sparse Levenberg–Marquardt ([`PoseGraph`]), solved by the
 //!   block Cholesky of [`cholesky`];
-//! - [`backend`]: [`Backend`], synchronous (`process`) or on its own thread (`spawn`).
+//! - [`backend`]: [`Backend`], the keyframe store, constraint search and optimisation;
+//! - [`link`]: [`BackendLink`], the back end in step or on its own thread.
 //!
 //! Naming: a constraint's transform is `to_from_from` (maps `from`-keyframe coordinates to
 //! `to`-keyframe coordinates); vertices are `world_from_keyframe`. Perturbations are on the
@@ -18,6 +19,7 @@
 pub mod backend;
 pub mod cholesky;
 pub mod config;
+pub mod link;
 pub mod points;
 pub mod pose_graph;
 pub mod search;
@@ -26,8 +28,9 @@ pub mod sim3_tracker;
 /// Keyframes are identified by the pipeline's keyframe counter.
 pub type KeyframeId = usize;
 
-pub use backend::{Backend, BackendCommand, BackendHandle, NewKeyframe, ParentEdge, ProcessReport};
+pub use backend::{Backend, NewKeyframe, ParentEdge, ProcessReport};
 pub use config::BackendConfig;
+pub use link::{BackendCommand, BackendLink};
 pub use pose_graph::{Constraint, OptimizeReport, PoseGraph};
 pub use search::{Keyframe, ReciprocalCheck, Thumbnail, reciprocal_consistency, reciprocal_test};
 pub use sim3_tracker::{Sim3TrackResult, Sim3Tracker};

@@ -32,6 +32,7 @@ use crate::frame::Frame;
 use crate::geometry::{Matrix7, Sim3, Vector7};
 use crate::image::pyramid::PyramidLevel;
 use crate::mapping::DepthMap;
+use crate::optim::{Attempt, LmLimits, lm_level};
 
 /// Outcome of one Sim(3) alignment.
 #[derive(Clone, Debug, PartialEq)]
@@ -98,9 +99,12 @@ impl Evaluation {
 /// Scales outside `(ε, 1/ε)` mean the alignment collapsed (LSD-SLAM's `tryTrackSim3`).
 const SCALE_EPS: f64 = 1e-6;
 
-/// Give up an iteration after this many rejected damped steps (the step-size test normally
-/// ends it far earlier).
-const MAX_TRIES: usize = 60;
+/// Limits beyond the schedule: give up an iteration after this many rejected damped steps (the
+/// step-size test normally ends it far earlier); no cap on the damping.
+const LIMITS: LmLimits = LmLimits {
+    max_tries: 60,
+    max_lambda: f64::INFINITY,
+};
 
 impl Sim3Tracker {
     /// A tracker with `config`'s tracking parameters (the config is assumed validated).
@@ -158,7 +162,7 @@ impl Sim3Tracker {
         let mut last: Option<(usize, Evaluation)> = None;
 
         for level in (finest..=coarsest).rev() {
-            let its = cfg.max_iterations.get(level).copied().unwrap_or(0);
+            let its = cfg.lm.max_iterations.get(level).copied().unwrap_or(0);
             if its == 0 && level != finest {
                 continue;
             }
@@ -171,50 +175,31 @@ impl Sim3Tracker {
             let Some(mut eval) = ctx.evaluate(&pose) else {
                 return self.diverged(pose, reference, level, last);
             };
-            let mut lambda = cfg.lambda_initial;
-            'iterations: for _ in 0..its {
-                let mut tries = 0;
-                loop {
-                    tries += 1;
-                    let n = (eval.num_p + eval.num_d).max(1) as f64;
-                    let mut a = eval.hessian / n;
-                    for i in 0..7 {
-                        a[(i, i)] *= 1.0 + lambda;
-                    }
-                    let b = -eval.gradient / n;
-                    let inc = solve7(a, &b);
-                    let step2 = inc.map_or(f64::NAN, |v| v.norm_squared());
-                    // An increment of unit size (≈ the scene depth, or a radian) is absurd.
-                    let Some(inc) = inc.filter(|_| step2 < 1.0) else {
-                        return self.diverged(pose, reference, level, Some((level, eval)));
-                    };
-                    let candidate = pose * Sim3::exp(&inc);
-                    let Some(new_eval) = ctx.evaluate(&candidate) else {
-                        return self.diverged(pose, reference, level, Some((level, eval)));
-                    };
-                    if new_eval.mean() < eval.mean() {
-                        let converged = new_eval.mean() / eval.mean() > cfg.convergence_eps;
-                        pose = candidate;
-                        eval = new_eval;
-                        lambda = if lambda <= 0.2 {
-                            0.0
-                        } else {
-                            lambda * cfg.lambda_success_factor
-                        };
-                        if converged {
-                            break 'iterations;
-                        }
-                        break;
-                    }
-                    if step2.is_nan() || step2 <= cfg.step_size_min || tries >= MAX_TRIES {
-                        break 'iterations;
-                    }
-                    lambda = if lambda == 0.0 {
-                        0.2
-                    } else {
-                        lambda * cfg.lambda_fail_factor.powi(tries as i32)
-                    };
+            let step_level = lm_level(&cfg.lm, its, LIMITS, |lambda, _| {
+                let n = (eval.num_p + eval.num_d).max(1) as f64;
+                let mut a = eval.hessian / n;
+                for i in 0..7 {
+                    a[(i, i)] *= 1.0 + lambda;
                 }
+                let b = -eval.gradient / n;
+                let inc = solve7(a, &b);
+                let step2 = inc.map_or(f64::NAN, |v| v.norm_squared());
+                // An increment of unit size (≈ the scene depth, or a radian) is absurd.
+                let Some(inc) = inc.filter(|_| step2 < 1.0) else {
+                    return Err(());
+                };
+                let candidate = pose * Sim3::exp(&inc);
+                let new_eval = ctx.evaluate(&candidate).ok_or(())?;
+                if new_eval.mean() < eval.mean() {
+                    let converged = new_eval.mean() / eval.mean() > cfg.lm.convergence_eps;
+                    pose = candidate;
+                    eval = new_eval;
+                    return Ok(Attempt::Accepted { converged });
+                }
+                Ok(Attempt::Rejected { step_norm2: step2 })
+            });
+            if step_level.is_err() {
+                return self.diverged(pose, reference, level, Some((level, eval)));
             }
             last = Some((level, eval));
         }
@@ -336,9 +321,9 @@ impl LevelContext<'_> {
         // Sensitivity of the warped point to the reference inverse depth d: p = p̂/d, so
         // ∂p'/∂d = −sR·p/d = −(p' − t)/d. Propagated into both residual variances (eq. (16)).
         let dpw_dd = -(pw - frame_from_reference.translation) / pt.idepth;
-        let var_ref = cfg.var_weight * pt.var;
+        let var_ref = cfg.photometric.var_weight * pt.var;
         let drp_dd = -grad_point.dot(&dpw_dd);
-        let w_p = 1.0 / (cfg.camera_pixel_noise2 + var_ref * drp_dd * drp_dd);
+        let w_p = 1.0 / (cfg.photometric.camera_pixel_noise2 + var_ref * drp_dd * drp_dd);
         let j_act = frame_from_reference.act_jacobian(&pt.point);
         // ∂r_p/∂δ = −∇I·∂π/∂p'·∂p'/∂δ.
         let j_p: Vector7 = -(j_act.transpose() * grad_point);
@@ -346,7 +331,7 @@ impl LevelContext<'_> {
         let depth = self.frame.depth.sample(&uv).map(|(d_f, v_f)| {
             let r_d = inv_z - d_f;
             let drd_dd = -inv_z * inv_z * dpw_dd.z;
-            let w_d = 1.0 / (cfg.var_weight * v_f + var_ref * drd_dd * drd_dd);
+            let w_d = 1.0 / (cfg.photometric.var_weight * v_f + var_ref * drd_dd * drd_dd);
             // The frame map's own gradient is neglected (module docs).
             let j_d: Vector7 = j_act.row(2).transpose() * (-inv_z * inv_z);
             (r_d, j_d, w_d)
@@ -386,10 +371,10 @@ impl LevelContext<'_> {
             // One Huber weight per point on the sum of its normalised residuals.
             let norm_abs =
                 wp.r_p.abs() * wp.w_p.sqrt() + wp.depth.map_or(0.0, |(r, _, w)| r.abs() * w.sqrt());
-            let huber = if norm_abs < cfg.huber_d {
+            let huber = if norm_abs < cfg.photometric.huber_d {
                 1.0
             } else {
-                cfg.huber_d / norm_abs
+                cfg.photometric.huber_d / norm_abs
             };
             let weight_p = huber * wp.w_p;
             e.hessian += wp.j_p * wp.j_p.transpose() * weight_p;
@@ -403,7 +388,9 @@ impl LevelContext<'_> {
                 e.sum_d += weight_d * r_d * r_d;
                 e.num_d += 1;
             }
-            if wp.r_p * wp.r_p < cfg.max_diff_constant + cfg.max_diff_grad_mult * wp.grad2 {
+            if wp.r_p * wp.r_p
+                < cfg.photometric.max_diff_constant + cfg.photometric.max_diff_grad_mult * wp.grad2
+            {
                 e.good += 1;
             } else {
                 e.bad += 1;

@@ -10,7 +10,9 @@ use serde::{Deserialize, Serialize};
 use crate::{Error, Result};
 
 /// Configuration of [`super::DepthFilter`] and of [`super::keyframe_score`] /
-/// [`super::needs_new_keyframe`]. A config file only lists the fields it changes.
+/// [`super::needs_new_keyframe`]. A config file only lists the fields it changes. User
+/// settings: `kf_dist_weight`, `kf_usage_weight` (how often keyframes are taken) and
+/// `min_use_grad` (low-texture scenes); the rest is expert level (LSD-SLAM's constants).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MappingConfig {
@@ -117,30 +119,10 @@ pub struct MappingConfig {
     pub var_gt_init_initial: f32,
     /// Additive prediction variance σ_p² of keyframe propagation (ICCV 2013 eq. 8), in the
     /// old keyframe's normalised scale (mean inverse depth 1). Default 0.05 (σ ≈ 0.22 of the
-    /// mean inverse depth, about what a prior initialisation gets). LSD's code adds none and
-    /// relies on `succ_var_inc_fac`; then a propagated estimate, already confirmed by dozens
-    /// of frames, hardly moves in the new keyframe (median change of 0.0–0.7 % over a
-    /// keyframe's life on 7-Scenes), so any error of the pose it was propagated with is
-    /// inherited keyframe after keyframe and the map's scale drifts (depth against ground
-    /// truth went from 1.64 to 0.97 across redkitchen). With σ_p² the new keyframe's own
-    /// stereo re-estimates it. Measured, deterministic, trajectory / keyframe ATE (with the back
-    /// end's `loop_closure_strictness` at 1.5, its default then):
-    ///
-    /// | σ_p² | redkitchen (PyDNet++) | fr1/rpy (PyDNet++) | synthetic (no model) |
-    /// |---|---|---|---|
-    /// | 0 | 0.097 / 0.082 m | 0.045 / 0.047 m | 0.0106 / 0.0116 m |
-    /// | 0.01 | 0.072 / 0.069 | 0.034 / 0.032 | — |
-    /// | 0.02 | 0.071 / 0.067 | 0.039 / 0.039 | 0.0097 / 0.0112 |
-    /// | 0.05 | 0.053 / 0.045 | 0.036 / 0.036 | 0.0094 / 0.0109 |
-    /// | 0.1 | 0.043 / 0.036 | 0.046 / 0.047 | 0.0085 / 0.0098 |
-    /// | 0.3 | 0.078 / 0.063 | — | — |
-    ///
-    /// 0.05 rather than 0.1: with the dense layer on redkitchen it scored 49.6 % correct
-    /// densified depth against 42.3 % (0: 21.9 %), and a fused mesh of 0.42 / 0.38
-    /// accuracy/completeness against 0.21 / 0.21 (0: 0.11 / 0.12); the 640×480 synthetic
-    /// orbit's mesh went from 0.74 / 0.73 to 0.91 / 0.84. One loss: on a short 320×240
-    /// synthetic sequence (120 frames) the mesh fell from 0.36 / 0.41 to 0.26 / 0.27, its
-    /// keyframes re-estimating depth from fewer and coarser observations.
+    /// mean inverse depth). LSD's code adds none: a propagated estimate then hardly moves in
+    /// the new keyframe, inherits the pose error it was propagated with, and the map's scale
+    /// drifts; with σ_p² the new keyframe's own stereo re-estimates it (docs/tuning.md,
+    /// "Propagation variance").
     pub propagation_var_inc: f32,
 
     // ---- regularisation and merging ----------------------------------------------------

@@ -5,7 +5,7 @@
 //! tracking eventually runs out of points (LSD-SLAM's `MIN_GOODPERALL_PIXEL` test fails on a
 //! correct pose). The relative depth prior of DeepRelativeFusion (Loo et al., IROS 2021, §III)
 //! has a value at every pixel: aligned to the propagated semi-dense depth with eq. (3)
-//! (`dense::align::fit_scale_shift`, `D' = a·D_CNN + b`), it fills the holes with hypotheses
+//! (`scale_shift::fit_scale_shift`, `D' = a·D_CNN + b`), it fills the holes with hypotheses
 //! of large variance that stereo confirms or replaces, exactly as LSD-SLAM's hole filling does
 //! from neighbours (`regularizeDepthMapFillHoles`) but reaching textured pixels far from any
 //! estimate. This is the information the dense layer later provides for the whole map.
@@ -13,16 +13,13 @@
 //! A prior whose depth order contradicts the map (PyDNet++ inverts it on about one frame in
 //! six) carries no shape that eq. (3) could use. Its holes are then filled at the map's median
 //! inverse depth: a hypothesis of the right depth level and no shape, which stereo corrects as
-//! it corrects a random initialisation. Writing the inverted prior instead (scaled by the
-//! median ratio, as this module once did) planted a wrong shape: on fr1/rpy, where such
-//! fills happen (4 of 13 in the deterministic run), ATE 0.0350 / 0.0345 m (trajectory /
-//! keyframes) with the inverted prior against 0.0313 / 0.0289 m with the median, while
-//! filling every hole with the median ignores the prior where it is right (0.042 m).
+//! it corrects a random initialisation. Writing the inverted prior instead planted a wrong
+//! shape (docs/tuning.md, "Prior hole filling").
 
 use super::DepthFilter;
 use super::hypothesis::Estimate;
-use crate::dense::align::{ScaleShift, fit_scale_shift};
 use crate::image::ImageF32;
+use crate::scale_shift::{ScaleShift, fit_scale_shift};
 use crate::{Error, Result};
 
 /// How [`DepthFilter::fill_from_prior`] writes the prior (the pipeline's `prior_fill_*`

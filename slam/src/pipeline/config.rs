@@ -21,7 +21,8 @@ pub enum DepthInit {
     Random,
 }
 
-/// Front-end orchestration settings.
+/// Front-end orchestration settings. User settings: `init`, `deterministic`, `mapping_thread`,
+/// `seed`, `constant_velocity`, `prior_fill`; the rest is expert level.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct PipelineConfig {
@@ -37,20 +38,14 @@ pub struct PipelineConfig {
     /// Map the current keyframe on its own thread (LSD-SLAM's mapping thread) unless
     /// `deterministic`: tracking never waits for stereo and regularisation, and when the
     /// mapping falls behind it observes the newest tracked frame (the others are counted in
-    /// `Stats::frames_not_mapped`); new keyframes are propagated there too, while tracking
-    /// goes on against the previous one. For live cameras, whose frames do not wait: the
-    /// server turns it on for live sessions. Default false, as LSD-SLAM runs a dataset
-    /// (`blockUntilMapped` when unpaced): every good frame is observed before the next one is
-    /// tracked, which costs about 3× the tracking time per frame at 640×480 but maps every
-    /// frame. Measured on 7-Scenes redkitchen (release, 2 cores, no model, `relfusion bench
-    /// slam`): unpaced 10.1–12.8 ms per frame with 35–42 % of the frames mapped (ATE
-    /// 0.09–0.21 m over 5 runs) against 33.6 ms in step (0.123 m); fed at 30 fps, 92–97 %
-    /// mapped and ATE 0.087–0.139 m over 3 runs.
+    /// `Stats::frames_not_mapped`). Live cameras, whose frames do not wait, turn it on (the
+    /// server does for live sessions). Default false, as LSD-SLAM runs a dataset: every good
+    /// frame is observed before the next one is tracked, at about 3× the tracking time per
+    /// frame (docs/tuning.md, "Mapping thread").
     pub mapping_thread: bool,
     /// Row-band workers of the depth filter on the mapping thread (replaces `mapping.threads`
     /// there; 0 = all cores). Default 1: on a 2-core machine the other core stays with
-    /// tracking. Measured on 7-Scenes redkitchen, release, 2 cores: 2 workers took tracking
-    /// from 7 to 9–11 ms per frame and the run from 12 to 15–18 ms per frame.
+    /// tracking (docs/tuning.md, "Mapping thread").
     pub mapping_thread_workers: usize,
     /// Seed of every random choice (random depth initialisation).
     pub seed: u64,
@@ -58,11 +53,8 @@ pub struct PipelineConfig {
     pub relocalisation_candidates: usize,
     /// Start tracking from a constant-velocity prediction (the last inter-frame motion applied
     /// once more), falling back to the last pose when that fails. Default false, LSD-SLAM's
-    /// behaviour (start from the last pose, `SlamSystem::trackFrame`): measured in
-    /// deterministic mode it did not help overall — fr1/rpy 39 → 60 frames lost (random
-    /// init) and 81 → 77 (prior init), 7-Scenes ATE 0.123 → 0.164 m (random) and
-    /// 0.097 → 0.083 m (prior), synthetic unchanged — because the rpy losses are not caused by
-    /// the initial guess (fr1/rpy turns 2–4° per frame, within the coarse levels' basin).
+    /// behaviour (start from the last pose): it did not help overall (docs/tuning.md,
+    /// "Constant velocity").
     pub constant_velocity: bool,
     /// Fill the holes of each new keyframe's propagated depth from the depth prior, aligned to
     /// the propagated estimates with eq. (3) (`DepthFilter::fill_from_prior`; at their median
@@ -85,10 +77,9 @@ pub struct PipelineConfig {
     /// scale and shift of the whole prior.
     pub prior_fill_min_pixels: usize,
     /// The prior fills a new keyframe only when its propagated estimates cover at most this
-    /// share of the usable (textured) pixels. Default 0.5: on translating hand-held motion
-    /// (7-Scenes) propagation keeps ~80 % and filling the rest with the prior's errors made
-    /// the trajectory worse (ATE 0.097 → 0.189 m), while under rotation (fr1/rpy) coverage
-    /// falls to 15–40 % before tracking runs out of points.
+    /// share of the usable (textured) pixels. Default 0.5: translating hand-held motion keeps
+    /// ~80 % and filling the rest made things worse; under rotation coverage falls to
+    /// 15–40 % before tracking runs out of points (docs/tuning.md, "Prior hole filling").
     pub prior_fill_max_coverage: f32,
 }
 

@@ -5,6 +5,7 @@
 use std::sync::OnceLock;
 
 use super::*;
+use crate::Error;
 use crate::dataset::synth::{Scene, SynthConfig, path_length, render_frame};
 use crate::dataset::trajectory::StampedPose;
 use crate::eval::{AlignMode, ate};
@@ -179,7 +180,8 @@ fn threaded_back_end_tracks_the_sequence_too() {
 
 /// Live use: frames arrive at the sequence's 30 fps and the mapping runs on its own thread,
 /// keyframes made there while tracking goes on. Every frame still gets exactly one pose,
-/// every keyframe one keyframe event, and the trajectory stays within the threaded bound.
+/// every keyframe one keyframe event, the back end's moves arrive as `KeyframePoses`, and the
+/// trajectory stays within the threaded bound.
 #[test]
 fn mapping_thread_tracks_a_live_stream() {
     let (camera, frames, gt) = sequence();
@@ -214,6 +216,19 @@ fn mapping_thread_tracks_a_live_stream() {
         .count();
     assert_eq!(keyframe_events, stats.keyframes, "one event per keyframe");
     assert!(stats.keyframes >= 3, "{stats:?}");
+    // The back end's thread publishes its optimised poses while the stream runs: live
+    // subscribers re-anchor on them as deterministic ones do.
+    let moved = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::KeyframePoses { poses } => Some(poses.len()),
+            _ => None,
+        })
+        .collect::<Vec<_>>();
+    assert!(
+        moved.iter().any(|&n| n >= 2),
+        "no KeyframePoses event in live mode: {moved:?}"
+    );
     assert_eq!(stats.frames_lost, 0, "{stats:?}");
     let traj = ate(gt, &stamped(&pipeline.trajectory()), AlignMode::Sim3).expect("ate");
     assert_eq!(traj.matched, frames.len(), "every frame has a pose");

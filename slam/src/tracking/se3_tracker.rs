@@ -13,14 +13,15 @@ use super::warp::{
 use crate::Result;
 use crate::frame::{Frame, PYRAMID_LEVELS};
 use crate::geometry::SE3;
+use crate::optim::{Attempt, LmLimits, lm_level};
 
-/// LSD-SLAM resets the LM damping to 0 (pure Gauss–Newton) once it has decayed to this, and
-/// restarts it at this value after the first rejected Gauss–Newton step.
-const LAMBDA_RESTART: f64 = 0.2;
-
-/// Safety stop for the damping (λ grows as `2^k` per rejected try): beyond this the step is
-/// far below `step_size_min` anyway, and `(1 + λ)` must not overflow into a non-finite system.
-const MAX_LAMBDA: f64 = 1e12;
+/// Limits beyond the schedule: no cap on tries, and a cap on the damping (λ grows as `2^k` per
+/// rejected try): beyond it the step is far below `step_size_min` anyway, and `(1 + λ)` must
+/// not overflow into a non-finite system.
+const LIMITS: LmLimits = LmLimits {
+    max_tries: u32::MAX,
+    max_lambda: 1e12,
+};
 
 /// The outcome of [`SE3Tracker::track`].
 #[derive(Clone, Debug, PartialEq)]
@@ -104,11 +105,7 @@ impl SE3Tracker {
     /// `initial_frame_from_keyframe` (the previous frame's pose composed with a motion model).
     ///
     /// Per level from `max_level` down to `min_level`: LM on the 6×6 normal equations with
-    /// LSD-SLAM's schedule — start at `lambda_initial`; after an accepted step
-    /// `λ ← 0 if λ ≤ 0.2 else λ·0.5`; after the k-th rejected try of an iteration
-    /// `λ ← 0.2 if λ = 0 else λ·2^k`; the diagonal is scaled by `1 + λ`. A level ends after
-    /// `max_iterations[level]` iterations, when an accepted step improves the cost by less than
-    /// 0.1 % (`convergence_eps`), or when a rejected step is tiny (`step_size_min`).
+    /// LSD-SLAM's schedule ([`lm_level`]), the step applied on the left.
     pub fn track(
         &mut self,
         reference: &TrackingReference,
@@ -145,56 +142,46 @@ impl SE3Tracker {
                 affine = self.current.affine_estimate.unwrap_or(affine);
             }
             let mut last_cost = self.current.cost;
-            let mut lambda = cfg.lambda_initial;
-
-            'iterations: for _ in 0..cfg.max_iterations[level] {
-                let (h, g) = normal_equations(&self.current);
-                iterations += 1;
-                let mut tries = 0i32;
-                loop {
-                    let mut a = h;
-                    for i in 0..6 {
-                        a[(i, i)] *= 1.0 + lambda;
-                    }
-                    tries += 1;
-                    let Some(step) = solve(a, &g) else {
-                        // No gradient information at all (e.g. a constant image).
-                        return TrackingResult::lost(initial_frame_from_keyframe, iterations);
-                    };
-                    let candidate = SE3::exp(&step) * pose;
-                    let params = WarpParams::new(&candidate, &camera, affine);
-                    evaluate(points, image, &params, &cfg, point_step, &mut self.trial);
-                    if (self.trial.len() as f32) < min_warped || self.trial.is_empty() {
-                        return TrackingResult::lost(initial_frame_from_keyframe, iterations);
-                    }
-                    let cost = self.trial.cost;
-                    if cost < last_cost {
-                        pose = candidate;
-                        mem::swap(&mut self.current, &mut self.trial);
-                        if cfg.affine_lighting {
-                            affine = self.current.affine_estimate.unwrap_or(affine);
-                        }
-                        let converged = cost / last_cost > cfg.convergence_eps;
-                        last_cost = cost;
-                        lambda = if lambda <= LAMBDA_RESTART {
-                            0.0
-                        } else {
-                            lambda * cfg.lambda_success_factor
-                        };
-                        if converged {
-                            break 'iterations;
-                        }
-                        break;
-                    }
-                    if step.norm_squared() <= cfg.step_size_min || lambda >= MAX_LAMBDA {
-                        break 'iterations;
-                    }
-                    lambda = if lambda == 0.0 {
-                        LAMBDA_RESTART
-                    } else {
-                        lambda * cfg.lambda_fail_factor.powi(tries)
-                    };
+            // The normal equations of the iteration's starting point, set up on its first try.
+            let mut normal = None;
+            let its = cfg.lm.max_iterations[level];
+            let step_level = lm_level(&cfg.lm, its, LIMITS, |lambda, tries| {
+                if tries == 1 {
+                    normal = Some(normal_equations(&self.current));
+                    iterations += 1;
                 }
+                let Some((h, g)) = &normal else {
+                    return Err(());
+                };
+                let mut a = *h;
+                for i in 0..6 {
+                    a[(i, i)] *= 1.0 + lambda;
+                }
+                // No solution: no gradient information at all (e.g. a constant image).
+                let step = solve(a, g).ok_or(())?;
+                let candidate = SE3::exp(&step) * pose;
+                let params = WarpParams::new(&candidate, &camera, affine);
+                evaluate(points, image, &params, &cfg, point_step, &mut self.trial);
+                if (self.trial.len() as f32) < min_warped || self.trial.is_empty() {
+                    return Err(());
+                }
+                let cost = self.trial.cost;
+                if cost < last_cost {
+                    pose = candidate;
+                    mem::swap(&mut self.current, &mut self.trial);
+                    if cfg.affine_lighting {
+                        affine = self.current.affine_estimate.unwrap_or(affine);
+                    }
+                    let converged = cost / last_cost > cfg.lm.convergence_eps;
+                    last_cost = cost;
+                    return Ok(Attempt::Accepted { converged });
+                }
+                Ok(Attempt::Rejected {
+                    step_norm2: step.norm_squared(),
+                })
+            });
+            if step_level.is_err() {
+                return TrackingResult::lost(initial_frame_from_keyframe, iterations);
             }
 
             if level == cfg.min_level {

@@ -247,13 +247,15 @@ fn tracking_config_defaults_roundtrip_and_validate() {
     let config = TrackingConfig::default();
     assert_eq!((config.min_level, config.max_level), (1, 4));
     assert_eq!(config.level0_point_step, 4);
-    assert_eq!(config.max_iterations, [5, 20, 50, 100, 100]);
+    assert_eq!(config.lm.max_iterations, [5, 20, 50, 100, 100]);
     let text = toml::to_string(&config).expect("serialise");
     let back: TrackingConfig = toml::from_str(&text).expect("parse");
     assert_eq!(back, config);
     let partial: TrackingConfig = toml::from_str("min_level = 0").expect("parse");
     assert_eq!(partial.min_level, 0);
-    assert_eq!(partial.huber_d, 3.0);
+    assert_eq!(partial.photometric.huber_d, 3.0);
+    let nested: TrackingConfig = toml::from_str("[lm]\nlambda_initial = 0.5").expect("parse");
+    assert_eq!(nested.lm.lambda_initial, 0.5);
     assert!(toml::from_str::<TrackingConfig>("min_levle = 0").is_err());
     let bad = TrackingConfig {
         min_level: 3,
@@ -267,7 +269,10 @@ fn tracking_config_defaults_roundtrip_and_validate() {
     };
     assert!(SE3Tracker::new(bad).is_err());
     let bad = TrackingConfig {
-        huber_d: 0.0,
+        photometric: crate::optim::PhotometricParams {
+            huber_d: 0.0,
+            ..Default::default()
+        },
         ..TrackingConfig::default()
     };
     assert!(SE3Tracker::new(bad).is_err());

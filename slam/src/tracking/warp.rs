@@ -377,14 +377,15 @@ fn weigh_lanes(k: &WeighParams, sums: &mut LaneSums, v: [&[f32; LANES]; 9], w: &
 
 /// Pass 2 (vectorisable): weights, cost and statistics of the warped points.
 pub(crate) fn weigh(params: &WarpParams, config: &TrackingConfig, out: &mut WarpBuffers) {
+    let ph = &config.photometric;
     let k = WeighParams {
         t: params.t,
-        noise2: config.camera_pixel_noise2,
-        var_weight: config.var_weight,
-        huber: 0.5 * config.huber_d,
-        max_diff_c: config.max_diff_constant,
-        max_diff_gx: config.max_diff_grad_mult / (params.fx * params.fx),
-        max_diff_gy: config.max_diff_grad_mult / (params.fy * params.fy),
+        noise2: ph.camera_pixel_noise2 as f32,
+        var_weight: ph.var_weight as f32,
+        huber: 0.5 * ph.huber_d as f32,
+        max_diff_c: ph.max_diff_constant as f32,
+        max_diff_gx: ph.max_diff_grad_mult as f32 / (params.fx * params.fx),
+        max_diff_gy: ph.max_diff_grad_mult as f32 / (params.fy * params.fy),
     };
     let m = out.len();
     let mut sums = LaneSums::default();

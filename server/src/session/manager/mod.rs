@@ -30,17 +30,15 @@ use super::admission::{
     lock as lock_admission, under_active_quota,
 };
 use super::handle::{Session, SessionSpec};
-use super::overrides::merge_config;
 use super::persist::{META_VERSION, SessionMeta, meta_key, session_prefix, upload_key};
 use super::prior::SharedModel;
 use super::types::{
-    CameraJson, CreateSession, FramePolicy, Owner, SessionId, SessionInfo, SessionKind,
-    SessionState,
+    FramePolicy, Owner, SessionId, SessionInfo, SessionKind, SessionRequest, SessionState,
 };
 use super::upload::{ArchiveKind, ExtractLimits, stage_upload};
 use super::worker::{self, Outcome, WorkerEnv};
 use crate::config::Config;
-use crate::gpu_pool::{GpuPool, adapter_count};
+use crate::gpu_pool::{GpuPool, device_count};
 use crate::memory::{MemoryPlan, SessionCost, resident_bytes};
 use crate::metrics::Metrics;
 use crate::storage::{FsStore, ObjectStore};
@@ -105,13 +103,20 @@ impl SessionManager {
         std::fs::create_dir_all(&temp_dir)
             .map_err(|e| ServerError::Startup(format!("creating {}: {e}", temp_dir.display())))?;
         let model = SharedModel::load(&config.model)?;
+        let devices = device_count();
         let workers = match config.pool.workers {
-            0 => adapter_count(),
+            0 => devices,
             n => n,
         };
-        let pool = GpuPool::new(workers, config.limits.pool_job_queue, Some(metrics.clone()));
+        let pool = GpuPool::new(
+            workers,
+            devices,
+            config.limits.pool_job_queue,
+            Some(metrics.clone()),
+        );
         tracing::info!(
             workers,
+            devices = pool.devices(),
             model = model.as_ref().map_or("none", |m| m.name()),
             "GPU pool started"
         );
@@ -192,11 +197,10 @@ impl SessionManager {
         !self.is_shutting_down()
     }
 
-    fn build(&self, meta: SessionMeta, camera: PinholeCamera, max_keyframes: usize) -> Session {
+    fn build(&self, meta: SessionMeta, max_keyframes: usize) -> Session {
         Session::new(
             SessionSpec {
                 meta,
-                camera,
                 frame_queue: self.config.limits.frame_queue,
                 event_buffer: self.config.limits.event_buffer,
                 max_frame_bytes: self.config.limits.max_frame_bytes,
@@ -266,17 +270,16 @@ impl SessionManager {
 
     /// Creates a live session and starts its worker. 400 for invalid intrinsics, config or
     /// model; 503 at capacity.
-    pub fn create(&self, req: CreateSession, owner: &Owner) -> Result<Arc<Session>, ApiError> {
+    pub fn create(&self, req: SessionRequest, owner: &Owner) -> Result<Arc<Session>, ApiError> {
         self.refuse_if_shutting_down()?;
-        let camera = req.camera.to_camera()?;
+        let SessionRequest {
+            camera,
+            config,
+            model,
+            policy,
+        } = req;
         self.check_image_size(&camera)?;
-        let mut base = SlamConfig::default();
-        // A live camera does not wait: tracking gives every frame its pose at frame rate and
-        // the mapping thread observes the frames it has time for (skipped, never queued). A
-        // replay that waits for room loses nothing, and maps every frame in step.
-        base.pipeline.mapping_thread = req.policy == FramePolicy::DropOldest;
-        let config = merge_config(&base, &req.config)?;
-        let model = self.resolve_model(req.model.as_deref())?;
+        let model = self.resolve_model(model.as_deref())?;
         let max_keyframes = self.map_limit(&camera, &config)?;
         let meta = SessionMeta {
             version: META_VERSION,
@@ -284,12 +287,12 @@ impl SessionManager {
             owner: owner.clone(),
             kind: SessionKind::Live,
             state: SessionState::Running,
-            camera: CameraJson::from_camera(&camera),
+            camera,
             config,
             model: model
                 .as_ref()
                 .map_or("none".into(), |m| m.name().to_string()),
-            policy: req.policy,
+            policy,
             created_unix: now_unix(),
             error: None,
             dataset: None,
@@ -320,7 +323,7 @@ impl SessionManager {
             )?;
             admission.active += 1;
             self.metrics.sessions_active.set(admission.active as i64);
-            let session = Arc::new(self.build(meta, camera, max_keyframes));
+            let session = Arc::new(self.build(meta, max_keyframes));
             self.write_sessions()
                 .insert(session.id().to_string(), session.clone());
             session
@@ -429,16 +432,10 @@ impl SessionManager {
         ticket: UploadTicket,
         archive: &Path,
         kind: ArchiveKind,
-        camera: Option<CameraJson>,
-        config: serde_json::Value,
+        camera: Option<PinholeCamera>,
+        slam_config: SlamConfig,
     ) -> Result<Arc<Session>, ApiError> {
         self.refuse_if_shutting_down()?;
-        let camera = camera.map(|c| c.to_camera()).transpose()?;
-        let mut base = SlamConfig::default();
-        // Deterministic unless the client says otherwise: a re-run after a crash must give
-        // the result the interrupted run would have given.
-        base.pipeline.deterministic = true;
-        let slam_config = merge_config(&base, &config)?;
         let model = self.resolve_model(None)?;
         let id = new_id();
         let staging_key = format!("sessions/{id}/upload.partial");
@@ -483,7 +480,7 @@ impl SessionManager {
             owner: ticket.owner().clone(),
             kind: SessionKind::Upload,
             state: SessionState::Queued,
-            camera: CameraJson::from_camera(&staged.camera),
+            camera: staged.camera,
             config: slam_config,
             model: model
                 .as_ref()
@@ -504,7 +501,7 @@ impl SessionManager {
             let _ = self.store.delete_prefix(&session_prefix(&id));
             return Err(ApiError::internal(format!("storing the upload: {e}")));
         }
-        let session = Arc::new(self.build(meta, staged.camera, max_keyframes));
+        let session = Arc::new(self.build(meta, max_keyframes));
         let start = ticket.redeem(|admission| {
             self.write_sessions().insert(id, session.clone());
             self.queue_or_slot(admission, &session)

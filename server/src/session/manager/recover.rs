@@ -46,13 +46,6 @@ impl SessionManager {
                     continue;
                 }
             };
-            let camera = match meta.camera.to_camera() {
-                Ok(c) => c,
-                Err(e) => {
-                    tracing::error!(session = %id, "stored camera invalid, skipped: {e}");
-                    continue;
-                }
-            };
             let mut meta = meta;
             let mut resume = false;
             if !meta.state.is_terminal() {
@@ -75,7 +68,7 @@ impl SessionManager {
                 }
             }
             // A re-run must fit this server's limits, which may have changed since.
-            let max_keyframes = match self.map_limit(&camera, &meta.config) {
+            let max_keyframes = match self.map_limit(&meta.camera, &meta.config) {
                 Ok(n) => n,
                 Err(e) if resume => {
                     meta.state = SessionState::Failed;
@@ -86,7 +79,7 @@ impl SessionManager {
                 }
                 Err(_) => 0,
             };
-            let session = Arc::new(self.build(meta, camera, max_keyframes));
+            let session = Arc::new(self.build(meta, max_keyframes));
             if resume {
                 tracing::info!(session = %id, "re-running an unfinished upload");
                 resumed.push(session.clone());

@@ -8,7 +8,9 @@ use serde_json::json;
 use super::*;
 use crate::config::Config;
 use crate::metrics::Metrics;
+use crate::session::overrides::upload_config;
 use crate::session::persist::{SessionMeta, result_key};
+use crate::session::types::{CameraJson, CreateSession, camera_from_json};
 use crate::session::{FrameData, SessionEvent};
 use crate::storage::{FsStore, ObjectStore};
 
@@ -70,8 +72,12 @@ async fn admission_ownership_and_bad_requests() {
     let config = temp_config("admission", 1);
     let m = SessionManager::open(&config, Arc::new(Metrics::new())).expect("open");
     let alice = owner("alice");
-    let a = m.create(request(), &alice).expect("first session");
-    let e = m.create(request(), &alice).expect_err("over capacity");
+    let a = m
+        .create(SessionRequest::from_http(request()).expect("valid"), &alice)
+        .expect("first session");
+    let e = m
+        .create(SessionRequest::from_http(request()).expect("valid"), &alice)
+        .expect_err("over capacity");
     assert_eq!((e.status, e.code), (503, "resource_exhausted"), "{e}");
     assert!(
         m.get(a.id(), &owner("bob")).is_err(),
@@ -84,15 +90,35 @@ async fn admission_ownership_and_bad_requests() {
     let mut bad = request();
     bad.config = json!({"tracking": {"no_such_key": 1}});
     m.delete(a.id(), &alice).expect("delete");
-    assert_eq!(m.create(bad, &alice).expect_err("bad config").status, 400);
+    assert_eq!(
+        SessionRequest::from_http(bad)
+            .and_then(|r| m.create(r, &alice))
+            .expect_err("bad config")
+            .status,
+        400
+    );
     let mut bad = request();
     bad.model = Some("midas-xl".into());
-    assert_eq!(m.create(bad, &alice).expect_err("bad model").status, 400);
+    assert_eq!(
+        SessionRequest::from_http(bad)
+            .and_then(|r| m.create(r, &alice))
+            .expect_err("bad model")
+            .status,
+        400
+    );
     let mut bad = request();
     bad.camera.fx = -1.0;
-    assert_eq!(m.create(bad, &alice).expect_err("bad camera").status, 400);
+    assert_eq!(
+        SessionRequest::from_http(bad)
+            .and_then(|r| m.create(r, &alice))
+            .expect_err("bad camera")
+            .status,
+        400
+    );
     // The slot freed by the delete is available again.
-    let b = m.create(request(), &alice).expect("slot freed by delete");
+    let b = m
+        .create(SessionRequest::from_http(request()).expect("valid"), &alice)
+        .expect("slot freed by delete");
     m.delete(b.id(), &alice).expect("delete");
     m.shutdown().await;
 }
@@ -102,7 +128,9 @@ async fn frames_are_checked_processed_and_results_persisted() {
     let config = temp_config("frames", 2);
     let m = SessionManager::open(&config, Arc::new(Metrics::new())).expect("open");
     let me = Owner(None);
-    let s = m.create(request(), &me).expect("create");
+    let s = m
+        .create(SessionRequest::from_http(request()).expect("valid"), &me)
+        .expect("create");
     let mut events = s.subscribe();
     let frame = |id: Option<u64>, t: f64, bytes: bytes::Bytes| FrameData {
         frame_id: id,
@@ -208,7 +236,7 @@ async fn recovery_drops_unacknowledged_uploads_and_fails_interrupted_live_sessio
         owner: Owner(None),
         kind: SessionKind::Live,
         state: SessionState::Running,
-        camera: camera(),
+        camera: camera_from_json(&camera()).expect("valid"),
         config: Default::default(),
         model: "none".into(),
         policy: FramePolicy::DropOldest,
@@ -270,7 +298,7 @@ async fn uploads_wait_for_a_slot_and_then_run() {
     let m = SessionManager::open(&config, Arc::new(Metrics::new())).expect("open");
     let me = Owner(None);
     let live = m
-        .create(request(), &me)
+        .create(SessionRequest::from_http(request()).expect("valid"), &me)
         .expect("live session takes the only slot");
     let archive = m.temp_dir().join("a.tar");
     std::fs::write(&archive, tiny_dataset_tar(5)).expect("write archive");
@@ -280,7 +308,7 @@ async fn uploads_wait_for_a_slot_and_then_run() {
             &archive,
             ArchiveKind::Tar,
             None,
-            json!({}),
+            upload_config(&json!({})).expect("config"),
         )
         .await
         .expect("upload acknowledged");
@@ -313,7 +341,7 @@ async fn uploads_wait_for_a_slot_and_then_run() {
             &archive,
             ArchiveKind::Tar,
             None,
-            json!({}),
+            upload_config(&json!({})).expect("config"),
         )
         .await
         .expect_err("garbage archive");
@@ -334,7 +362,9 @@ async fn shutdown_finishes_live_sessions_and_persists_their_results() {
     let config = temp_config("shutdown", 2);
     let m = SessionManager::open(&config, Arc::new(Metrics::new())).expect("open");
     let me = Owner(None);
-    let s = m.create(request(), &me).expect("create");
+    let s = m
+        .create(SessionRequest::from_http(request()).expect("valid"), &me)
+        .expect("create");
     for i in 0..4u64 {
         s.push_frame(FrameData {
             frame_id: None,
@@ -348,7 +378,8 @@ async fn shutdown_finishes_live_sessions_and_persists_their_results() {
     assert_eq!(s.info().state, SessionState::Finished);
     assert_eq!(s.info().frames_processed, 4, "queued frames are processed");
     assert!(
-        m.create(request(), &me).is_err(),
+        m.create(SessionRequest::from_http(request()).expect("valid"), &me)
+            .is_err(),
         "no new sessions after shutdown"
     );
     let m2 = SessionManager::open(&config, Arc::new(Metrics::new())).expect("reopen");

@@ -9,8 +9,8 @@ use nalgebra::Vector3;
 use super::{DepthScale, SynthKeyframe, render, view};
 use crate::geometry::{Matrix7, Sim3, Vector7};
 use crate::graph::{
-    Backend, BackendCommand, BackendConfig, Constraint, KeyframeId, NewKeyframe, ParentEdge,
-    Thumbnail,
+    Backend, BackendCommand, BackendConfig, BackendLink, Constraint, KeyframeId, NewKeyframe,
+    ParentEdge, Thumbnail,
 };
 
 /// Keyframes around a horizontal circle of radius 0.25 m (the last one 36° before the first,
@@ -235,7 +235,7 @@ fn backend_appearance_search_links_a_keyframe_with_a_wrong_pose() {
 fn backend_thread_processes_commands_and_publishes_poses() {
     let keyframes = loop_keyframes();
     let inputs = drifting_inputs(&keyframes[..4]);
-    let handle = Backend::spawn(test_config()).expect("spawn");
+    let mut handle = BackendLink::new(test_config(), true).expect("spawn");
     for input in &inputs {
         handle.add_keyframe(input.clone()).expect("queued");
     }
@@ -259,7 +259,6 @@ fn backend_thread_processes_commands_and_publishes_poses() {
     assert!(dt < 0.01 && dr < 0.5 && ds < 0.01, "{dt} m {dr}° {ds}");
 
     // A fifth keyframe, then the end of the session: `finish` processes it, optimises, stops.
-    let mut handle = handle;
     let fifth = drifting_inputs(&keyframes[..5]).pop().expect("five inputs");
     handle.add_keyframe(fifth).expect("queued");
     let final_poses = handle.finish().expect("clean finish");
@@ -274,11 +273,9 @@ fn backend_thread_processes_commands_and_publishes_poses() {
         "the thread has stopped"
     );
 
-    // `shutdown` hands the back end itself back.
-    let other = Backend::spawn(test_config()).expect("spawn");
-    other.add_keyframe(inputs[0].clone()).expect("queued");
-    let backend = other.shutdown().expect("clean shutdown");
-    assert_eq!(backend.poses().len(), 1);
+    // After `finish` the back end itself is at hand.
+    let backend = handle.backend().expect("the back end after finish");
+    assert_eq!(backend.poses().len(), 5);
     assert!(backend.pending().is_empty());
 }
 

@@ -6,10 +6,14 @@
 //! `(Σ dₙ dₙᵀ) h = Σ dₙ d′ₙ`, `dₙ = (pₙ, 1)ᵀ`, over the pixels where a target inverse depth is
 //! known (the semi-dense map in the pipeline; ground truth in evaluation).
 //!
+//! Below both the mapping (prior hole filling) and the dense layer, which use it.
+//!
 //! Note on eq. (3) as printed: its symbols name `dₙ` the semi-dense value and `d′ₙ` the CNN
 //! value, which would regress the prediction on the target. The intended fit (and the one in
 //! MiDaS's `compute_scale_and_shift`, which the paper cites) maps the *prior* onto the
 //! *target*; that is what is implemented here.
+
+use serde::{Deserialize, Serialize};
 
 use crate::image::ImageF32;
 use crate::{Error, Result};
@@ -17,6 +21,30 @@ use crate::{Error, Result};
 /// Fewest usable pixels accepted for a fit. Two determine a line exactly; a handful more keeps
 /// a fit from a few noisy semi-dense pixels from passing as a correction of a whole keyframe.
 pub const MIN_ALIGN_PIXELS: usize = 8;
+
+/// Robust eq. (3) alignment of the prior to the semi-dense inverse depth.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AlignParams {
+    /// Fewest semi-dense pixels (at the working resolution) a fit needs. Default 200: the
+    /// semi-dense map of a converged keyframe has thousands; a few hundred cannot pin down
+    /// scale and shift of the whole prior.
+    pub min_pixels: usize,
+    /// Re-fits after dropping outliers (residual > `outlier_k` × 1.4826 × MAD). Default 3.
+    pub outlier_rounds: usize,
+    /// Outlier threshold in robust standard deviations. Default 3.
+    pub outlier_k: f64,
+}
+
+impl Default for AlignParams {
+    fn default() -> Self {
+        Self {
+            min_pixels: 200,
+            outlier_rounds: 3,
+            outlier_k: 3.0,
+        }
+    }
+}
 
 /// The result of eq. (3): `target ≈ a · prior + b`.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
@@ -142,7 +170,7 @@ pub fn fit_scale_shift_unconstrained(
 pub fn fit_scale_shift_robust(
     prior_inv: &ImageF32,
     target_inv: &ImageF32,
-    params: &super::AlignParams,
+    params: &AlignParams,
 ) -> Result<ScaleShift> {
     let has_target = |i: usize| {
         let t = target_inv.data[i];
@@ -295,7 +323,7 @@ mod tests {
                 *t *= 4.0; // 10 % spurious points
             }
         }
-        let params = crate::dense::AlignParams::default();
+        let params = AlignParams::default();
         let plain = fit_scale_shift(&prior, &target, None).expect("fit");
         let robust = fit_scale_shift_robust(&prior, &target, &params).expect("fit");
         assert!((plain.a - 1.5).abs() > 0.1, "{plain:?}");

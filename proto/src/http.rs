@@ -1,0 +1,223 @@
+//! Contract 2: the JSON of the HTTP API (`/v1/...`), defined once for the server (which also
+//! describes these types in its OpenAPI document, with the `openapi` feature) and the client.
+//!
+//! Requests are strict (unknown fields are refused); answers ignore fields they do not know,
+//! so a newer server does not break an older client.
+
+use serde::{Deserialize, Serialize};
+#[cfg(feature = "openapi")]
+use utoipa::ToSchema;
+
+/// What a live session does when frames arrive faster than its pipeline processes them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(rename_all = "snake_case")]
+pub enum FramePolicy {
+    /// Drop the oldest queued frame (counted in `frames_dropped`): a live camera wants the
+    /// newest frames.
+    #[default]
+    DropOldest,
+    /// The request waits until there is room: replays and uploads lose nothing.
+    Wait,
+}
+
+/// Pinhole intrinsics of a session's camera, in pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(deny_unknown_fields)]
+pub struct CameraJson {
+    #[cfg_attr(feature = "openapi", schema(exclusive_minimum = 0.0))]
+    pub fx: f64,
+    #[cfg_attr(feature = "openapi", schema(exclusive_minimum = 0.0))]
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// Image width in pixels; width × height is also bounded by the server's
+    /// `limits.max_image_pixels` (1920×1080 by default).
+    #[cfg_attr(feature = "openapi", schema(minimum = 16, maximum = 8192))]
+    #[serde(deserialize_with = "integral_u32")]
+    pub width: u32,
+    #[cfg_attr(feature = "openapi", schema(minimum = 16, maximum = 8192))]
+    #[serde(deserialize_with = "integral_u32")]
+    pub height: u32,
+    /// OpenCV radial-tangential coefficients `[k1, k2, p1, p2, k3]`; absent for undistorted
+    /// images.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(feature = "openapi", schema(min_items = 5, max_items = 5))]
+    pub distortion: Option<[f64; 5]>,
+}
+
+/// A `u32` from any JSON number with an integral value: `640.0` is the integer 640 in JSON
+/// Schema (the OpenAPI document's `integer`), so it is accepted as such.
+fn integral_u32<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u32, D::Error> {
+    let v = f64::deserialize(d)?;
+    if v.fract() == 0.0 && (0.0..=f64::from(u32::MAX)).contains(&v) {
+        Ok(v as u32)
+    } else {
+        Err(serde::de::Error::custom(format!(
+            "expected a non-negative integer, got {v}"
+        )))
+    }
+}
+
+/// `POST /v1/sessions`: a live session.
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(deny_unknown_fields)]
+pub struct CreateSession {
+    pub camera: CameraJson,
+    /// Partial pipeline configuration (sections `pipeline`, `tracking`, `mapping`,
+    /// `backend`); keys not given keep their defaults, unknown keys are rejected.
+    #[serde(default, skip_serializing_if = "serde_json::Value::is_null")]
+    #[cfg_attr(feature = "openapi", schema(value_type = Option<Object>))]
+    pub config: serde_json::Value,
+    /// Depth model: `"none"`, `"default"` (the server's model, if any) or the server model's
+    /// name. Absent = `"default"`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
+    #[serde(default)]
+    pub policy: FramePolicy,
+}
+
+/// Where a session's frames come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(rename_all = "snake_case")]
+pub enum SessionKind {
+    /// Frames pushed by a client (HTTP, WebSocket, Zenoh).
+    Live,
+    /// An uploaded dataset.
+    Upload,
+}
+
+/// Life cycle of a session.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(rename_all = "snake_case")]
+pub enum SessionState {
+    /// An acknowledged upload waiting for a free session slot.
+    Queued,
+    /// Processing frames.
+    Running,
+    /// End of stream received: the remaining frames and the final optimisation run.
+    Finishing,
+    /// Done; results are final and downloadable.
+    Finished,
+    /// Stopped by an error (see `error`); results so far stay downloadable.
+    Failed,
+}
+
+impl SessionState {
+    /// Finished or failed: nothing will change any more.
+    pub fn is_terminal(self) -> bool {
+        matches!(self, SessionState::Finished | SessionState::Failed)
+    }
+}
+
+/// How far a session is.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct Progress {
+    /// Frames processed.
+    pub processed: u64,
+    /// Frames in the upload (`None` for live sessions).
+    pub total: Option<u64>,
+}
+
+/// Everything the server reports about a session.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct SessionInfo {
+    /// The session's id: `s-` and 12 random hex digits.
+    pub id: String,
+    pub kind: SessionKind,
+    pub state: SessionState,
+    /// Frames accepted (live) or read from the upload.
+    pub frames_received: u64,
+    /// Frames that went through the pipeline.
+    pub frames_processed: u64,
+    /// Frames dropped because the stream outran the pipeline (live, `drop_oldest`).
+    pub frames_dropped: u64,
+    /// Processed frames whose tracking was lost.
+    pub frames_lost: u64,
+    pub keyframes: u64,
+    /// Keyframes the dense layer finished (`KeyframeDensified` events).
+    pub keyframes_densified: u64,
+    /// Revision of the last `MeshUpdate` (0 before the first fused keyframe).
+    pub mesh_revision: u64,
+    /// Triangles of the fused mesh so far.
+    pub mesh_triangles: u64,
+    /// `prior` (the paper's dense layer), `no_model` (no depth model: densified from the
+    /// semi-dense depth alone, with edge-aware smoothness) or `off`.
+    pub dense_mode: String,
+    pub progress: Progress,
+    /// Creation time, seconds since the Unix epoch.
+    pub created_unix: u64,
+    pub camera: CameraJson,
+    /// The depth model in use (`"none"` without one).
+    pub model: String,
+    /// Why the session failed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Why a session ended without a failure (idle, map limit), or what a finishing session
+    /// waits for (disk space).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub notice: Option<String>,
+    /// Most keyframes the session's map may hold (`limits.max_keyframes`, or what its memory
+    /// share allows); it finishes when it reaches them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_keyframes: Option<u64>,
+}
+
+/// A pose in events: `world_from_camera` as translation, unit quaternion `[x, y, z, w]` and
+/// Sim(3) scale.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct PoseJson {
+    pub t: [f64; 3],
+    pub q: [f64; 4],
+    pub s: f64,
+}
+
+/// Answer to a successful create (live session or upload).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct CreatedSession {
+    /// The new session's id (unguessable; use it in every `/v1/sessions/{id}` path).
+    pub id: String,
+    pub session: SessionInfo,
+}
+
+/// Every session the caller owns.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct SessionList {
+    pub sessions: Vec<SessionInfo>,
+}
+
+/// A frame was accepted (queued for the pipeline).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct FrameAccepted {
+    /// Index of the frame in the session (0 for the first accepted frame).
+    pub frame_index: u64,
+}
+
+/// The body of every error response.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct ErrorBody {
+    pub error: ErrorDetail,
+}
+
+/// What went wrong, for programs (`code`) and for people (`message`).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct ErrorDetail {
+    /// Stable code: `invalid_argument`, `unauthorized`, `forbidden`, `not_found`, `conflict`,
+    /// `payload_too_large`, `unsupported_media_type`, `resource_exhausted`, `internal`.
+    #[cfg_attr(feature = "openapi", schema(example = "invalid_argument"))]
+    pub code: String,
+    /// Says what was wrong and what to do about it.
+    pub message: String,
+}

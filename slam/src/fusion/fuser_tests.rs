@@ -1,0 +1,231 @@
+//! Tests of `fuser`.
+
+use std::collections::BTreeMap;
+
+use nalgebra::Vector3;
+
+use super::*;
+use crate::eval::mesh::{score_surface, transform_vertices};
+use crate::geometry::{PinholeCamera, SO3};
+use crate::image::ImageF32;
+
+/// A 96×72 view of a tilted wall with a spherical bump, in the keyframe's units.
+fn wall_input(id: KeyframeId, config: &FusionConfig) -> FusionInput {
+    let camera = PinholeCamera::new(70.0, 70.0, 47.5, 35.5, 96, 72).expect("camera");
+    let (w, h) = (96, 72);
+    let mut depth = ImageF32::filled(w, h, 0.0);
+    for y in 0..h {
+        for x in 0..w {
+            let ray = Vector3::new((x as f64 - 47.5) / 70.0, (y as f64 - 35.5) / 70.0, 1.0);
+            // Plane z = 2 + 0.3·x (camera frame), plus a bump in the middle.
+            let t = 2.0 / (ray.z - 0.3 * ray.x);
+            let p = ray * t;
+            let bump = 0.15 * (-(p.x * p.x + p.y * p.y) / 0.05).exp();
+            *depth.at_mut(x, y) = (t * (1.0 - bump / p.z)) as f32;
+        }
+    }
+    let colors: Vec<[u8; 3]> = (0..w * h).map(|i| [(i % 256) as u8, 90, 200]).collect();
+    FusionInput::from_depth(id, id as f64, camera, &depth, Some(&colors), config).expect("input")
+}
+
+fn pose(yaw: f64, x: f64, scale: f64) -> Sim3 {
+    Sim3::new(
+        SO3::exp(&Vector3::new(0.0, yaw, 0.02)),
+        Vector3::new(x, 0.05, -0.1),
+        scale,
+    )
+}
+
+fn config(compute: DenseCompute) -> FusionConfig {
+    FusionConfig {
+        compute,
+        voxels_per_median_depth: 64.0,
+        ..FusionConfig::default()
+    }
+}
+
+/// Both meshes have every vertex within `tol` of the other's (same surface).
+fn assert_same_surface(a: &Mesh, b: &Mesh, tol: f64) {
+    let va = transform_vertices(a, &Sim3::identity());
+    let vb = transform_vertices(b, &Sim3::identity());
+    let s = score_surface(&va, &vb, tol);
+    assert!(
+        s.accuracy > 0.999 && s.completeness > 0.999,
+        "{} vs {} vertices: {s:?}",
+        va.len(),
+        vb.len()
+    );
+}
+
+#[test]
+fn a_moved_keyframe_ends_up_as_if_fused_at_its_new_pose() {
+    let config = config(DenseCompute::Cpu);
+    let (p0, p1, p1_moved) = (
+        pose(0.0, 0.0, 1.0),
+        pose(0.2, 0.3, 1.0),
+        pose(0.25, 0.4, 1.3),
+    );
+    let mut moved = Fuser::new(config.clone(), None).expect("fuser");
+    moved
+        .add_keyframe(wall_input(0, &config), p0)
+        .expect("kf 0");
+    moved
+        .add_keyframe(wall_input(1, &config), p1)
+        .expect("kf 1");
+    let before = moved.mesh().expect("mesh");
+    assert_eq!(
+        moved.update_poses(&[(0, p0), (1, p1_moved)]).expect("move"),
+        1
+    );
+    let after = moved.mesh().expect("mesh");
+
+    let mut direct = Fuser::new(config.clone(), None).expect("fuser");
+    direct
+        .add_keyframe(wall_input(0, &config), p0)
+        .expect("kf 0");
+    direct
+        .add_keyframe(wall_input(1, &config), p1_moved)
+        .expect("kf 1");
+    let expected = direct.mesh().expect("mesh");
+    let voxel = f64::from(moved.voxel_size().expect("voxel"));
+    assert_same_surface(&after, &expected, 1e-3 * voxel);
+    assert_eq!(
+        moved.stats().blocks,
+        direct.stats().blocks,
+        "emptied blocks are freed"
+    );
+    // And the move did change the surface.
+    let s = score_surface(
+        &transform_vertices(&before, &Sim3::identity()),
+        &transform_vertices(&after, &Sim3::identity()),
+        voxel,
+    );
+    assert!(s.accuracy < 0.9, "{s:?}");
+}
+
+#[test]
+fn applying_every_delta_rebuilds_the_mesh() {
+    let config = config(DenseCompute::Cpu);
+    let mut fuser = Fuser::new(config.clone(), None).expect("fuser");
+    let mut patched: BTreeMap<BlockIndex, BlockMesh> = BTreeMap::new();
+    let mut revision = 0;
+    let mut apply = |delta: MeshDelta| {
+        assert_eq!(delta.revision, revision + 1);
+        revision = delta.revision;
+        for b in &delta.removed {
+            assert!(
+                patched.remove(b).is_some(),
+                "removed block {b:?} was not there"
+            );
+        }
+        for m in delta.changed {
+            assert!(!m.is_empty());
+            patched.insert(m.index, m);
+        }
+    };
+    for (id, p) in [(0, pose(0.0, 0.0, 1.0)), (1, pose(0.3, 0.5, 1.1))] {
+        fuser.add_keyframe(wall_input(id, &config), p).expect("add");
+        apply(fuser.take_delta().expect("delta").expect("changed"));
+    }
+    assert!(
+        fuser.take_delta().expect("delta").is_none(),
+        "nothing changed since"
+    );
+    fuser
+        .update_poses(&[(1, pose(0.6, 1.5, 1.1))])
+        .expect("move");
+    let delta = fuser.take_delta().expect("delta").expect("changed");
+    assert!(
+        !delta.removed.is_empty(),
+        "moving a keyframe away empties blocks"
+    );
+    apply(delta);
+    let current: BTreeMap<BlockIndex, BlockMesh> =
+        fuser.block_meshes().map(|m| (m.index, m.clone())).collect();
+    assert_eq!(patched, current);
+    assert_eq!(fuser.stats().mesh_revision, revision);
+}
+
+#[test]
+fn inputs_past_the_memory_budget_stay_where_they_were_fused() {
+    let one = wall_input(0, &FusionConfig::default()).bytes() as f64;
+    let config = FusionConfig {
+        keyframe_memory_mb: 1.5 * one / (1024.0 * 1024.0),
+        ..config(DenseCompute::Cpu)
+    };
+    let mut fuser = Fuser::new(config.clone(), None).expect("fuser");
+    for id in 0..3 {
+        fuser
+            .add_keyframe(wall_input(id, &config), pose(0.1 * id as f64, 0.0, 1.0))
+            .expect("add");
+    }
+    assert_eq!(
+        fuser.stats().inputs_dropped,
+        2,
+        "only the newest input fits"
+    );
+    let moved: Vec<_> = (0..3)
+        .map(|id| (id, pose(0.1 * id as f64, 1.0, 1.0)))
+        .collect();
+    assert_eq!(fuser.update_poses(&moved).expect("move"), 1);
+    assert_eq!(fuser.stats().reintegrations, 1);
+}
+
+#[test]
+fn small_moves_are_not_reintegrated_and_scale_changes_are() {
+    let config = config(DenseCompute::Cpu);
+    let mut fuser = Fuser::new(config.clone(), None).expect("fuser");
+    fuser
+        .add_keyframe(wall_input(0, &config), pose(0.0, 0.0, 1.0))
+        .expect("add");
+    let voxel = f64::from(fuser.voxel_size().expect("voxel"));
+    assert_eq!(
+        fuser
+            .update_poses(&[(0, pose(0.0, 0.2 * voxel, 1.0))])
+            .expect("tiny"),
+        0
+    );
+    assert_eq!(
+        fuser
+            .update_poses(&[(0, pose(0.0, 0.0, 1.05))])
+            .expect("scale"),
+        1
+    );
+}
+
+#[test]
+fn gpu_and_cpu_fusion_make_the_same_mesh() {
+    let Ok(ctx) = crate::gpu::shared_context() else {
+        eprintln!("SKIP: no GPU adapter (not even lavapipe)");
+        return;
+    };
+    let mut meshes = Vec::new();
+    for compute in [DenseCompute::Gpu, DenseCompute::Cpu] {
+        let config = config(compute);
+        let mut fuser = Fuser::new(config.clone(), Some(ctx.clone())).expect("fuser");
+        assert_eq!(
+            fuser.stats().compute,
+            if compute == DenseCompute::Gpu {
+                "gpu"
+            } else {
+                "cpu"
+            }
+        );
+        fuser
+            .add_keyframe(wall_input(0, &config), pose(0.0, 0.0, 1.0))
+            .expect("kf 0");
+        fuser
+            .add_keyframe(wall_input(1, &config), pose(0.2, 0.3, 1.0))
+            .expect("kf 1");
+        fuser
+            .update_poses(&[(1, pose(0.25, 0.4, 1.2))])
+            .expect("move");
+        meshes.push((
+            fuser.mesh().expect("mesh"),
+            fuser.voxel_size().expect("voxel"),
+        ));
+    }
+    let tol = 1e-3 * f64::from(meshes[0].1);
+    assert!(meshes[0].0.triangle_count() > 1000);
+    assert_same_surface(&meshes[0].0, &meshes[1].0, tol);
+}

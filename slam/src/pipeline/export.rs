@@ -1,0 +1,111 @@
+//! What a run leaves behind, at the current keyframe poses (optimised after
+//! [`Pipeline::finish`]): the trajectories and the semi-dense and dense point clouds.
+
+use nalgebra::{Vector2, Vector3};
+
+use super::Pipeline;
+use crate::Result;
+use crate::export::ColoredPoint;
+use crate::geometry::{PinholeCamera, Sim3};
+
+/// Grey for points of keyframes without a colour image.
+const NO_COLOUR: [u8; 3] = [200, 200, 200];
+
+impl Pipeline {
+    /// Keyframe timestamps with their current poses (for `keyframes.txt`).
+    pub fn keyframe_trajectory(&self) -> Vec<(f64, Sim3)> {
+        self.keyframe_poses()
+            .into_iter()
+            .map(|(id, pose)| (self.keyframes[id].frame.timestamp, pose))
+            .collect()
+    }
+
+    /// Every frame's pose (camera-to-world) through its keyframe's current pose; lost frames
+    /// are left out.
+    pub fn trajectory(&self) -> Vec<(f64, Sim3)> {
+        let poses = self.keyframe_poses();
+        self.frames
+            .iter()
+            .filter(|f| !f.lost)
+            .map(|f| {
+                (
+                    f.timestamp,
+                    poses[f.keyframe].1 * Sim3::from_se3(&f.keyframe_from_frame, 1.0),
+                )
+            })
+            .collect()
+    }
+
+    /// The semi-dense points of every keyframe at its current pose, coloured from its image.
+    pub fn semidense_points(&self) -> Vec<ColoredPoint> {
+        let poses = self.keyframe_poses();
+        let mut points = Vec::new();
+        let current_depth = self.current.zip(self.mapper.latest_depth());
+        for (id, (kf, (_, world_from_kf))) in self.keyframes.iter().zip(poses).enumerate() {
+            let depth = match &current_depth {
+                Some((current, depth)) if *current == id => depth.clone(),
+                _ => kf.depth.clone(),
+            };
+            let rgb = kf.frame.rgb.as_deref();
+            back_project(
+                &kf.frame.camera,
+                &world_from_kf,
+                depth.width,
+                depth.height,
+                |x, y| depth.at(x, y).estimate().map(|(idepth, _)| idepth),
+                |x, y| rgb.map_or(NO_COLOUR, |rgb| rgb.get_pixel(x as u32, y as u32).0),
+                &mut points,
+            );
+        }
+        points
+    }
+
+    /// Every densified keyframe back-projected at its current pose, coloured from its image:
+    /// the dense point cloud (`dense.ply`).
+    pub fn dense_points(&self) -> Result<Vec<ColoredPoint>> {
+        let mut points = Vec::new();
+        for (kf, world_from_kf) in self.dense_keyframes() {
+            let (w, h) = (kf.idepth.width, kf.idepth.height);
+            let colors = match &self.keyframes[kf.keyframe_id].frame.rgb {
+                Some(rgb) => Some(crate::dense::resample::box_downsample_rgb(rgb, w, h)?),
+                None => None,
+            };
+            back_project(
+                &kf.camera,
+                &world_from_kf,
+                w,
+                h,
+                |x, y| Some(kf.idepth.at(x, y)),
+                |x, y| colors.as_ref().map_or(NO_COLOUR, |c| c[y * w + x]),
+                &mut points,
+            );
+        }
+        Ok(points)
+    }
+}
+
+/// Appends the world point of every pixel of a `width`×`height` inverse-depth map with a
+/// finite, positive inverse depth, seen by `camera` at `world_from_camera`.
+fn back_project(
+    camera: &PinholeCamera,
+    world_from_camera: &Sim3,
+    width: usize,
+    height: usize,
+    idepth: impl Fn(usize, usize) -> Option<f32>,
+    color: impl Fn(usize, usize) -> [u8; 3],
+    points: &mut Vec<ColoredPoint>,
+) {
+    for y in 0..height {
+        for x in 0..width {
+            let Some(d) = idepth(x, y).filter(|d| d.is_finite() && *d > 0.0) else {
+                continue;
+            };
+            let p = camera.unproject(&Vector2::new(x as f64, y as f64), 1.0 / f64::from(d));
+            let w: Vector3<f64> = world_from_camera.act(&p);
+            points.push(ColoredPoint {
+                position: [w.x as f32, w.y as f32, w.z as f32],
+                color: color(x, y),
+            });
+        }
+    }
+}

@@ -1,0 +1,314 @@
+//! A keyframe's life in the pipeline: the first frame becomes the first keyframe (depth from
+//! the prior, or random); a frame chosen as the next keyframe gets the current keyframe's
+//! depth propagated into it (holes filled from the prior under rotation), scale-normalised;
+//! the finished keyframe goes to the back end with its tracking edge and to the dense layer.
+
+use std::sync::Arc;
+
+use nalgebra::{Matrix6, Vector3};
+
+use super::events::{Event, KeyframeEvent, PoseEvent, TrackingState};
+use super::{DepthInit, Pipeline};
+use crate::dense::layer::{DenseJob, predict};
+use crate::frame::Frame;
+use crate::geometry::{Matrix7, SE3, SO3, Sim3};
+use crate::graph::{KeyframeId, NewKeyframe, ParentEdge};
+use crate::image::ImageF32;
+use crate::mapping::{DepthFilter, DepthMap, PriorFillParams};
+use crate::tracking::TrackingReference;
+use crate::{Error, Result};
+
+/// Where each frame ended up, kept so that the final trajectory follows the optimised
+/// keyframe poses.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct FrameRecord {
+    pub timestamp: f64,
+    pub keyframe: KeyframeId,
+    pub keyframe_from_frame: SE3,
+    pub lost: bool,
+}
+
+/// A finished (or current) keyframe.
+#[derive(Debug)]
+pub(super) struct KeyframeRecord {
+    pub frame: Arc<Frame>,
+    /// Its semi-dense depth as last published (final once the keyframe is finished).
+    pub depth: Arc<DepthMap>,
+    /// Pose at creation (the front end's estimate, before any optimisation).
+    pub world_from_keyframe: Sim3,
+    /// For relocalisation against finished keyframes.
+    pub reference: Arc<TrackingReference>,
+    /// The tracking constraint to the keyframe it was created from (sent with it to the back
+    /// end once the keyframe is finished).
+    pub parent: Option<ParentEdge>,
+    /// The prior's raw output for this image when hole filling already ran the network.
+    pub prior: Option<Arc<ImageF32>>,
+}
+
+/// A frame chosen as the next keyframe, with its tracking edge from the keyframe whose depth
+/// is propagated into it. On the mapping thread it waits as `Pipeline::pending_keyframe` while
+/// tracking goes on against the current keyframe (LSD-SLAM's `createNewKeyFrame`).
+#[derive(Debug)]
+pub(super) struct KeyframeCandidate {
+    pub frame: Arc<Frame>,
+    pub source_id: KeyframeId,
+    pub frame_from_source: SE3,
+    pub information: Matrix6<f64>,
+    pub state: TrackingState,
+}
+
+impl Pipeline {
+    /// The first frame becomes the first keyframe, its depth initialised from the prior (or
+    /// randomly).
+    pub(super) fn start(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
+        let mut filter = DepthFilter::new(frame.clone(), self.config.mapping.clone())?;
+        let prior_depth = match (
+            self.config.pipeline.init,
+            self.prior.as_ref(),
+            frame.rgb.as_ref(),
+        ) {
+            (DepthInit::Prior, Some(prior), Some(rgb)) => Some(Arc::new(predict(prior, rgb)?)),
+            _ => None,
+        };
+        match &prior_depth {
+            Some(idepth) => filter.init_from_depth(
+                &normalise_mean(idepth)?,
+                self.config.pipeline.prior_init_var,
+            )?,
+            None => filter.init_random(self.config.pipeline.seed),
+        }
+        filter.regularize();
+        self.begin_keyframe(
+            frame,
+            filter,
+            Sim3::identity(),
+            None,
+            prior_depth,
+            Some(TrackingState::Initializing),
+        )
+    }
+
+    /// The candidate's frame becomes the next keyframe, with `filter` (the depth of its source
+    /// keyframe propagated into it) scale-normalised (mean inverse depth 1, LSD-SLAM's gauge);
+    /// the current keyframe is finished and goes to the back end. `last_from_frame`: the pose
+    /// of the latest tracked frame relative to the candidate when frames were tracked after it
+    /// (a keyframe made on the mapping thread); the candidate's own frame was reported then.
+    pub(super) fn new_keyframe(
+        &mut self,
+        candidate: KeyframeCandidate,
+        mut filter: DepthFilter,
+        last_from_frame: Option<SE3>,
+    ) -> Result<Vec<Event>> {
+        let KeyframeCandidate {
+            frame,
+            source_id,
+            frame_from_source,
+            information,
+            state,
+        } = candidate;
+        let t0 = std::time::Instant::now();
+        let prior = self.fill_from_prior(&mut filter)?;
+        // New inverse depths are multiplied by `factor`, so new-keyframe coordinates shrink by
+        // it: source_from_new = [R t] · diag(factor).
+        let factor = filter.normalize_scale();
+        // The new keyframe's lengths are the old ones divided by `factor`.
+        self.velocity = self
+            .velocity
+            .map(|v| SE3::new(v.rotation, v.translation / factor));
+        let source_from_new = Sim3::from_se3(&frame_from_source.inverse(), 1.0)
+            * Sim3::new(SO3::identity(), Vector3::zeros(), factor);
+        // The tracking information is for a right perturbation of frame_from_source; for its
+        // inverse, δ' = −Ad(T)·δ, so Λ' = Ad(T⁻¹)ᵀ Λ Ad(T⁻¹).
+        let ad = frame_from_source.inverse().adjoint();
+        let parent = ParentEdge::from_se3_information(
+            source_id,
+            source_from_new,
+            &(ad.transpose() * information * ad),
+        );
+        let world_from_source = self.current_pose(source_id);
+        self.finish_current()?;
+        let events = self.begin_keyframe(
+            frame,
+            filter,
+            world_from_source * source_from_new,
+            Some(parent),
+            prior,
+            last_from_frame.is_none().then_some(state),
+        )?;
+        if let Some(last_from_frame) = last_from_frame {
+            // The latest frame was tracked against the previous keyframe; in the new
+            // keyframe's scale, lengths are divided by `factor`.
+            self.last_frame_from_keyframe = SE3::new(
+                last_from_frame.rotation,
+                last_from_frame.translation / factor,
+            );
+        }
+        self.keyframe_creation_s += t0.elapsed().as_secs_f64();
+        Ok(events)
+    }
+
+    /// Makes the pending keyframe current once the mapping thread has propagated its depth
+    /// (with `wait`, waits for that); its events are returned with the next push. Frames were
+    /// tracked against the previous keyframe meanwhile: the latest one's pose is re-expressed
+    /// relative to the new keyframe.
+    pub(super) fn switch_to_pending_keyframe(&mut self, wait: bool) -> Result<()> {
+        if self.pending_keyframe.is_none() {
+            return Ok(());
+        }
+        let Some(propagated) = self.mapper.take_propagated(wait) else {
+            return Ok(());
+        };
+        let Some(candidate) = self.pending_keyframe.take() else {
+            return Ok(());
+        };
+        let last_from_frame = self.last_frame_from_keyframe * candidate.frame_from_source.inverse();
+        let mut events = self.new_keyframe(candidate, propagated?, Some(last_from_frame))?;
+        self.pending_events.append(&mut events);
+        Ok(())
+    }
+
+    /// Fills the holes of a new keyframe's propagated depth from the depth prior
+    /// (`pipeline.prior_fill`; nothing without a prior or an RGB image).
+    /// Returns the prior's output when the network ran, for the dense layer to reuse.
+    fn fill_from_prior(&mut self, filter: &mut DepthFilter) -> Result<Option<Arc<ImageF32>>> {
+        let cfg = &self.config.pipeline;
+        let (true, Some(prior), Some(rgb)) = (
+            cfg.prior_fill,
+            self.prior.as_ref(),
+            filter.keyframe().rgb.clone(),
+        ) else {
+            return Ok(None);
+        };
+        // The network runs only for keyframes the prior will fill.
+        if filter.coverage() > cfg.prior_fill_max_coverage {
+            return Ok(None);
+        }
+        let prior_inv = predict(prior, &rgb)?;
+        let params = PriorFillParams {
+            var: cfg.prior_fill_var,
+            validity: cfg.prior_fill_validity,
+            min_fit_pixels: cfg.prior_fill_min_pixels,
+            max_coverage: cfg.prior_fill_max_coverage,
+        };
+        // `None`: no trustworthy alignment; the keyframe keeps its propagated depth only.
+        filter.fill_from_prior(&prior_inv, &params)?;
+        Ok(Some(Arc::new(prior_inv)))
+    }
+
+    /// Registers `frame` as the current keyframe and reports it; with `report_frame`, also its
+    /// pose as a frame (already reported when the keyframe was made on the mapping thread).
+    fn begin_keyframe(
+        &mut self,
+        frame: Arc<Frame>,
+        filter: DepthFilter,
+        world_from_keyframe: Sim3,
+        parent: Option<ParentEdge>,
+        prior: Option<Arc<ImageF32>>,
+        report_frame: Option<TrackingState>,
+    ) -> Result<Vec<Event>> {
+        let id = self.keyframes.len();
+        let mapped = self.mapper.begin(filter)?;
+        self.keyframes.push(KeyframeRecord {
+            frame: frame.clone(),
+            depth: mapped.depth,
+            world_from_keyframe,
+            reference: mapped.reference,
+            parent,
+            prior,
+        });
+        self.current = Some(id);
+        self.stats.keyframes = self.keyframes.len();
+        let mut events = vec![Event::Keyframe(KeyframeEvent {
+            keyframe_id: id,
+            frame_id: frame.id,
+            timestamp: frame.timestamp,
+            world_from_keyframe,
+        })];
+        // A keyframe made on the mapping thread was reported (and recorded) as a tracked frame
+        // when it arrived.
+        if let Some(state) = report_frame {
+            self.frames.push(FrameRecord {
+                timestamp: frame.timestamp,
+                keyframe: id,
+                keyframe_from_frame: SE3::identity(),
+                lost: false,
+            });
+            self.last_frame_from_keyframe = SE3::identity();
+            events.push(Event::Pose(PoseEvent {
+                frame_id: frame.id,
+                timestamp: frame.timestamp,
+                world_from_camera: world_from_keyframe,
+                state,
+                keyframe_id: id,
+                is_keyframe: true,
+            }));
+        }
+        Ok(events)
+    }
+
+    /// Finishes the current keyframe: its final depth is published and it goes to the back
+    /// end (constraint search and pose-graph optimisation) and to the dense layer.
+    pub(super) fn finish_current(&mut self) -> Result<()> {
+        let Some(id) = self.current.take() else {
+            return Ok(());
+        };
+        // The final depth is what the mapping published last (its tracking reference serves
+        // relocalisation from now on).
+        let mapped = self
+            .mapper
+            .finish()?
+            .ok_or_else(|| Error::Config("the current keyframe has no depth filter".into()))?;
+        let record = &mut self.keyframes[id];
+        record.depth = mapped.depth;
+        record.reference = mapped.reference;
+        let new = NewKeyframe {
+            id,
+            frame: record.frame.clone(),
+            depth: record.depth.clone(),
+            world_from_keyframe: record.world_from_keyframe,
+            parent: record.parent.clone(),
+        };
+        let pose_covariance = record
+            .parent
+            .as_ref()
+            .map_or_else(Matrix7::zeros, |p| covariance(&p.information));
+        let job = DenseJob {
+            keyframe_id: id,
+            frame: record.frame.clone(),
+            depth: record.depth.clone(),
+            poses: Vec::new(),
+            pose_covariance,
+            prior: record.prior.take(),
+        };
+        self.backend.add_keyframe(new)?;
+        self.densify(job)
+    }
+}
+
+/// Σ of a pose from its information matrix; zero (no uncertainty propagated) when the
+/// information is singular.
+fn covariance(information: &Matrix7) -> Matrix7 {
+    information.try_inverse().unwrap_or_else(Matrix7::zeros)
+}
+
+/// Scales a relative inverse-depth map so that its mean over positive pixels is 1 (the
+/// keyframe scale gauge), leaving non-positive pixels at 0 ("no prediction").
+fn normalise_mean(idepth: &ImageF32) -> Result<ImageF32> {
+    let (sum, n) = idepth
+        .data
+        .iter()
+        .filter(|v| v.is_finite() && **v > 0.0)
+        .fold((0.0f64, 0usize), |(s, n), &v| (s + f64::from(v), n + 1));
+    if n == 0 {
+        return Err(Error::Prior(
+            "the depth prior predicted no positive inverse depth".into(),
+        ));
+    }
+    let k = (n as f64 / sum) as f32;
+    let data = idepth
+        .data
+        .iter()
+        .map(|&v| if v.is_finite() && v > 0.0 { v * k } else { 0.0 })
+        .collect();
+    ImageF32::from_vec(idepth.width, idepth.height, data)
+}
