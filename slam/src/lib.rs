@@ -46,5 +46,6 @@ pub mod optim;
 pub mod pipeline;
 pub mod scale_shift;
 pub mod tracking;
+pub mod window;
 
 pub use error::{Error, Result};

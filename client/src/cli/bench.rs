@@ -15,6 +15,9 @@ pub enum BenchCommand {
     Pyramid(PyramidArgs),
     /// SLAM pipeline wall time per frame (unpaced) and the ATE spread over runs.
     Slam(super::bench_slam::SlamArgs),
+    /// ATE, keyframe ATE and scale drift over several sequences, N threaded runs each plus one
+    /// deterministic, with an aggregate line (judge a change on all of them).
+    Accuracy(super::bench_accuracy::AccuracyArgs),
     /// A running relfusiond: HTTP/Zenoh ingest rate, frame-to-pose latency, sessions at 30 fps.
     Serve(super::bench_serve::ServeArgs),
     /// Densification (eqs. 10–13, Adam) on saved inputs: GPU kernel vs CPU reference.
@@ -49,6 +52,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Pyramid(args) => pyramid(&args),
         BenchCommand::Slam(args) => super::bench_slam::slam(&args),
+        BenchCommand::Accuracy(args) => super::bench_accuracy::accuracy(&args),
         BenchCommand::Serve(args) => super::bench_serve::serve(&args),
         BenchCommand::Densify(args) => super::bench_densify::densify(&args),
         BenchCommand::Dense(args) => super::bench_dense::dense(&args),

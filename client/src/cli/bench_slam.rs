@@ -128,7 +128,7 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
             "final_optimisation_s": finish_s,
             "tracking_ms_per_frame": 1e3 * stats.tracking_s / n as f64,
             "mapping_ms_per_frame": 1e3 * stats.mapping_s / n as f64,
-            "frames_not_mapped": stats.frames_not_mapped,
+            "frames_batched": stats.frames_batched,
             "keyframes": stats.keyframes,
             "keyframes_densified": stats.keyframes_densified,
             "keyframes_not_densified": stats.keyframes_not_densified,
@@ -166,7 +166,7 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
             "spread": {
                 "ms_per_frame": spread("ms_per_frame"),
                 "tracking_ms_per_frame": spread("tracking_ms_per_frame"),
-                "frames_not_mapped": spread("frames_not_mapped"),
+                "frames_batched": spread("frames_batched"),
                 "ate_trajectory_m": spread("ate_trajectory_m"),
                 "ate_keyframes_m": spread("ate_keyframes_m"),
             },

@@ -1,6 +1,7 @@
 //! One module per subcommand: each exposes its clap `Args` (or subcommand enum) and `run`.
 
 pub mod bench;
+pub mod bench_accuracy;
 pub mod bench_dense;
 pub mod bench_densify;
 pub mod bench_fusion;

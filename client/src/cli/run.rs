@@ -110,7 +110,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "ms_per_frame_excluding_image_loading": 1e3 * (wall_s - load_s) / n.max(1) as f64,
             "tracking_ms_per_frame": 1e3 * stats.tracking_s / n.max(1) as f64,
             "mapping_ms_per_frame": 1e3 * stats.mapping_s / n.max(1) as f64,
-            "frames_not_mapped": stats.frames_not_mapped,
+            "frames_batched": stats.frames_batched,
             "dense_mode": stats.dense_mode,
             "keyframes_densified": stats.keyframes_densified,
             "keyframes_not_densified": stats.keyframes_not_densified,

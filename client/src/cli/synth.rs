@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context as _;
+use relfusion_slam::dataset::synth::Nuisances;
 use relfusion_slam::dataset::{Motion, SynthConfig, render_sequence};
 
 #[derive(Debug, clap::Args)]
@@ -18,7 +19,8 @@ pub struct Args {
     /// Seed of the room (textures, furniture) and of the trajectory phases.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Motion preset: orbit, forward, rotation or shake.
+    /// Motion preset: orbit, forward, rotation, shake, or the long hand-held paths handheld
+    /// (no return to the start) and loop (back over the start every 900 frames).
     #[arg(long, default_value_t = Motion::Orbit)]
     pub motion: Motion,
     /// Image width in pixels (focal length scales with it: 525 at 640).
@@ -30,6 +32,42 @@ pub struct Args {
     /// Rendering threads.
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
+    /// Photometric nuisances of a real camera, all at once (auto-exposure ±25 %, vignetting
+    /// 0.3, noise σ 2, half-frame motion blur, JPEG 85); the flags below override each.
+    #[arg(long)]
+    pub camera_nuisances: bool,
+    /// Auto-exposure: amplitude of the log gain (0.22 = gain within ±25 %).
+    #[arg(long)]
+    pub exposure: Option<f64>,
+    /// Vignetting: brightness in the corners falls to 1 − k.
+    #[arg(long)]
+    pub vignetting: Option<f64>,
+    /// Sensor noise σ in grey levels.
+    #[arg(long)]
+    pub noise: Option<f64>,
+    /// Motion blur: shutter time as a fraction of the frame interval.
+    #[arg(long)]
+    pub motion_blur: Option<f64>,
+    /// JPEG quality of the colour images (0 = PNG).
+    #[arg(long)]
+    pub jpeg: Option<u8>,
+}
+
+impl Args {
+    fn nuisances(&self) -> Nuisances {
+        let base = if self.camera_nuisances {
+            Nuisances::CAMERA
+        } else {
+            Nuisances::default()
+        };
+        Nuisances {
+            exposure: self.exposure.unwrap_or(base.exposure),
+            vignetting: self.vignetting.unwrap_or(base.vignetting),
+            noise: self.noise.unwrap_or(base.noise),
+            motion_blur: self.motion_blur.unwrap_or(base.motion_blur),
+            jpeg_quality: self.jpeg.unwrap_or(base.jpeg_quality),
+        }
+    }
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -40,6 +78,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         width: args.width,
         height: args.height,
         threads: args.threads,
+        nuisances: args.nuisances(),
         ..SynthConfig::default()
     };
     let start = Instant::now();
@@ -58,6 +97,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "height": config.height,
         "path_length_m": summary.path_length_m,
         "max_rotation_deg": summary.max_rotation_deg,
+        "nuisances": config.nuisances,
         "seconds": start.elapsed().as_secs_f64(),
     });
     println!("{line}");

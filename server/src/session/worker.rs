@@ -374,7 +374,7 @@ impl Runner<'_> {
                 "frames_lost": stats.frames_lost,
                 "tracking_s": stats.tracking_s,
                 "mapping_s": stats.mapping_s,
-                "frames_not_mapped": stats.frames_not_mapped,
+                "frames_batched": stats.frames_batched,
                 "keyframes_densified": stats.keyframes_densified,
                 "keyframes_not_densified": stats.keyframes_not_densified,
                 "dense_mode": stats.dense_mode,

@@ -96,6 +96,9 @@ pub struct ProcessReport {
     pub constraints_refreshed: usize,
     /// The optimisation run, if any.
     pub optimize: Option<OptimizeReport>,
+    /// The windowed bundle adjustment run, if any.
+    #[serde(skip)]
+    pub window: Option<crate::window::SolveReport>,
 }
 
 /// Graph bookkeeping of one keyframe.
@@ -131,6 +134,9 @@ pub struct Backend {
     pending: Vec<KeyframeId>,
     /// Keyframes whose depth changed: their existing constraints are re-estimated.
     refresh: Vec<KeyframeId>,
+    /// The window's edge of each consecutive pair `(newer, older)` it optimised, as in the
+    /// graph (replaced by the next window over the same pair).
+    window_edges: HashMap<(KeyframeId, KeyframeId), Constraint>,
 }
 
 impl Backend {
@@ -144,6 +150,7 @@ impl Backend {
             keyframes: BTreeMap::new(),
             pending: Vec::new(),
             refresh: Vec::new(),
+            window_edges: HashMap::new(),
         })
     }
 
@@ -205,6 +212,7 @@ impl Backend {
     pub fn process(&mut self) -> Result<ProcessReport> {
         let mut report = ProcessReport::default();
         let mut added = false;
+        let searched = !self.pending.is_empty();
         for id in std::mem::take(&mut self.pending) {
             report.keyframes_searched += 1;
             added |= self.search(id, &mut report)?;
@@ -218,7 +226,96 @@ impl Backend {
                     .optimize(self.config.max_optimization_iterations)?,
             );
         }
+        if searched && self.config.window.enabled && self.run_window(&mut report)? {
+            report.optimize = Some(
+                self.graph
+                    .optimize(self.config.max_optimization_iterations)?,
+            );
+        }
         Ok(report)
+    }
+
+    /// Runs the windowed bundle adjustment over the latest keyframes (from their graph poses)
+    /// and puts its relative Sim(3) of each consecutive pair into the graph, replacing the
+    /// previous window's edge of that pair. The edge's information is
+    /// [`crate::window::WindowConfig::edge_weight`] times that of the pair's strongest Sim(3)
+    /// edge. Returns whether edges changed.
+    fn run_window(&mut self, report: &mut ProcessReport) -> Result<bool> {
+        let config = &self.config.window;
+        let mut ids: Vec<(usize, KeyframeId)> = self
+            .keyframes
+            .iter()
+            .map(|(id, e)| (e.order, *id))
+            .collect();
+        ids.sort_unstable();
+        let ids: Vec<KeyframeId> = ids
+            .iter()
+            .rev()
+            .take(config.keyframes)
+            .rev()
+            .map(|(_, id)| *id)
+            .collect();
+        if ids.len() < config.keyframes {
+            return Ok(false);
+        }
+        let mut members = Vec::with_capacity(ids.len());
+        for &id in &ids {
+            let Some(pose) = self.graph.pose(id) else {
+                return Ok(false);
+            };
+            let kf = &self.keyframes[&id].keyframe;
+            members.push(crate::window::WindowKeyframe {
+                id,
+                frame: &kf.frame,
+                depth: &kf.depth,
+                world_from_keyframe: pose,
+            });
+        }
+        let Some(result) = crate::window::optimize_window(config, &members) else {
+            return Ok(false);
+        };
+        report.window = Some(result.report);
+        tracing::debug!(
+            keyframes = ?ids,
+            points = result.points,
+            initial_cost = result.report.initial_cost,
+            final_cost = result.report.final_cost,
+            iterations = result.report.iterations,
+            scale_change = ?result
+                .poses
+                .iter()
+                .map(|(id, p)| self.graph.pose(*id).map_or(1.0, |g| p.scale / g.scale))
+                .collect::<Vec<_>>(),
+            "window bundle adjustment"
+        );
+        let mut changed = false;
+        for pair in result.poses.windows(2) {
+            let ((older, world_from_older), (newer, world_from_newer)) = (pair[0], pair[1]);
+            let strongest = self
+                .graph
+                .edges()
+                .iter()
+                .filter(|e| e.from == newer && e.to == older)
+                .filter(|e| self.window_edges.get(&(newer, older)) != Some(e))
+                .max_by(|a, b| a.information.trace().total_cmp(&b.information.trace()))
+                .map(|e| e.information);
+            let Some(information) = strongest else {
+                continue;
+            };
+            let edge = Constraint {
+                from: newer,
+                to: older,
+                to_from_from: world_from_older.inverse() * world_from_newer,
+                information: information * config.edge_weight,
+            };
+            if let Some(old) = self.window_edges.remove(&(newer, older)) {
+                self.graph.remove_edge(&old);
+            }
+            self.graph.add_edge(edge.clone())?;
+            self.window_edges.insert((newer, older), edge);
+            changed = true;
+        }
+        Ok(changed)
     }
 
     /// Processes pending keyframes, then optimises the graph regardless of new edges (the final

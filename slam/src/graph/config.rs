@@ -102,6 +102,11 @@ pub struct BackendConfig {
     /// behind under overload, and a short queue then stalls the frame path (docs/tuning.md);
     /// the commands hold shared maps the graph keeps anyway.
     pub channel_capacity: usize,
+
+    // ---------------------------------------------------------------- window
+    /// The windowed photometric bundle adjustment of the latest keyframes
+    /// ([`crate::window`]), whose result enters the pose graph as edges.
+    pub window: crate::window::WindowConfig,
 }
 
 impl Default for BackendConfig {
@@ -130,6 +135,7 @@ impl Default for BackendConfig {
             max_optimization_iterations: 100,
             pose_graph_huber: Some(5.0 * (6000.0f64 * 1.5).sqrt()),
             channel_capacity: 256,
+            window: crate::window::WindowConfig::default(),
         }
     }
 }
@@ -180,6 +186,6 @@ impl BackendConfig {
                 "backend: channel_capacity must be ≥ 1".into(),
             ));
         }
-        Ok(())
+        self.window.validate()
     }
 }

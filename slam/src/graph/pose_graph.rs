@@ -149,6 +149,17 @@ impl PoseGraph {
         Ok(())
     }
 
+    /// Removes the first edge equal to `edge`; returns whether there was one.
+    pub fn remove_edge(&mut self, edge: &Constraint) -> bool {
+        match self.edges.iter().position(|e| e == edge) {
+            Some(i) => {
+                self.edges.remove(i);
+                true
+            }
+            None => false,
+        }
+    }
+
     /// Removes every edge between `a` and `b` (both directions); returns how many.
     pub fn remove_edges_between(&mut self, a: KeyframeId, b: KeyframeId) -> usize {
         let before = self.edges.len();

@@ -36,13 +36,16 @@ pub struct PipelineConfig {
     /// own thread.
     pub deterministic: bool,
     /// Map the current keyframe on its own thread (LSD-SLAM's mapping thread) unless
-    /// `deterministic`: tracking never waits for stereo and regularisation, and when the
-    /// mapping falls behind it observes the newest tracked frame (the others are counted in
-    /// `Stats::frames_not_mapped`). Live cameras, whose frames do not wait, turn it on (the
-    /// server does for live sessions). Default false, as LSD-SLAM runs a dataset: every good
-    /// frame is observed before the next one is tracked, at about 3× the tracking time per
-    /// frame (docs/tuning.md, "Mapping thread").
+    /// `deterministic`: stereo and regularisation overlap with tracking; a mapping that falls
+    /// behind maps its queued frames in one batch (`Stats::frames_batched`), and tracking
+    /// waits only when `mapping_queue` frames are waiting. Live cameras turn it on (the server
+    /// does for live sessions). Default false, as LSD-SLAM runs a dataset: every good frame is
+    /// observed before the next one is tracked (docs/tuning.md, "Mapping thread").
     pub mapping_thread: bool,
+    /// Tracked frames waiting for the mapping thread before tracking waits for it. Default 8
+    /// (a quarter second at 30 Hz): enough to ride out a slow keyframe change, short enough
+    /// that the depth tracking uses is never far behind. Frames are never dropped (issue 22).
+    pub mapping_queue: usize,
     /// Row-band workers of the depth filter on the mapping thread (replaces `mapping.threads`
     /// there; 0 = all cores). Default 1: on a 2-core machine the other core stays with
     /// tracking (docs/tuning.md, "Mapping thread").
@@ -99,6 +102,7 @@ impl Default for PipelineConfig {
             deterministic: false,
             mapping_thread: false,
             mapping_thread_workers: 1,
+            mapping_queue: 8,
             seed: 0,
             relocalisation_candidates: 8,
             constant_velocity: false,
@@ -146,6 +150,11 @@ impl Config {
         }
         if !(self.pipeline.prior_fill_var.is_finite() && self.pipeline.prior_fill_var > 0.0) {
             return Err(Error::Config("pipeline.prior_fill_var must be > 0".into()));
+        }
+        if !(1..=256).contains(&self.pipeline.mapping_queue) {
+            return Err(Error::Config(
+                "pipeline.mapping_queue must be in 1..=256 frames".into(),
+            ));
         }
         self.tracking.validate()?;
         self.mapping.validate()?;

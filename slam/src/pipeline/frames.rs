@@ -27,7 +27,6 @@ impl Pipeline {
         if self.current.is_none() {
             return self.start(frame);
         }
-        self.switch_to_pending_keyframe(false)?;
         let kf_id = self.current.unwrap_or_default();
         let mapped = self.mapper.published()?;
         let t0 = std::time::Instant::now();
@@ -54,17 +53,14 @@ impl Pipeline {
         self.velocity = Some(result.frame_from_keyframe * self.last_frame_from_keyframe.inverse());
         self.last_frame_from_keyframe = result.frame_from_keyframe;
 
-        // While the next keyframe is being made, frames are only tracked.
-        let keyframe_pending = self.pending_keyframe.is_some();
-        let make_keyframe = !keyframe_pending
-            && needs_new_keyframe(
-                &self.config.mapping,
-                &keyframe_from_frame,
-                mapped.mean_idepth.unwrap_or(1.0),
-                result.point_usage,
-                self.keyframes.len(),
-                mapped.frames_mapped,
-            );
+        let make_keyframe = needs_new_keyframe(
+            &self.config.mapping,
+            &keyframe_from_frame,
+            mapped.mean_idepth.unwrap_or(1.0),
+            result.point_usage,
+            self.keyframes.len(),
+            mapped.frames_mapped,
+        );
         // Let go of the reference, so that the mapping can rebuild it in place.
         drop(mapped);
         if make_keyframe {
@@ -75,24 +71,21 @@ impl Pipeline {
                 information: result.information,
                 state,
             };
-            if !self.mapper.is_threaded() {
-                let t1 = std::time::Instant::now();
-                let propagated = self.mapper.with_filter(|filter| {
-                    filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
-                })?;
-                self.keyframe_creation_s += t1.elapsed().as_secs_f64();
-                return self.new_keyframe(candidate, propagated, None);
-            }
-            self.mapper
-                .propagate_on_thread(frame.clone(), result.frame_from_keyframe);
-            self.pending_keyframe = Some(candidate);
-        } else if !keyframe_pending {
-            self.mapper.observe(Observation {
-                frame: frame.clone(),
-                keyframe_from_frame,
-                residual: result.residual,
+            // On the mapping thread too, the queued frames are mapped first: a keyframe made
+            // while tracking went on against the old one mapped fewer frames and drifted more
+            // (docs/tuning.md, "Mapping thread").
+            let t1 = std::time::Instant::now();
+            let propagated = self.mapper.with_filter(|filter| {
+                filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
             })?;
+            self.keyframe_creation_s += t1.elapsed().as_secs_f64();
+            return self.new_keyframe(candidate, propagated);
         }
+        self.mapper.observe(Observation {
+            frame: frame.clone(),
+            keyframe_from_frame,
+            residual: result.residual,
+        })?;
         Ok(vec![self.record_frame(
             &frame,
             kf_id,
@@ -175,8 +168,6 @@ impl Pipeline {
     fn lost_or_relocalised(&mut self, frame: &Arc<Frame>) -> Result<Vec<Event>> {
         // The motion since the last good frame is unknown.
         self.velocity = None;
-        // Relocalise against the newest keyframe, once it is made.
-        self.switch_to_pending_keyframe(true)?;
         let current_id = self.current.unwrap_or(0);
         let n = self.config.pipeline.relocalisation_candidates;
         let candidates: Vec<KeyframeId> = std::iter::once(current_id)
@@ -221,7 +212,7 @@ impl Pipeline {
                 information: result.information,
                 state: TrackingState::Relocalized,
             };
-            return self.new_keyframe(candidate, propagated, None);
+            return self.new_keyframe(candidate, propagated);
         }
         self.lost = true;
         self.stats.frames_lost += 1;

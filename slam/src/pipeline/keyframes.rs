@@ -46,8 +46,7 @@ pub(super) struct KeyframeRecord {
 }
 
 /// A frame chosen as the next keyframe, with its tracking edge from the keyframe whose depth
-/// is propagated into it. On the mapping thread it waits as `Pipeline::pending_keyframe` while
-/// tracking goes on against the current keyframe (LSD-SLAM's `createNewKeyFrame`).
+/// is propagated into it (LSD-SLAM's `createNewKeyFrame`).
 #[derive(Debug)]
 pub(super) struct KeyframeCandidate {
     pub frame: Arc<Frame>,
@@ -90,14 +89,11 @@ impl Pipeline {
 
     /// The candidate's frame becomes the next keyframe, with `filter` (the depth of its source
     /// keyframe propagated into it) scale-normalised (mean inverse depth 1, LSD-SLAM's gauge);
-    /// the current keyframe is finished and goes to the back end. `last_from_frame`: the pose
-    /// of the latest tracked frame relative to the candidate when frames were tracked after it
-    /// (a keyframe made on the mapping thread); the candidate's own frame was reported then.
+    /// the current keyframe is finished and goes to the back end.
     pub(super) fn new_keyframe(
         &mut self,
         candidate: KeyframeCandidate,
         mut filter: DepthFilter,
-        last_from_frame: Option<SE3>,
     ) -> Result<Vec<Event>> {
         let KeyframeCandidate {
             frame,
@@ -133,38 +129,10 @@ impl Pipeline {
             world_from_source * source_from_new,
             Some(parent),
             prior,
-            last_from_frame.is_none().then_some(state),
+            Some(state),
         )?;
-        if let Some(last_from_frame) = last_from_frame {
-            // The latest frame was tracked against the previous keyframe; in the new
-            // keyframe's scale, lengths are divided by `factor`.
-            self.last_frame_from_keyframe = SE3::new(
-                last_from_frame.rotation,
-                last_from_frame.translation / factor,
-            );
-        }
         self.keyframe_creation_s += t0.elapsed().as_secs_f64();
         Ok(events)
-    }
-
-    /// Makes the pending keyframe current once the mapping thread has propagated its depth
-    /// (with `wait`, waits for that); its events are returned with the next push. Frames were
-    /// tracked against the previous keyframe meanwhile: the latest one's pose is re-expressed
-    /// relative to the new keyframe.
-    pub(super) fn switch_to_pending_keyframe(&mut self, wait: bool) -> Result<()> {
-        if self.pending_keyframe.is_none() {
-            return Ok(());
-        }
-        let Some(propagated) = self.mapper.take_propagated(wait) else {
-            return Ok(());
-        };
-        let Some(candidate) = self.pending_keyframe.take() else {
-            return Ok(());
-        };
-        let last_from_frame = self.last_frame_from_keyframe * candidate.frame_from_source.inverse();
-        let mut events = self.new_keyframe(candidate, propagated?, Some(last_from_frame))?;
-        self.pending_events.append(&mut events);
-        Ok(())
     }
 
     /// Fills the holes of a new keyframe's propagated depth from the depth prior

@@ -2,18 +2,21 @@
 //! (LSD-SLAM's mapping thread, Engel et al. ECCV 2014 §3).
 //!
 //! Stereo observation, regularisation and the rebuild of the tracking reference cost about
-//! three times what tracking a frame does. On their own thread they never hold up tracking:
-//! every frame gets its pose at tracking speed, and the mapping observes the newest tracked
-//! frame whenever it is free. When it falls behind, a waiting frame is replaced by a newer one
-//! (latest wins, counted as not mapped), so the queue cannot grow — LSD-SLAM likewise maps its
-//! backlog of tracked frames in one update. Tracking always uses the latest published depth.
-//! A new keyframe's depth is propagated on the thread as well
-//! ([`KeyframeMapper::propagate_on_thread`]); tracking goes on against the previous keyframe
-//! until it is ready.
+//! three times what tracking a frame does. On their own thread they overlap with tracking:
+//! tracked frames wait in a bounded queue, and the thread maps its whole backlog in one batch
+//! — every frame observed, then one regularisation and one published reference — as LSD-SLAM
+//! maps its `unmappedTrackedFrames` in one `updateKeyframe`. No observation is dropped (each
+//! one holds the map's scale; skipping them under load made the result swing 3-5× with spare
+//! CPU, issue 22): when the queue is full, tracking waits for room, so a slow machine runs
+//! slower rather than worse. Tracking always uses the latest published depth. A new keyframe
+//! waits for the queue to be mapped before the depth is propagated into it: propagating on the
+//! thread while tracking went on against the old keyframe left those frames unmapped and gave
+//! fewer keyframes and more drift (docs/tuning.md, "Mapping thread").
 //!
 //! In step (deterministic mode, or `pipeline.mapping_thread = false`) every good frame is
 //! observed before the next one is tracked.
 
+use std::collections::VecDeque;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Instant;
 
@@ -66,13 +69,15 @@ impl Published {
     }
 }
 
-/// One observation: stereo, regularisation, and the new published state.
-fn map_one(
+/// Observations in order (stereo each), then one regularisation and the new published state.
+fn map_batch(
     filter: &mut DepthFilter,
-    obs: &Observation,
+    batch: &[Observation],
     spare: Option<Arc<TrackingReference>>,
 ) -> Result<Published> {
-    filter.observe_with_residual(&obs.frame, &obs.keyframe_from_frame, obs.residual)?;
+    for obs in batch {
+        filter.observe_with_residual(&obs.frame, &obs.keyframe_from_frame, obs.residual)?;
+    }
     filter.regularize();
     Published::of(filter, spare)
 }
@@ -83,19 +88,17 @@ struct Slot {
     /// The current keyframe's filter; `None` while the thread maps with it, or between
     /// keyframes.
     filter: Option<DepthFilter>,
-    /// The newest tracked frame waiting to be observed.
-    pending: Option<Observation>,
-    /// A frame to become the next keyframe, with its pose `frame_from_keyframe`: the filter is
-    /// propagated into it on the thread (LSD-SLAM creates keyframes on its mapping thread).
-    propagate: Option<(Arc<Frame>, SE3)>,
-    /// The propagated filter, once the thread has it.
-    propagated: Option<Result<DepthFilter>>,
+    /// Tracked frames waiting to be observed, oldest first.
+    pending: VecDeque<Observation>,
+    /// Most frames `pending` holds before tracking waits for room.
+    capacity: usize,
     busy: bool,
     published: Option<Published>,
     /// The previously published reference, rebuilt in place next time when unshared.
     spare: Option<Arc<TrackingReference>>,
     mapping_s: f64,
-    not_mapped: usize,
+    /// Observations mapped in one batch with others (the backlog of a busy thread).
+    batched: usize,
     error: Option<Error>,
     shutdown: bool,
 }
@@ -104,13 +107,6 @@ impl Slot {
     /// The error the thread met since the last call, if any.
     fn check(&mut self) -> Result<()> {
         self.error.take().map_or(Ok(()), Err)
-    }
-
-    /// Drops the frame waiting to be observed (counted as not mapped).
-    fn drop_pending(&mut self) {
-        if self.pending.take().is_some() {
-            self.not_mapped += 1;
-        }
     }
 }
 
@@ -130,12 +126,12 @@ impl Shared {
         self.slot.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Waits until the thread is not mapping; the pending observation is dropped (it belongs to
-    /// a keyframe that is about to change) and counted.
+    /// Waits until the thread has mapped every queued observation and is not busy.
     fn idle(&self) -> MutexGuard<'_, Slot> {
         let mut slot = self.lock();
-        slot.drop_pending();
-        while slot.busy {
+        while slot.busy
+            || (!slot.pending.is_empty() && slot.filter.is_some() && slot.error.is_none())
+        {
             slot = self.changed.wait(slot).unwrap_or_else(|e| e.into_inner());
         }
         slot
@@ -143,12 +139,9 @@ impl Shared {
 
     fn run(&self) {
         loop {
-            let (mut filter, work) = {
+            let (mut filter, batch, spare) = {
                 let mut slot = self.lock();
-                while !slot.shutdown
-                    && (slot.filter.is_none()
-                        || (slot.pending.is_none() && slot.propagate.is_none()))
-                {
+                while !slot.shutdown && (slot.filter.is_none() || slot.pending.is_empty()) {
                     slot = self.changed.wait(slot).unwrap_or_else(|e| e.into_inner());
                 }
                 if slot.shutdown {
@@ -158,31 +151,21 @@ impl Shared {
                 let Some(filter) = slot.filter.take() else {
                     unreachable!("waited for a filter");
                 };
-                let work = match slot.propagate.take() {
-                    Some(job) => Err(job),
-                    None => Ok(slot.pending.take().map(|obs| (obs, slot.spare.take()))),
-                };
-                (filter, work)
+                let batch: Vec<Observation> = slot.pending.drain(..).collect();
+                slot.batched += batch.len().saturating_sub(1);
+                (filter, batch, slot.spare.take())
             };
             let t0 = Instant::now();
-            let result = match work {
-                Ok(Some((obs, spare))) => Ok(Some(map_one(&mut filter, &obs, spare))),
-                Ok(None) => Ok(None),
-                Err((frame, frame_from_keyframe)) => {
-                    Err(filter.propagate_to(frame, &frame_from_keyframe))
-                }
-            };
+            let result = map_batch(&mut filter, &batch, spare);
             let mut slot = self.lock();
             slot.mapping_s += t0.elapsed().as_secs_f64();
             slot.busy = false;
             slot.filter = Some(filter);
             match result {
-                Ok(Some(Ok(published))) => {
+                Ok(published) => {
                     slot.spare = slot.published.replace(published).map(|p| p.reference);
                 }
-                Ok(Some(Err(e))) => slot.error = Some(e),
-                Ok(None) => {}
-                Err(propagated) => slot.propagated = Some(propagated),
+                Err(e) => slot.error = Some(e),
             }
             self.changed.notify_all();
         }
@@ -210,10 +193,12 @@ pub(super) struct KeyframeMapper {
 }
 
 impl KeyframeMapper {
-    /// In step with tracking, or on its own thread when `threaded`.
-    pub fn new(threaded: bool) -> Result<Self> {
+    /// In step with tracking, or on its own thread when `threaded`, with at most `queue`
+    /// tracked frames waiting for it.
+    pub fn new(threaded: bool, queue: usize) -> Result<Self> {
         let mode = if threaded {
             let shared = Arc::new(Shared::default());
+            shared.lock().capacity = queue.max(1);
             let worker = shared.clone();
             let thread = std::thread::Builder::new()
                 .name("relfusion-mapping".into())
@@ -259,8 +244,8 @@ impl KeyframeMapper {
         }
     }
 
-    /// Observes a tracked frame into the current keyframe: at once in step, else when the
-    /// thread is free (replacing a frame still waiting).
+    /// Observes a tracked frame into the current keyframe: at once in step, else queued for the
+    /// thread (waiting for room while the queue is full).
     pub fn observe(&mut self, obs: Observation) -> Result<()> {
         match &mut self.mode {
             Mode::InStep {
@@ -271,16 +256,18 @@ impl KeyframeMapper {
                 let filter = (**filter).as_mut().ok_or_else(no_keyframe)?;
                 let t0 = Instant::now();
                 let spare = published.take().map(|p| p.reference);
-                *published = Some(map_one(filter, &obs, spare)?);
+                *published = Some(map_batch(filter, std::slice::from_ref(&obs), spare)?);
                 *mapping_s += t0.elapsed().as_secs_f64();
                 Ok(())
             }
             Mode::Threaded { shared, .. } => {
                 let mut slot = shared.lock();
                 slot.check()?;
-                if slot.pending.replace(obs).is_some() {
-                    slot.not_mapped += 1;
+                while slot.pending.len() >= slot.capacity && slot.error.is_none() {
+                    slot = shared.changed.wait(slot).unwrap_or_else(|e| e.into_inner());
                 }
+                slot.check()?;
+                slot.pending.push_back(obs);
                 shared.changed.notify_all();
                 Ok(())
             }
@@ -300,38 +287,6 @@ impl KeyframeMapper {
         published.ok_or_else(no_keyframe)
     }
 
-    /// Whether the mapping runs on its own thread.
-    pub fn is_threaded(&self) -> bool {
-        matches!(self.mode, Mode::Threaded { .. })
-    }
-
-    /// On the thread: starts propagating the current keyframe's depth into `frame` (the next
-    /// keyframe, at `frame_from_keyframe`), after the observation in progress; the waiting one
-    /// is dropped. [`Self::take_propagated`] collects the result. In step there is nothing to
-    /// overlap: use [`Self::with_filter`].
-    pub fn propagate_on_thread(&mut self, frame: Arc<Frame>, frame_from_keyframe: SE3) {
-        if let Mode::Threaded { shared, .. } = &self.mode {
-            let mut slot = shared.lock();
-            slot.drop_pending();
-            slot.propagated = None;
-            slot.propagate = Some((frame, frame_from_keyframe));
-            shared.changed.notify_all();
-        }
-    }
-
-    /// The filter [`Self::propagate_on_thread`] produced: `None` while it is not ready (with
-    /// `wait`, it waits for it; `None` then means nothing was asked).
-    pub fn take_propagated(&mut self, wait: bool) -> Option<Result<DepthFilter>> {
-        let Mode::Threaded { shared, .. } = &self.mode else {
-            return None;
-        };
-        let mut slot = shared.lock();
-        while wait && slot.propagated.is_none() && (slot.propagate.is_some() || slot.busy) {
-            slot = shared.changed.wait(slot).unwrap_or_else(|e| e.into_inner());
-        }
-        slot.propagated.take()
-    }
-
     /// The current keyframe's latest published depth, if any (errors are left for the next
     /// call that reports them).
     pub fn latest_depth(&self) -> Option<Arc<DepthMap>> {
@@ -343,8 +298,7 @@ impl KeyframeMapper {
         }
     }
 
-    /// Runs `f` on the current keyframe's filter once the thread is idle (a waiting frame is
-    /// dropped: the keyframe is about to change).
+    /// Runs `f` on the current keyframe's filter once the thread has mapped its queue.
     pub fn with_filter<R>(&mut self, f: impl FnOnce(&DepthFilter) -> Result<R>) -> Result<R> {
         match &mut self.mode {
             Mode::InStep { filter, .. } => f((**filter).as_ref().ok_or_else(no_keyframe)?),
@@ -371,13 +325,14 @@ impl KeyframeMapper {
         }
     }
 
-    /// Seconds spent observing frames, and frames left unobserved because the mapping was busy.
+    /// Seconds spent observing frames, and observations mapped in a batch with earlier ones
+    /// (how often the thread fell behind).
     pub fn counters(&self) -> (f64, usize) {
         match &self.mode {
             Mode::InStep { mapping_s, .. } => (*mapping_s, 0),
             Mode::Threaded { shared, .. } => {
                 let slot = shared.lock();
-                (slot.mapping_s, slot.not_mapped)
+                (slot.mapping_s, slot.batched)
             }
         }
     }
@@ -422,8 +377,8 @@ mod tests {
 
     #[test]
     fn mapping_thread_computes_what_in_step_mapping_does() {
-        let mut in_step = KeyframeMapper::new(false).expect("in step");
-        let mut threaded = KeyframeMapper::new(true).expect("thread");
+        let mut in_step = KeyframeMapper::new(false, 8).expect("in step");
+        let mut threaded = KeyframeMapper::new(true, 8).expect("thread");
         in_step.begin(filter()).expect("begin");
         threaded.begin(filter()).expect("begin");
         let n = 12;
@@ -443,7 +398,7 @@ mod tests {
         let a = in_step.finish().expect("finish").expect("a keyframe");
         let b = threaded.finish().expect("finish").expect("a keyframe");
         assert_eq!((a.frames_mapped, b.frames_mapped), (n, n));
-        assert_eq!(threaded.counters().1, 0, "nothing skipped");
+        assert_eq!(threaded.counters().1, 0, "nothing batched");
         assert!(
             a.depth.num_estimates() > 1000,
             "the filter mapped something"
@@ -453,21 +408,24 @@ mod tests {
     }
 
     #[test]
-    fn a_busy_mapping_thread_skips_frames_instead_of_queueing_them() {
-        let mut threaded = KeyframeMapper::new(true).expect("thread");
+    fn a_busy_mapping_thread_batches_its_backlog_and_loses_no_frame() {
+        let queue = 4;
+        let mut threaded = KeyframeMapper::new(true, queue).expect("thread");
         threaded.begin(filter()).expect("begin");
         let n = 30;
-        // Back to back, far faster than one stereo pass over the keyframe.
+        // Back to back, far faster than one stereo pass over the keyframe: the queue fills
+        // and tracking waits for room instead of dropping frames.
         for i in 1..=n {
             threaded.observe(observation(i)).expect("observe");
+            let waiting = match &threaded.mode {
+                Mode::Threaded { shared, .. } => shared.lock().pending.len(),
+                Mode::InStep { .. } => 0,
+            };
+            assert!(waiting <= queue, "{waiting} frames queued, bound {queue}");
         }
         let done = threaded.finish().expect("finish").expect("a keyframe");
-        let (_, skipped) = threaded.counters();
-        assert_eq!(
-            done.frames_mapped + skipped,
-            n,
-            "every frame is either mapped or counted as skipped"
-        );
-        assert!(skipped > n / 2, "only {skipped} of {n} skipped");
+        let (_, batched) = threaded.counters();
+        assert_eq!(done.frames_mapped, n, "every frame observed");
+        assert!(batched > 0, "a busy thread maps its backlog in batches");
     }
 }

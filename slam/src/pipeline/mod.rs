@@ -47,7 +47,7 @@ use crate::gpu::GpuContext;
 use crate::graph::{BackendLink, KeyframeId};
 use crate::image::ImageF32;
 use crate::tracking::SE3Tracker;
-use keyframes::{FrameRecord, KeyframeCandidate, KeyframeRecord};
+use keyframes::{FrameRecord, KeyframeRecord};
 use mapper::KeyframeMapper;
 
 /// One input frame: a colour image (distorted as the camera delivers it) and its time.
@@ -70,9 +70,9 @@ pub struct Stats {
     /// Accumulated wall time of tracking, mapping and keyframe creation (seconds).
     pub tracking_s: f64,
     pub mapping_s: f64,
-    /// Good frames the mapping thread did not observe because it was busy with an earlier one
-    /// (`pipeline.mapping_thread`; always 0 in step).
-    pub frames_not_mapped: usize,
+    /// Frames the mapping thread observed in a batch with earlier ones because it was busy
+    /// (`pipeline.mapping_thread`; always 0 in step). No tracked frame goes unobserved.
+    pub frames_batched: usize,
     /// Keyframes the dense layer finished.
     pub keyframes_densified: usize,
     /// Keyframes it skipped (queue full) or failed on (reason logged).
@@ -104,16 +104,14 @@ pub struct Pipeline {
     fusion: Option<FusionLink>,
     /// The latest dense result of each keyframe, by keyframe id.
     dense_keyframes: BTreeMap<KeyframeId, Arc<DenseKeyframe>>,
-    /// Events produced outside a frame's own processing (dense results, keyframes made on the
-    /// mapping thread, pose-graph updates), returned with the next [`Pipeline::push`] or by
+    /// Events produced outside a frame's own processing (dense results, pose-graph updates),
+    /// returned with the next [`Pipeline::push`] or by
     /// [`Pipeline::take_events`].
     pending_events: Vec<Event>,
     keyframes: Vec<KeyframeRecord>,
     /// The keyframe being mapped; its depth filter is in `mapper`.
     current: Option<KeyframeId>,
     mapper: KeyframeMapper,
-    /// The next keyframe while the mapping thread propagates into it.
-    pending_keyframe: Option<KeyframeCandidate>,
     /// Seconds spent creating keyframes (propagation); the mapper adds its own.
     keyframe_creation_s: f64,
     frames: Vec<FrameRecord>,
@@ -197,8 +195,7 @@ impl Pipeline {
             pending_events: Vec::new(),
             keyframes: Vec::new(),
             current: None,
-            mapper: KeyframeMapper::new(mapping_thread)?,
-            pending_keyframe: None,
+            mapper: KeyframeMapper::new(mapping_thread, config.pipeline.mapping_queue)?,
             keyframe_creation_s: 0.0,
             frames: Vec::new(),
             last_frame_from_keyframe: SE3::identity(),
@@ -247,7 +244,6 @@ impl Pipeline {
     /// re-integrates the fusion at the final poses and returns the optimised pose of every
     /// keyframe.
     pub fn finish(&mut self) -> Result<Vec<(KeyframeId, Sim3)>> {
-        self.switch_to_pending_keyframe(true)?;
         self.finish_current()?;
         self.update_mapping_stats();
         if let Some(dense) = &mut self.dense {
@@ -261,9 +257,9 @@ impl Pipeline {
     }
 
     fn update_mapping_stats(&mut self) {
-        let (mapping_s, not_mapped) = self.mapper.counters();
+        let (mapping_s, batched) = self.mapper.counters();
         self.stats.mapping_s = self.keyframe_creation_s + mapping_s;
-        self.stats.frames_not_mapped = not_mapped;
+        self.stats.frames_batched = batched;
     }
 
     /// Reports the keyframe poses when the pose graph moved any since the last report (in

@@ -235,7 +235,7 @@ fn mapping_thread_tracks_a_live_stream() {
     let path = path_length(&gt.iter().map(|p| p.world_from_camera).collect::<Vec<_>>());
     println!(
         "mapping thread at 30 fps: {} of {} frames not mapped, {} keyframes, ATE {:.4} m",
-        stats.frames_not_mapped,
+        stats.frames_batched,
         frames.len(),
         stats.keyframes,
         traj.rmse
@@ -294,4 +294,55 @@ fn invalid_config_is_refused() {
         Pipeline::new(config, *camera, None),
         Err(Error::Config(m)) if m.contains("ground_truth_depth")
     ));
+}
+
+/// Issue 22's scale-drift goal on a long hand-held path: the 60-frame windowed scale of a
+/// 1000-frame `loop` sequence (ideal camera, 320×240, no model) must stay within 1.1 (largest
+/// over smallest window scale). Not met yet: 1.24 here, 1.7 on a clean 700-frame `handheld`
+/// path (docs/tuning.md, "Scale drift, issue 22"), so it is ignored in the suite; run it with
+/// `--ignored`.
+#[test]
+#[ignore = "issue 22 goal not met: scale drift 1.24 on this path (docs/tuning.md)"]
+fn pipeline_scale_drift_over_a_1000_frame_loop_stays_within_1_1() {
+    let config = SynthConfig {
+        frames: 1000,
+        seed: 11,
+        motion: crate::dataset::Motion::Loop,
+        width: 320,
+        height: 240,
+        supersample: 1,
+        ..Default::default()
+    };
+    let camera = config.camera().expect("camera");
+    let scene = Scene::generate(config.seed);
+    let mut pipeline = Pipeline::new(Config::default(), camera, None).expect("pipeline");
+    let mut gt = Vec::new();
+    for (i, pose) in config.poses().iter().enumerate() {
+        let timestamp = i as f64 / config.fps;
+        let (rgb, _) = crate::dataset::synth::render_frame_with(&scene, &camera, pose, 1);
+        pipeline
+            .push(FrameInput {
+                timestamp,
+                rgb,
+                depth: None,
+            })
+            .expect("push");
+        gt.push(StampedPose {
+            timestamp,
+            world_from_camera: *pose,
+        });
+    }
+    pipeline.finish().expect("finish");
+    let matched = crate::eval::associate_poses(
+        &gt,
+        &stamped(&pipeline.trajectory()),
+        crate::eval::DEFAULT_MAX_DT,
+    )
+    .expect("matched");
+    assert_eq!(matched.len(), 1000, "every frame has a pose");
+    let drift = crate::eval::scale_drift(&matched, 60)
+        .expect("drift")
+        .drift
+        .expect("windows with a scale");
+    assert!(drift <= 1.1, "scale drift {drift} over 1000 frames");
 }

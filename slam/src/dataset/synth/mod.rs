@@ -10,6 +10,7 @@
 //! by [`SynthConfig::seed`], textures are stateless hashes, and every frame is rendered
 //! independently (threads only change which core renders it).
 
+pub mod nuisance;
 pub mod scene;
 pub mod texture;
 pub mod trajectory;
@@ -22,6 +23,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
+pub use nuisance::Nuisances;
 pub use scene::Scene;
 pub use trajectory::{Motion, Trajectory, max_rotation_deg, path_length};
 
@@ -53,6 +55,8 @@ pub struct SynthConfig {
     pub supersample: u32,
     /// Rendering threads (frames are distributed over them). Default 2.
     pub threads: usize,
+    /// Photometric nuisances of a real camera ([`Nuisances`]). Default: none (ideal camera).
+    pub nuisances: Nuisances,
 }
 
 impl Default for SynthConfig {
@@ -66,6 +70,7 @@ impl Default for SynthConfig {
             fps: 30.0,
             supersample: 2,
             threads: 2,
+            nuisances: Nuisances::default(),
         }
     }
 }
@@ -87,6 +92,15 @@ impl SynthConfig {
     /// The camera poses (camera-to-world) of all frames.
     pub fn poses(&self) -> Vec<SE3> {
         Trajectory::new(self.motion, self.seed).poses(self.frames, self.fps)
+    }
+
+    /// The file extension of the colour images (`jpg` with JPEG compression on).
+    pub fn rgb_extension(&self) -> &'static str {
+        if self.nuisances.jpeg_quality > 0 {
+            "jpg"
+        } else {
+            "png"
+        }
     }
 
     fn validate(&self) -> Result<()> {
@@ -111,7 +125,7 @@ impl SynthConfig {
                 self.width, self.height
             )));
         }
-        Ok(())
+        self.nuisances.validate()
     }
 }
 
@@ -228,6 +242,7 @@ pub fn render_sequence(config: &SynthConfig, out_dir: &Path) -> Result<SynthSumm
     config.validate()?;
     let camera = config.camera()?;
     let scene = Scene::generate(config.seed);
+    let trajectory = Trajectory::new(config.motion, config.seed);
     let poses = config.poses();
     for (i, p) in poses.iter().enumerate() {
         if !scene.is_free(&p.translation, 0.3) {
@@ -249,7 +264,7 @@ pub fn render_sequence(config: &SynthConfig, out_dir: &Path) -> Result<SynthSumm
             if i >= poses.len() {
                 break;
             }
-            if let Err(e) = write_frame(&scene, &camera, &poses[i], config, i, out_dir) {
+            if let Err(e) = write_frame(&scene, &camera, &trajectory, config, i, out_dir) {
                 if let Ok(mut slot) = first_error.lock() {
                     slot.get_or_insert(e);
                 }
@@ -278,18 +293,39 @@ pub fn render_sequence(config: &SynthConfig, out_dir: &Path) -> Result<SynthSumm
 fn write_frame(
     scene: &Scene,
     camera: &PinholeCamera,
-    pose: &SE3,
+    trajectory: &Trajectory,
     config: &SynthConfig,
     i: usize,
     out_dir: &Path,
 ) -> Result<()> {
-    let (rgb, depth) = render_frame_with(scene, camera, pose, config.supersample);
+    let time = i as f64 / config.fps;
+    let pose = trajectory.world_from_camera(time);
+    let (ideal, depth) = render_frame_with(scene, camera, &pose, config.supersample);
     let t = timestamp(i, config.fps);
-    let rgb_path = out_dir.join(format!("rgb/{t}.png"));
-    rgb.save(&rgb_path).map_err(|source| Error::Image {
-        path: rgb_path.clone(),
-        source,
-    })?;
+    let rgb_path = out_dir.join(format!("rgb/{t}.{}", config.rgb_extension()));
+    let nuisances = &config.nuisances;
+    let rgb = if nuisances.any() {
+        // Mean radiance over the shutter (the centre rendering is the one already made when
+        // there is no blur).
+        let offsets = nuisances.exposure_offsets(config.fps);
+        let mut linear = vec![0.0f32; ideal.as_raw().len()];
+        for &dt in &offsets {
+            let sub = if dt == 0.0 {
+                ideal.clone()
+            } else {
+                let pose = trajectory.world_from_camera(time + dt);
+                render_frame_with(scene, camera, &pose, config.supersample).0
+            };
+            for (acc, &v) in linear.iter_mut().zip(sub.as_raw()) {
+                *acc += f32::from(v) / offsets.len() as f32;
+            }
+        }
+        nuisances.apply(&linear, camera.width, camera.height, config.seed, i, time)
+    } else {
+        ideal
+    };
+    let bytes = nuisance::encode(&rgb, nuisances.jpeg_quality)?;
+    std::fs::write(&rgb_path, bytes).map_err(|e| Error::io(&rgb_path, e))?;
     let depth_path = out_dir.join(format!("depth/{t}.png"));
     depth_to_u16(&depth)?
         .save(&depth_path)
@@ -306,9 +342,16 @@ fn write_lists(
     out_dir: &Path,
 ) -> Result<()> {
     let source = format!(
-        "relfusion synth: seed {} motion {} {} frames {}x{} at {} Hz",
-        config.seed, config.motion, config.frames, config.width, config.height, config.fps
+        "relfusion synth: seed {} motion {} {} frames {}x{} at {} Hz, nuisances {}",
+        config.seed,
+        config.motion,
+        config.frames,
+        config.width,
+        config.height,
+        config.fps,
+        serde_json::to_string(&config.nuisances).unwrap_or_default()
     );
+    let ext = config.rgb_extension();
     let (mut rgb, mut depth, mut assoc) = (String::new(), String::new(), String::new());
     let _ = writeln!(rgb, "# color images\n# {source}\n# timestamp filename");
     let _ = writeln!(
@@ -317,9 +360,9 @@ fn write_lists(
     );
     for i in 0..poses.len() {
         let t = timestamp(i, config.fps);
-        let _ = writeln!(rgb, "{t} rgb/{t}.png");
+        let _ = writeln!(rgb, "{t} rgb/{t}.{ext}");
         let _ = writeln!(depth, "{t} depth/{t}.png");
-        let _ = writeln!(assoc, "{t} rgb/{t}.png {t} depth/{t}.png");
+        let _ = writeln!(assoc, "{t} rgb/{t}.{ext} {t} depth/{t}.png");
     }
     let calib = format!(
         "# fx fy cx cy (ideal pinhole, no distortion)\n{} {} {} {}\n",

@@ -323,6 +323,8 @@ fn dataset_synth_motion_presets_within_bounds() {
                 Motion::Forward => (1.5..2.5, 2.0..25.0),
                 Motion::Rotation => (0.0..0.3, 20.0..80.0),
                 Motion::Shake => (0.5..4.0, 1.0..15.0),
+                Motion::Handheld => (1.0..4.0, 5.0..80.0),
+                Motion::Loop => (0.8..3.0, 5.0..60.0),
             };
             assert!(
                 len_range.contains(&len),
@@ -390,4 +392,123 @@ fn dataset_synth_config_serde_and_validation() {
         (camera.fx, camera.fy, camera.cx, camera.cy),
         (525.0, 525.0, 319.5, 239.5)
     );
+}
+
+#[test]
+fn dataset_synth_long_presets_stay_free_and_the_loop_comes_back() {
+    for seed in 0..4u64 {
+        let scene = Scene::generate(seed);
+        for motion in [Motion::Handheld, Motion::Loop] {
+            let poses = SynthConfig {
+                seed,
+                motion,
+                frames: 1200,
+                ..SynthConfig::default()
+            }
+            .poses();
+            assert!(
+                poses.iter().all(|p| scene.is_free(&p.translation, 0.3)),
+                "{motion} seed {seed}"
+            );
+            let len = path_length(&poses);
+            assert!(
+                (4.0..12.0).contains(&len),
+                "{motion} seed {seed}: {len} m over 1200 frames"
+            );
+            for w in poses.windows(2) {
+                assert!((w[1].translation - w[0].translation).norm() < 0.03);
+            }
+            // 900 frames = the loop's 30 s period: back at the start up to the tremor.
+            let back = poses[0].inverse() * poses[900];
+            let (dt, dr) = (
+                back.translation.norm(),
+                back.rotation.log().norm().to_degrees(),
+            );
+            match motion {
+                Motion::Loop => assert!(dt < 0.015 && dr < 2.0, "seed {seed}: {dt} m {dr} deg"),
+                _ => assert!(dt > 0.1 || dr > 10.0, "seed {seed}: handheld came back"),
+            }
+        }
+    }
+}
+
+#[test]
+fn dataset_synth_nuisances_are_deterministic_and_do_what_they_say() {
+    let nuisy = SynthConfig {
+        nuisances: Nuisances::CAMERA,
+        motion: Motion::Handheld,
+        ..small(3, 4)
+    };
+    let (a, b) = (temp_dir("nuis-a"), temp_dir("nuis-b"));
+    render_sequence(
+        &SynthConfig {
+            threads: 1,
+            ..nuisy.clone()
+        },
+        &a,
+    )
+    .expect("render a");
+    render_sequence(
+        &SynthConfig {
+            threads: 3,
+            ..nuisy.clone()
+        },
+        &b,
+    )
+    .expect("render b");
+    let (ta, tb) = (tree(&a), tree(&b));
+    assert_eq!(ta, tb, "same seed, different threads: identical files");
+    assert!(
+        ta.iter()
+            .any(|(p, _)| p.extension().is_some_and(|e| e == "jpg"))
+    );
+    let seq = TumSequence::open(&a, None).expect("open");
+    assert_eq!(seq.len(), 4);
+    let img = seq.load_gray(0).expect("jpeg frame decodes");
+
+    // Against the ideal camera: the corners are darker (vignetting 0.3 on top of the gain)
+    // and the image differs everywhere by about the noise.
+    let scene = Scene::generate(3);
+    let camera = nuisy.camera().expect("camera");
+    let (ideal, _) = render_frame_with(&scene, &camera, &nuisy.poses()[0], 2);
+    let ideal = ImageF32::from_rgb8(&ideal);
+    let gain = Nuisances::CAMERA.gain(3, 0.0) as f32;
+    let mean_ratio = |x0: usize, y0: usize| {
+        let (mut n, mut d) = (0.0f32, 0.0f32);
+        for y in y0..y0 + 12 {
+            for x in x0..x0 + 16 {
+                n += img.at(x, y);
+                d += ideal.at(x, y);
+            }
+        }
+        n / d / gain
+    };
+    let centre = mean_ratio(72, 54);
+    let corner = mean_ratio(0, 0);
+    assert!(centre > 0.9 && centre < 1.1, "centre ratio {centre}");
+    assert!(corner < 0.85 * centre, "corner {corner} vs centre {centre}");
+
+    // The gain wanders within exp(±0.22) and really changes over a few seconds.
+    let gains: Vec<f64> = (0..300)
+        .map(|i| Nuisances::CAMERA.gain(3, i as f64 / 30.0))
+        .collect();
+    let (lo, hi) = gains
+        .iter()
+        .fold((f64::MAX, 0.0f64), |(l, h), &g| (l.min(g), h.max(g)));
+    assert!(lo >= (-0.22f64).exp() - 1e-9 && hi <= 0.22f64.exp() + 1e-9);
+    assert!(hi / lo > 1.2, "gain range {lo}..{hi}");
+    assert_eq!(Nuisances::default().gain(3, 1.0), 1.0);
+
+    // Validation at the edge.
+    let bad = SynthConfig {
+        nuisances: Nuisances {
+            vignetting: 1.5,
+            ..Nuisances::default()
+        },
+        ..small(0, 1)
+    };
+    assert!(render_sequence(&bad, &temp_dir("nuis-bad")).is_err());
+    for dir in [a, b] {
+        let _ = std::fs::remove_dir_all(dir);
+    }
 }

@@ -11,6 +11,11 @@
 //! | `forward` | 1.5 m towards the far wall and back (cosine), ±0.1 m sway | yaw ±6°, pitch ±4°, roll ±3° |
 //! | `rotation` | ±1 cm jitter | yaw ±25°, pitch ±15°, roll ±10° |
 //! | `shake` | ±1.5 cm at 1.3 Hz + ±0.5 cm at 3.7 Hz per axis | ±2.5° at 0.9 Hz + ±1° at 2.3 Hz per axis |
+//! | `handheld` | a wander over the free region, incommensurate periods 7-31 s (no return to the start): ≈ 0.2 m/s | yaw ±45°, pitch ±12°, roll ±6°, plus hand tremor |
+//! | `loop` | a closed loop of 1.1 × 0.9 m in 30 s (900 frames), back over the start after it | yaw ±40°, pitch ±10°, roll ±5° (periodic), plus hand tremor |
+//!
+//! `handheld` and `loop` are the long presets (1000+ frames, issue 22): the hand tremor
+//! (±4 mm, ±0.6° at 1.7-4.3 Hz) is not periodic, so a revisit is never an exact repeat.
 
 use std::f64::consts::{PI, TAU};
 use std::fmt;
@@ -40,15 +45,21 @@ pub enum Motion {
     Rotation,
     /// Hand-held jitter: small fast translation and rotation.
     Shake,
+    /// A long hand-held walk-around that never returns to its start.
+    Handheld,
+    /// A long hand-held loop that comes back over its start every 30 s.
+    Loop,
 }
 
 impl Motion {
     /// All presets, for tests and help texts.
-    pub const ALL: [Motion; 4] = [
+    pub const ALL: [Motion; 6] = [
         Motion::Orbit,
         Motion::Forward,
         Motion::Rotation,
         Motion::Shake,
+        Motion::Handheld,
+        Motion::Loop,
     ];
 
     /// The lowercase name used on the command line and in configs.
@@ -58,6 +69,8 @@ impl Motion {
             Motion::Forward => "forward",
             Motion::Rotation => "rotation",
             Motion::Shake => "shake",
+            Motion::Handheld => "handheld",
+            Motion::Loop => "loop",
         }
     }
 }
@@ -76,7 +89,7 @@ impl FromStr for Motion {
             .find(|m| m.name() == s)
             .ok_or_else(|| {
                 Error::Config(format!(
-                    "unknown motion `{s}` (orbit, forward, rotation, shake)"
+                    "unknown motion `{s}` (orbit, forward, rotation, shake, handheld, loop)"
                 ))
             })
     }
@@ -86,7 +99,7 @@ impl FromStr for Motion {
 #[derive(Clone, Debug)]
 pub struct Trajectory {
     motion: Motion,
-    phase: [f64; 12],
+    phase: [f64; 20],
 }
 
 /// Camera axes (columns: right, down, forward) of the base view: looking along world +x with
@@ -101,7 +114,7 @@ impl Trajectory {
     pub fn new(motion: Motion, seed: u64) -> Self {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         rng.set_stream(2);
-        let mut phase = [0.0; 12];
+        let mut phase = [0.0; 20];
         for p in &mut phase {
             *p = rng.random_range(0.0..TAU);
         }
@@ -147,6 +160,52 @@ impl Trajectory {
                     [turn(6), turn(7), turn(8)],
                 )
             }
+            Motion::Handheld => {
+                let f = |period: f64| TAU / period;
+                (
+                    Vector3::new(
+                        -0.25 + s(0.4, f(31.0), 0) + s(0.18, f(13.0), 1),
+                        s(0.32, f(23.0), 2) + s(0.14, f(11.0), 3),
+                        1.3 + s(0.12, f(19.0), 4) + s(0.05, f(7.0), 5),
+                    ),
+                    [
+                        s(35.0, f(29.0), 6) + s(10.0, f(9.0), 7),
+                        s(12.0, f(17.0), 8),
+                        s(6.0, f(13.0), 9),
+                    ],
+                )
+            }
+            Motion::Loop => {
+                let w = TAU / 30.0;
+                (
+                    Vector3::new(
+                        -0.25 + 0.55 * (w * t + ph[0]).cos(),
+                        0.45 * (w * t + ph[0]).sin(),
+                        1.3 + s(0.1, 2.0 * w, 1),
+                    ),
+                    [
+                        s(30.0, w, 2) + s(10.0, 3.0 * w, 3),
+                        s(10.0, 2.0 * w, 4),
+                        s(5.0, 3.0 * w, 5),
+                    ],
+                )
+            }
+        };
+        let (position, ypr) = match self.motion {
+            Motion::Handheld | Motion::Loop => {
+                // Hand tremor: fast, small, not periodic with the path.
+                let tremor_t = |k: usize| s(0.003, TAU * 1.7, k) + s(0.001, TAU * 4.3, k + 3);
+                let tremor_r = |k: usize| s(0.45, TAU * 2.1, k) + s(0.15, TAU * 3.9, k + 3);
+                (
+                    position + Vector3::new(tremor_t(10), tremor_t(11), tremor_t(12)),
+                    [
+                        ypr[0] + tremor_r(13),
+                        ypr[1] + tremor_r(14),
+                        ypr[2] + tremor_r(15),
+                    ],
+                )
+            }
+            _ => (position, ypr),
         };
         let [yaw, pitch, roll] = ypr.map(|a| a * deg);
         // Yaw about world z, pitch about world y (tilts the view up/down), roll about the

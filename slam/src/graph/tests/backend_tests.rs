@@ -391,3 +391,55 @@ fn backend_depth_update_re_estimates_the_constraints() {
             .is_err()
     );
 }
+
+#[test]
+fn backend_window_runs_per_keyframe_and_replaces_its_edges() {
+    let keyframes = loop_keyframes();
+    let inputs = drifting_inputs(keyframes);
+    let window = crate::window::WindowConfig {
+        enabled: true,
+        keyframes: 4,
+        ..crate::window::WindowConfig::default()
+    };
+    let mut backend = Backend::new(BackendConfig {
+        window: window.clone(),
+        ..test_config()
+    })
+    .expect("valid config");
+    let mut runs = 0;
+    for input in &inputs {
+        backend.add_keyframe(input.clone()).expect("add");
+        let report = backend.process().expect("process");
+        if let Some(w) = report.window {
+            runs += 1;
+            assert!(w.final_cost <= w.initial_cost * 1.5, "{w:?}");
+        }
+    }
+    // One window per keyframe from the fourth on.
+    assert_eq!(runs, LOOP_KEYFRAMES - window.keyframes + 1);
+    // Each consecutive pair keeps one window edge: later windows replace, never add.
+    let (_, without) = run_in_step(&inputs);
+    assert_eq!(
+        backend.constraints().len(),
+        without.len() + LOOP_KEYFRAMES - 1,
+        "window edges: one per consecutive pair"
+    );
+    for k in 1..LOOP_KEYFRAMES {
+        assert!(
+            backend
+                .constraints()
+                .iter()
+                .any(|c| c.from == k && c.to == k - 1),
+            "pair {k}"
+        );
+    }
+    // The window holds the map together at least as well as the Sim(3) edges alone.
+    let (with_t, _, with_s) = errors(&backend.poses(), keyframes);
+    let (poses, _) = run_in_step(&inputs);
+    let (base_t, _, base_s) = errors(&poses, keyframes);
+    assert!(
+        with_t < base_t + 0.01,
+        "position error {with_t} m vs {base_t} m"
+    );
+    assert!(with_s < base_s + 0.02, "scale error {with_s} vs {base_s}");
+}

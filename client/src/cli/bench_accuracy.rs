@@ -1,0 +1,371 @@
+//! `relfusion bench accuracy`: the whole development set at once — every TUM-layout sequence
+//! given, run N times in the threaded default mode plus once deterministically, judged against
+//! its ground truth (issue 22: a change is judged on all sequences, never on one).
+//!
+//! Per sequence it prints the frames with a pose, the ATE (Sim(3)-aligned RMSE) of all frames
+//! and of the keyframes (median and worst of the threaded runs, and the deterministic run),
+//! the ATE as a share of the ground-truth path, the scale drift (largest over smallest scale of
+//! 60-frame windows, [`relfusion_slam::eval::scale_drift`]) and the wall time per frame; then one
+//! aggregate line over the sequences.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context as _;
+use relfusion_slam::dataset::TumSequence;
+use relfusion_slam::dataset::trajectory::{StampedPose, stamped_se3};
+use relfusion_slam::eval::{AlignMode, DEFAULT_MAX_DT, associate_poses, ate, scale_drift};
+use relfusion_slam::geometry::Sim3;
+use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
+use serde::Serialize;
+
+use super::run::load_prior;
+
+/// Poses per window of the scale-drift figure (2 s at 30 Hz: short enough that tracking is
+/// accurate within it, long enough for a well-conditioned Sim(3) fit).
+const SCALE_WINDOW: usize = 60;
+
+#[derive(Debug, clap::Args)]
+pub struct AccuracyArgs {
+    /// Sequence folders in TUM layout (real or `relfusion synth`), each with ground truth.
+    #[arg(required = true)]
+    pub datasets: Vec<PathBuf>,
+    /// Threaded runs per sequence (one deterministic run is added).
+    #[arg(long, default_value_t = 3)]
+    pub runs: usize,
+    /// ONNX depth model (first-keyframe initialisation and the dense layer).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Pipeline config (TOML/JSON); default: the built-in defaults.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Map on the mapping thread (`pipeline.mapping_thread`, as live sessions do).
+    #[arg(long)]
+    pub mapping_thread: bool,
+    /// Turn the dense layer off.
+    #[arg(long)]
+    pub no_dense: bool,
+    /// Skip the deterministic run.
+    #[arg(long)]
+    pub no_deterministic: bool,
+    /// Print one JSON document instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One run of one sequence.
+#[derive(Clone, Debug, Serialize)]
+pub struct RunFigures {
+    pub deterministic: bool,
+    pub frames_with_pose: usize,
+    pub keyframes: usize,
+    pub frames_batched: usize,
+    pub ate_trajectory_m: Option<f64>,
+    pub ate_keyframes_m: Option<f64>,
+    pub scale_drift: Option<f64>,
+    pub ms_per_frame: f64,
+}
+
+/// Median and worst of a figure over the threaded runs.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct Spread {
+    pub median: f64,
+    pub worst: f64,
+}
+
+impl Spread {
+    /// `None` when no run has the figure; a run without it (no alignment possible) counts as
+    /// infinitely bad.
+    fn of(values: impl Iterator<Item = Option<f64>>) -> Option<Self> {
+        let mut v: Vec<f64> = values.map(|x| x.unwrap_or(f64::INFINITY)).collect();
+        if v.is_empty() || v.iter().all(|x| x.is_infinite()) {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        Some(Self {
+            median: v[v.len() / 2],
+            worst: v[v.len() - 1],
+        })
+    }
+}
+
+/// Everything printed for one sequence.
+#[derive(Clone, Debug, Serialize)]
+pub struct SequenceFigures {
+    pub dataset: PathBuf,
+    pub frames: usize,
+    pub path_length_m: f64,
+    pub frames_with_pose_min: usize,
+    pub ate_trajectory_m: Option<Spread>,
+    pub ate_keyframes_m: Option<Spread>,
+    pub scale_drift: Option<Spread>,
+    pub ms_per_frame: Option<Spread>,
+    pub deterministic: Option<RunFigures>,
+    pub runs: Vec<RunFigures>,
+}
+
+pub fn accuracy(args: &AccuracyArgs) -> anyhow::Result<()> {
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    config.dense.enabled &= !args.no_dense;
+    config.pipeline.mapping_thread |= args.mapping_thread;
+    config.pipeline.deterministic = false;
+    let mut all = Vec::new();
+    for dataset in &args.datasets {
+        let figures = sequence(dataset, &config, args)?;
+        if !args.json {
+            print_row(&figures);
+        }
+        all.push(figures);
+    }
+    let aggregate = Aggregate::of(&all);
+    if args.json {
+        let doc = serde_json::json!({
+            "bench": "accuracy",
+            "build": if cfg!(debug_assertions) { "debug" } else { "release" },
+            "runs": args.runs,
+            "model": args.model,
+            "mapping": if config.pipeline.mapping_thread { "thread" } else { "in step" },
+            "dense": if config.dense.enabled { "on" } else { "off" },
+            "sequences": all,
+            "aggregate": aggregate,
+        });
+        println!("{}", serde_json::to_string_pretty(&doc)?);
+    } else {
+        println!("{}", aggregate.line());
+    }
+    Ok(())
+}
+
+/// Frames decoded into memory and the ground truth of one sequence.
+struct Loaded {
+    seq: TumSequence,
+    frames: Vec<FrameInput>,
+    gt: Vec<StampedPose>,
+}
+
+fn load(dataset: &Path) -> anyhow::Result<Loaded> {
+    let seq = TumSequence::open(dataset, None)
+        .with_context(|| format!("opening {}", dataset.display()))?;
+    let frames = (0..seq.len())
+        .map(|i| {
+            Ok(FrameInput {
+                timestamp: seq.frames[i].timestamp,
+                rgb: seq.load_rgb(i)?,
+                depth: None,
+            })
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let gt: Vec<StampedPose> = seq
+        .frames
+        .iter()
+        .filter_map(|f| {
+            f.world_from_camera.map(|p| StampedPose {
+                timestamp: f.timestamp,
+                world_from_camera: p,
+            })
+        })
+        .collect();
+    anyhow::ensure!(
+        gt.len() >= 2 * SCALE_WINDOW,
+        "{} has ground truth for {} frames; the accuracy bench needs at least {}",
+        dataset.display(),
+        gt.len(),
+        2 * SCALE_WINDOW
+    );
+    Ok(Loaded { seq, frames, gt })
+}
+
+fn sequence(
+    dataset: &Path,
+    config: &Config,
+    args: &AccuracyArgs,
+) -> anyhow::Result<SequenceFigures> {
+    let loaded = load(dataset)?;
+    let mut runs = Vec::new();
+    for _ in 0..args.runs {
+        runs.push(run_once(&loaded, config, args.model.as_deref())?);
+    }
+    let deterministic = if args.no_deterministic {
+        None
+    } else {
+        let mut config = config.clone();
+        config.pipeline.deterministic = true;
+        Some(run_once(&loaded, &config, args.model.as_deref())?)
+    };
+    let path_length_m = loaded
+        .gt
+        .windows(2)
+        .map(|w| (w[1].world_from_camera.translation - w[0].world_from_camera.translation).norm())
+        .sum();
+    Ok(SequenceFigures {
+        dataset: dataset.to_path_buf(),
+        frames: loaded.frames.len(),
+        path_length_m,
+        frames_with_pose_min: runs
+            .iter()
+            .chain(&deterministic)
+            .map(|r| r.frames_with_pose)
+            .min()
+            .unwrap_or(0),
+        ate_trajectory_m: Spread::of(runs.iter().map(|r| r.ate_trajectory_m)),
+        ate_keyframes_m: Spread::of(runs.iter().map(|r| r.ate_keyframes_m)),
+        scale_drift: Spread::of(runs.iter().map(|r| r.scale_drift)),
+        ms_per_frame: Spread::of(runs.iter().map(|r| Some(r.ms_per_frame))),
+        deterministic,
+        runs,
+    })
+}
+
+fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::Result<RunFigures> {
+    let prior = load_prior(model, None)?;
+    let mut pipeline = Pipeline::new(config.clone(), loaded.seq.camera, prior)?;
+    let t0 = Instant::now();
+    for frame in &loaded.frames {
+        pipeline.push(frame.clone())?;
+    }
+    let frames_s = t0.elapsed().as_secs_f64();
+    pipeline.finish()?;
+    let trajectory = pipeline.trajectory();
+    let keyframes = pipeline.keyframe_trajectory();
+    let ate_of = |poses: &[(f64, Sim3)]| -> Option<f64> {
+        ate(&loaded.gt, &stamped_se3(poses), AlignMode::Sim3)
+            .ok()
+            .map(|r| r.rmse)
+    };
+    let drift = associate_poses(&loaded.gt, &stamped_se3(&trajectory), DEFAULT_MAX_DT)
+        .ok()
+        .and_then(|m| scale_drift(&m, SCALE_WINDOW).ok())
+        .and_then(|d| d.drift);
+    let stats = pipeline.stats();
+    Ok(RunFigures {
+        deterministic: config.pipeline.deterministic,
+        frames_with_pose: trajectory.len(),
+        keyframes: keyframes.len(),
+        frames_batched: stats.frames_batched,
+        ate_trajectory_m: ate_of(&trajectory),
+        ate_keyframes_m: ate_of(&keyframes),
+        scale_drift: drift,
+        ms_per_frame: 1e3 * frames_s / loaded.frames.len().max(1) as f64,
+    })
+}
+
+fn fmt_m(v: Option<f64>) -> String {
+    v.map_or_else(|| "-".into(), |x| format!("{x:.4}"))
+}
+
+fn fmt_spread(s: Option<Spread>, digits: usize) -> String {
+    s.map_or_else(
+        || "-".into(),
+        |s| format!("{:.d$}/{:.d$}", s.median, s.worst, d = digits),
+    )
+}
+
+fn print_row(f: &SequenceFigures) {
+    let name = f.dataset.file_name().map_or_else(
+        || f.dataset.display().to_string(),
+        |n| n.to_string_lossy().into(),
+    );
+    let det = f.deterministic.as_ref();
+    println!(
+        "{name}: poses {}/{} | ATE traj median/worst {} m (det {}) | keyframes {} m (det {}) \
+         | kf ATE {} % of {:.2} m path | scale drift {} (det {}) | {} ms/frame",
+        f.frames_with_pose_min,
+        f.frames,
+        fmt_spread(f.ate_trajectory_m, 4),
+        fmt_m(det.and_then(|d| d.ate_trajectory_m)),
+        fmt_spread(f.ate_keyframes_m, 4),
+        fmt_m(det.and_then(|d| d.ate_keyframes_m)),
+        f.ate_keyframes_m.map_or_else(
+            || "-".into(),
+            |s| format!("{:.2}", 100.0 * s.median / f.path_length_m)
+        ),
+        f.path_length_m,
+        fmt_spread(f.scale_drift, 2),
+        det.and_then(|d| d.scale_drift)
+            .map_or_else(|| "-".into(), |x| format!("{x:.2}")),
+        fmt_spread(f.ms_per_frame, 1),
+    );
+}
+
+/// One line over all sequences: the mean of the per-sequence medians (each sequence weighs the
+/// same), the worst single run, and whether every frame of every run got a pose.
+#[derive(Clone, Debug, Serialize)]
+pub struct Aggregate {
+    pub sequences: usize,
+    pub every_frame_posed: bool,
+    pub ate_trajectory_mean_of_medians_m: Option<f64>,
+    pub ate_keyframes_mean_of_medians_m: Option<f64>,
+    pub ate_keyframes_mean_percent_of_path: Option<f64>,
+    pub ate_trajectory_worst_m: Option<f64>,
+    pub scale_drift_worst: Option<f64>,
+    pub ms_per_frame_mean: Option<f64>,
+}
+
+impl Aggregate {
+    fn of(all: &[SequenceFigures]) -> Self {
+        let mean = |v: Vec<Option<f64>>| -> Option<f64> {
+            let v: Option<Vec<f64>> = v.into_iter().collect();
+            v.filter(|v| !v.is_empty())
+                .map(|v| v.iter().sum::<f64>() / v.len() as f64)
+        };
+        let worst = |v: Vec<Option<f64>>| -> Option<f64> {
+            let v: Option<Vec<f64>> = v.into_iter().collect();
+            v.and_then(|v| v.into_iter().reduce(f64::max))
+        };
+        Self {
+            sequences: all.len(),
+            every_frame_posed: all.iter().all(|f| f.frames_with_pose_min == f.frames),
+            ate_trajectory_mean_of_medians_m: mean(
+                all.iter()
+                    .map(|f| f.ate_trajectory_m.map(|s| s.median))
+                    .collect(),
+            ),
+            ate_keyframes_mean_of_medians_m: mean(
+                all.iter()
+                    .map(|f| f.ate_keyframes_m.map(|s| s.median))
+                    .collect(),
+            ),
+            ate_keyframes_mean_percent_of_path: mean(
+                all.iter()
+                    .map(|f| {
+                        f.ate_keyframes_m
+                            .map(|s| 100.0 * s.median / f.path_length_m.max(1e-9))
+                    })
+                    .collect(),
+            ),
+            ate_trajectory_worst_m: worst(
+                all.iter()
+                    .map(|f| f.ate_trajectory_m.map(|s| s.worst))
+                    .collect(),
+            ),
+            scale_drift_worst: worst(all.iter().map(|f| f.scale_drift.map(|s| s.worst)).collect()),
+            ms_per_frame_mean: mean(
+                all.iter()
+                    .map(|f| f.ms_per_frame.map(|s| s.median))
+                    .collect(),
+            ),
+        }
+    }
+
+    fn line(&self) -> String {
+        format!(
+            "aggregate over {} sequences: every frame posed {} | ATE traj mean of medians {} m, \
+             worst {} m | keyframes mean of medians {} m ({} % of path) | scale drift worst {} \
+             | {} ms/frame",
+            self.sequences,
+            self.every_frame_posed,
+            fmt_m(self.ate_trajectory_mean_of_medians_m),
+            fmt_m(self.ate_trajectory_worst_m),
+            fmt_m(self.ate_keyframes_mean_of_medians_m),
+            self.ate_keyframes_mean_percent_of_path
+                .map_or_else(|| "-".into(), |x| format!("{x:.2}")),
+            self.scale_drift_worst
+                .map_or_else(|| "-".into(), |x| format!("{x:.2}")),
+            self.ms_per_frame_mean
+                .map_or_else(|| "-".into(), |x| format!("{x:.1}")),
+        )
+    }
+}
