@@ -12,6 +12,7 @@ pub mod downloads;
 pub mod error;
 pub mod events_sse;
 pub mod frames;
+pub mod map;
 pub mod openapi;
 pub mod serve;
 pub mod sessions;
@@ -56,6 +57,9 @@ pub fn router(state: Arc<AppState>) -> Router {
         )
         .route("/v1/sessions/{id}/mesh.ply", get(downloads::mesh_ply))
         .route("/v1/sessions/{id}/mesh.glb", get(downloads::mesh_glb))
+        .route("/v1/sessions/{id}/map", get(map::map_snapshot))
+        .route("/v1/proto", get(map::proto_files))
+        .route("/v1/proto/{*path}", get(map::proto_file))
         .route("/v1/uploads", post(uploads::upload))
         .route("/v1/version", get(version))
         .route("/healthz", get(healthz))

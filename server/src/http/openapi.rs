@@ -36,6 +36,9 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         downloads::pointcloud_ply,
         downloads::mesh_ply,
         downloads::mesh_glb,
+        super::map::map_snapshot,
+        super::map::proto_files,
+        super::map::proto_file,
         super::healthz,
         super::readyz,
         super::metrics,
@@ -55,6 +58,7 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         Version,
         Binary,
         super::events_sse::SseEvent,
+        super::map::ProtoFiles,
     )),
     modifiers(&BearerAuth),
     tags(

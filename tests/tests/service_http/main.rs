@@ -7,4 +7,5 @@ mod auth;
 mod bad_input;
 mod client;
 mod live;
+mod map;
 mod uploads;
