@@ -40,7 +40,10 @@ pub struct ProtoFiles {
     responses((status = 200, description = "The .proto files", body = ProtoFiles)))]
 pub async fn proto_files() -> Json<ProtoFiles> {
     Json(ProtoFiles {
-        files: relfusion_proto::PROTO_FILES.iter().map(|(p, _)| *p).collect(),
+        files: relfusion_proto::PROTO_FILES
+            .iter()
+            .map(|(p, _)| *p)
+            .collect(),
     })
 }
 
@@ -91,16 +94,15 @@ pub async fn map_snapshot(
     Ok(if wants_json {
         Json(snapshot_json(&snapshot)).into_response()
     } else {
-        (
-            [(header::CONTENT_TYPE, PROTOBUF)],
-            snapshot.encode_to_vec(),
-        )
-            .into_response()
+        ([(header::CONTENT_TYPE, PROTOBUF)], snapshot.encode_to_vec()).into_response()
     })
 }
 
 fn pose_json(pose: &StampedPose) -> Value {
-    let p = pose.world_from_camera.clone().unwrap_or(Sim3Pose::default());
+    let p = pose
+        .world_from_camera
+        .clone()
+        .unwrap_or(Sim3Pose::default());
     let t = p.translation.unwrap_or_default();
     let q = p.rotation.unwrap_or_default();
     json!({

@@ -8,6 +8,7 @@
 
 pub mod auth;
 pub mod body;
+pub mod docs;
 pub mod downloads;
 pub mod error;
 pub mod events_sse;
@@ -66,6 +67,9 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
         .route("/openapi.json", get(openapi_json))
+        .route("/docs", get(docs::page))
+        .route("/docs/swagger-ui-bundle.js", get(docs::bundle))
+        .route("/docs/swagger-ui.css", get(docs::css))
         .fallback(error::no_route)
         .method_not_allowed_fallback(error::wrong_method)
         .layer(DefaultBodyLimit::max(body_limit))

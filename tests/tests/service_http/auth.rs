@@ -33,6 +33,10 @@ fn tokens_scope_sessions_and_capacity_is_enforced() {
         "/metrics",
         "/openapi.json",
         "/v1/version",
+        "/v1/proto",
+        "/v1/proto/relfusion/v1/session.proto",
+        "/docs",
+        "/docs/swagger-ui.css",
     ] {
         assert_eq!(
             get(&server, open, None).status,
@@ -48,6 +52,9 @@ fn tokens_scope_sessions_and_capacity_is_enforced() {
     assert_eq!(get(&server, &mine, alice).status, 200);
     get(&server, &mine, bob).expect_error(404, "not_found", "another owner's session");
     get(&server, &format!("{mine}/trajectory"), bob).expect_error(404, "not_found", "trajectory");
+    get(&server, &format!("{mine}/map"), bob).expect_error(404, "not_found", "map");
+    assert_eq!(get(&server, &format!("{mine}/map"), alice).status, 200);
+    get(&server, &format!("{mine}/map"), None).expect_error(401, "unauthorized", "map");
     get(&server, &format!("{mine}/events"), bob).expect_error(404, "not_found", "events");
     send(
         &server,

@@ -1,6 +1,7 @@
-//! Joining late and the wire schema: `GET /v1/sessions/{id}/map` gives the whole current map
-//! (protobuf, or JSON on request) that agrees with the downloads once the session has finished,
-//! and `/v1/proto` serves the `.proto` sources the server speaks.
+//! Joining late, the wire schema and the docs page: `GET /v1/sessions/{id}/map` gives the whole
+//! current map (protobuf, or JSON on request) that agrees with the downloads once the session
+//! has finished, `/v1/proto` serves the `.proto` sources the server speaks, and `/docs` is
+//! Swagger UI served from the binary.
 
 use relfusion_proto::v1::MapSnapshot;
 
@@ -46,7 +47,10 @@ fn a_late_client_gets_the_whole_map_and_the_schema() {
     // Mid-session: a consistent picture of what is processed so far.
     let mid = MapSnapshot::decode(map_bytes(&server, &id).as_slice()).expect("MapSnapshot");
     assert_eq!(mid.session_id, id);
-    assert!(mid.trajectory.len() as u64 <= mid.frames_received, "{mid:?}");
+    assert!(
+        mid.trajectory.len() as u64 <= mid.frames_received,
+        "{mid:?}"
+    );
     assert!(mid.frames_received <= (FRAMES / 2) as u64);
     for i in FRAMES / 2..FRAMES {
         assert_eq!(post_frame(&server, &id, &seq, i).status, 202, "frame {i}");
@@ -79,7 +83,11 @@ fn a_late_client_gets_the_whole_map_and_the_schema() {
     }
     let keyframes = tum_lines(&get(&server, &format!("/v1/sessions/{id}/keyframes"), None).body);
     assert_eq!(done.keyframes.len(), keyframes.len());
-    assert!(done.mesh_revision >= 1 && done.block_size > 0.0, "{}", done.mesh_revision);
+    assert!(
+        done.mesh_revision >= 1 && done.block_size > 0.0,
+        "{}",
+        done.mesh_revision
+    );
     let triangles: usize = done.mesh_blocks.iter().map(|b| b.indices.len() / 3).sum();
     let mut ply = agent()
         .get(format!("{}/v1/sessions/{id}/mesh.ply", server.url()))
@@ -87,7 +95,11 @@ fn a_late_client_gets_the_whole_map_and_the_schema() {
         .expect("mesh.ply");
     let ply = ply.body_mut().read_to_vec().expect("ply");
     assert!(triangles > 0);
-    assert_eq!(triangles as u64, ply_faces(&ply), "snapshot vs mesh.ply triangles");
+    assert_eq!(
+        triangles as u64,
+        ply_faces(&ply),
+        "snapshot vs mesh.ply triangles"
+    );
 
     // JSON on request: the same map.
     let json = reply(
@@ -98,7 +110,10 @@ fn a_late_client_gets_the_whole_map_and_the_schema() {
     )
     .json();
     assert_eq!(json["session_id"], id.as_str());
-    assert_eq!(json["trajectory"].as_array().map(Vec::len), Some(trajectory.len()));
+    assert_eq!(
+        json["trajectory"].as_array().map(Vec::len),
+        Some(trajectory.len())
+    );
     assert_eq!(json["mesh_revision"], done.mesh_revision);
     let blocks = json["mesh_blocks"].as_array().expect("blocks");
     assert_eq!(blocks.len(), done.mesh_blocks.len());
@@ -126,8 +141,54 @@ fn a_late_client_gets_the_whole_map_and_the_schema() {
         assert_eq!(served.body, *text, "{path}");
         assert!(served.body.contains("package relfusion.v1;"));
     }
-    for bad in ["relfusion/v1/nope.proto", "../Cargo.toml", "relfusion%2F..%2F..%2Fbuild.rs"] {
+    for bad in [
+        "relfusion/v1/nope.proto",
+        "../Cargo.toml",
+        "relfusion%2F..%2F..%2Fbuild.rs",
+    ] {
         get(&server, &format!("/v1/proto/{bad}"), None).expect_error(404, "not_found", bad);
+    }
+
+    // The API docs page: Swagger UI from the binary itself, over /openapi.json.
+    let page = get(&server, "/docs", None);
+    assert_eq!(page.status, 200);
+    assert!(
+        page.body.contains("url: \"/openapi.json\""),
+        "{}",
+        page.body
+    );
+    let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../server/assets/swagger-ui");
+    for (file, content_type) in [
+        ("swagger-ui-bundle.js", "text/javascript; charset=utf-8"),
+        ("swagger-ui.css", "text/css; charset=utf-8"),
+    ] {
+        assert!(
+            page.body.contains(&format!("/docs/{file}")),
+            "{file} linked"
+        );
+        let mut response = agent()
+            .get(format!("{}/docs/{file}", server.url()))
+            .call()
+            .expect(file);
+        assert_eq!(response.status().as_u16(), 200, "{file}");
+        assert_eq!(
+            response
+                .headers()
+                .get("content-type")
+                .and_then(|v| v.to_str().ok()),
+            Some(content_type)
+        );
+        let served = response
+            .body_mut()
+            .with_config()
+            .limit(16 << 20)
+            .read_to_vec()
+            .expect(file);
+        assert_eq!(
+            served,
+            std::fs::read(assets.join(file)).expect("vendored"),
+            "{file}"
+        );
     }
     assert_healthy(&server, "map and proto requests");
 }
