@@ -15,7 +15,7 @@ use axum::extract::{Path, State};
 use axum::http::{HeaderMap, header};
 use axum::response::{IntoResponse, Response};
 use relfusion_proto::Message as _;
-use relfusion_proto::v1::{MapSnapshot, MeshBlock, Sim3Pose, StampedPose};
+use relfusion_proto::v1::{MapSnapshot, MeshBlock, StampedPose};
 use serde::Serialize;
 use serde_json::{Value, json};
 
@@ -99,10 +99,7 @@ pub async fn map_snapshot(
 }
 
 fn pose_json(pose: &StampedPose) -> Value {
-    let p = pose
-        .world_from_camera
-        .clone()
-        .unwrap_or(Sim3Pose::default());
+    let p = pose.world_from_camera.unwrap_or_default();
     let t = p.translation.unwrap_or_default();
     let q = p.rotation.unwrap_or_default();
     json!({

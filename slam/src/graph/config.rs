@@ -28,6 +28,10 @@ pub struct BackendConfig {
     /// (ECCV 2014 eq. (16)); its Huber width acts on the summed normalised residual
     /// `|r_p|/σ_p + |r_d|/σ_d` of a point (`calcSim3WeightsAndResidual`).
     pub photometric: PhotometricParams,
+    /// Fit an affine brightness change `a·I + b` between the two keyframes (auto exposure), as
+    /// SE(3) tracking does. Default true (LSD-SLAM's `useAffineLightningEstimation`;
+    /// docs/tuning.md, "Scale drift, issue 22").
+    pub affine_lighting: bool,
     /// A Sim(3) alignment is *good* only if `good / (good + bad) ≥` this at its finest level.
     /// Default 0.5 (`MIN_GOODPERGOODBAD_PIXEL`; LSD-SLAM applies it to SE(3) tracking only;
     /// here it also rejects unrelated views before the costlier finer stages).
@@ -116,6 +120,7 @@ impl Default for BackendConfig {
             max_level: PYRAMID_LEVELS - 1,
             lm: LmSchedule::default(),
             photometric: PhotometricParams::default(),
+            affine_lighting: true,
             min_good_ratio: 0.5,
             min_warped_share: 0.01,
             kf_dist_weight: 7.5,

@@ -16,12 +16,18 @@
 //! pose-graph edge needs, see [`super::pose_graph`]).
 //!
 //! Deviations from LSD-SLAM, on purpose: the frame's gradient alone is used (no ESM average with
-//! the rotated reference gradient), no affine brightness model (`useAffineLightningEstimation`;
-//! a simplification — an exposure change between keyframes raises the residuals and is left to
-//! the Huber weights and the reciprocal test), and the frame's inverse depth is interpolated
+//! the rotated reference gradient), and the frame's inverse depth is interpolated
 //! bilinearly over valid neighbours instead of read at the rounded position. As in LSD-SLAM the
 //! depth residual's Jacobian ignores the gradient of the frame's depth map (too noisy on a
 //! semi-dense map to differentiate).
+//!
+//! With [`BackendConfig::affine_lighting`] the photometric residual compares `a·I_ref + b` with
+//! the frame (LSD-SLAM's `useAffineLightningEstimation`, the fit of the SE(3) tracker): an
+//! exposure change between two keyframes otherwise biases the alignment, scale included — on a
+//! synthetic path with auto-exposure alone the Sim(3) edges took the scale drift from 1.95
+//! (odometry edges only) to 6.7 (docs/tuning.md, "Scale drift, issue 22").
+
+use std::cell::Cell;
 
 use nalgebra::{Cholesky, Vector2, Vector3};
 
@@ -83,6 +89,22 @@ struct Evaluation {
     /// `Σ Jᵀ W J` and `Σ Jᵀ W r` (unnormalised).
     hessian: Matrix7,
     gradient: Vector7,
+    /// Huber-weighted moments `(Σw, Σw·c1, Σw·c2, Σw·c1², Σw·c2²)` of the corrected reference
+    /// intensity `c1 = a·I_ref + b` and the frame's `c2`, for the affine fit.
+    moments: [f64; 5],
+}
+
+impl Evaluation {
+    /// LSD-SLAM's affine fit `c2 ≈ α·c1 + β` (α the ratio of the robust standard deviations, β
+    /// matching the means) composed with the current `(a, b)`; `None` when degenerate.
+    fn affine_estimate(&self, (a, b): (f64, f64)) -> Option<(f64, f64)> {
+        let [sw, sx, sy, sxx, syy] = self.moments;
+        let alpha = ((syy - sy * sy / sw) / (sxx - sx * sx / sw)).sqrt();
+        let beta = (sy - alpha * sx) / sw;
+        (alpha.is_finite() && beta.is_finite() && alpha > 0.0)
+            .then_some((alpha * a, alpha * b + beta))
+            .filter(|(a, _)| (0.25..4.0).contains(a))
+    }
 }
 
 impl Evaluation {
@@ -159,6 +181,7 @@ impl Sim3Tracker {
         let finest = finest.min(coarsest);
         let cfg = &self.config;
         let mut pose = *initial_frame_from_reference;
+        let mut affine = (1.0, 0.0);
         let mut last: Option<(usize, Evaluation)> = None;
 
         for level in (finest..=coarsest).rev() {
@@ -171,10 +194,19 @@ impl Sim3Tracker {
                 image: frame.level(level),
                 frame: &frame_levels.levels[level],
                 config: cfg,
+                affine: Cell::new(affine),
             };
             let Some(mut eval) = ctx.evaluate(&pose) else {
                 return self.diverged(pose, reference, level, last);
             };
+            let refit = |eval: &Evaluation| {
+                if cfg.affine_lighting
+                    && let Some(fit) = eval.affine_estimate(ctx.affine.get())
+                {
+                    ctx.affine.set(fit);
+                }
+            };
+            refit(&eval);
             let step_level = lm_level(&cfg.lm, its, LIMITS, |lambda, _| {
                 let n = (eval.num_p + eval.num_d).max(1) as f64;
                 let mut a = eval.hessian / n;
@@ -194,6 +226,7 @@ impl Sim3Tracker {
                     let converged = new_eval.mean() / eval.mean() > cfg.lm.convergence_eps;
                     pose = candidate;
                     eval = new_eval;
+                    refit(&eval);
                     return Ok(Attempt::Accepted { converged });
                 }
                 Ok(Attempt::Rejected { step_norm2: step2 })
@@ -201,6 +234,7 @@ impl Sim3Tracker {
             if step_level.is_err() {
                 return self.diverged(pose, reference, level, Some((level, eval)));
             }
+            affine = ctx.affine.get();
             last = Some((level, eval));
         }
 
@@ -273,14 +307,18 @@ pub(crate) struct LevelContext<'a> {
     pub image: &'a PyramidLevel,
     pub frame: &'a KeyframeLevel,
     pub config: &'a BackendConfig,
+    /// Affine brightness `(a, b)`: the reference intensity `I` appears as `a·I + b` in the frame.
+    pub affine: Cell<(f64, f64)>,
 }
 
 /// One reference point warped into the frame: residuals, their Jacobians with respect to a
 /// right perturbation of `frame_from_reference`, and their variance weights.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct WarpedPoint {
-    /// `r_p = I_ref − I_frame(π(T·p))`.
+    /// `r_p = a·I_ref + b − I_frame(π(T·p))`.
     pub r_p: f64,
+    /// The frame's intensity at the warped position (the affine fit's `c2`).
+    pub frame_intensity: f64,
     pub j_p: Vector7,
     /// `1 / σ_p²`.
     pub w_p: f64,
@@ -317,7 +355,8 @@ impl LevelContext<'_> {
         );
         // ∂I/∂p' (3-vector) through the projection.
         let grad_point: Vector3<f64> = cam.project_jacobian(&pw).transpose() * grad;
-        let r_p = pt.intensity - f64::from(intensity);
+        let (a, b) = self.affine.get();
+        let r_p = a * pt.intensity + b - f64::from(intensity);
         // Sensitivity of the warped point to the reference inverse depth d: p = p̂/d, so
         // ∂p'/∂d = −sR·p/d = −(p' − t)/d. Propagated into both residual variances (eq. (16)).
         let dpw_dd = -(pw - frame_from_reference.translation) / pt.idepth;
@@ -338,6 +377,7 @@ impl LevelContext<'_> {
         });
         Some(WarpedPoint {
             r_p,
+            frame_intensity: f64::from(intensity),
             j_p,
             w_p,
             depth,
@@ -362,7 +402,9 @@ impl LevelContext<'_> {
             usage: 0.0,
             hessian: Matrix7::zeros(),
             gradient: Vector7::zeros(),
+            moments: [0.0; 5],
         };
+        let (a, b) = self.affine.get();
         for pt in &self.reference.points {
             let Some(wp) = self.warp(frame_from_reference, pt) else {
                 continue;
@@ -396,6 +438,13 @@ impl LevelContext<'_> {
                 e.bad += 1;
             }
             e.usage += wp.usage;
+            let (c1, c2) = (a * pt.intensity + b, wp.frame_intensity);
+            let m = &mut e.moments;
+            m[0] += huber;
+            m[1] += huber * c1;
+            m[2] += huber * c2;
+            m[3] += huber * c1 * c1;
+            m[4] += huber * c2 * c2;
         }
         let (w, h) = (f64::from(cam.width), f64::from(cam.height));
         let min_warped = (0.5 * cfg.min_warped_share * w * h).max(10.0);
