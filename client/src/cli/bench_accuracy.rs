@@ -104,13 +104,24 @@ pub struct SequenceFigures {
     pub runs: Vec<RunFigures>,
 }
 
-pub fn accuracy(args: &AccuracyArgs) -> anyhow::Result<()> {
-    let mut config = match &args.config {
+/// The config of a benchmark: the file's (or the defaults), with the dense layer switched off
+/// and the mapping thread switched on when asked.
+pub(super) fn bench_config(
+    path: Option<&Path>,
+    no_dense: bool,
+    mapping_thread: bool,
+) -> anyhow::Result<Config> {
+    let mut config = match path {
         Some(path) => Config::load(path)?,
         None => Config::default(),
     };
-    config.dense.enabled &= !args.no_dense;
-    config.pipeline.mapping_thread |= args.mapping_thread;
+    config.dense.enabled &= !no_dense;
+    config.pipeline.mapping_thread |= mapping_thread;
+    Ok(config)
+}
+
+pub fn accuracy(args: &AccuracyArgs) -> anyhow::Result<()> {
+    let mut config = bench_config(args.config.as_deref(), args.no_dense, args.mapping_thread)?;
     config.pipeline.deterministic = false;
     let mut all = Vec::new();
     for dataset in &args.datasets {
@@ -140,16 +151,19 @@ pub fn accuracy(args: &AccuracyArgs) -> anyhow::Result<()> {
 }
 
 /// Frames decoded into memory and the ground truth of one sequence.
-struct Loaded {
-    seq: TumSequence,
-    frames: Vec<FrameInput>,
-    gt: Vec<StampedPose>,
+pub(super) struct Loaded {
+    pub seq: TumSequence,
+    pub frames: Vec<FrameInput>,
+    pub gt: Vec<StampedPose>,
 }
 
-fn load(dataset: &Path) -> anyhow::Result<Loaded> {
+/// Opens `dataset` and decodes its first `limit` frames (all by default) into memory, so that
+/// a benchmark times the pipeline, not the image decoding.
+pub(super) fn load(dataset: &Path, limit: Option<usize>) -> anyhow::Result<Loaded> {
     let seq = TumSequence::open(dataset, None)
         .with_context(|| format!("opening {}", dataset.display()))?;
-    let frames = (0..seq.len())
+    let n = limit.unwrap_or(seq.len()).min(seq.len());
+    let frames = (0..n)
         .map(|i| {
             Ok(FrameInput {
                 timestamp: seq.frames[i].timestamp,
@@ -168,13 +182,6 @@ fn load(dataset: &Path) -> anyhow::Result<Loaded> {
             })
         })
         .collect();
-    anyhow::ensure!(
-        gt.len() >= 2 * SCALE_WINDOW,
-        "{} has ground truth for {} frames; the accuracy bench needs at least {}",
-        dataset.display(),
-        gt.len(),
-        2 * SCALE_WINDOW
-    );
     Ok(Loaded { seq, frames, gt })
 }
 
@@ -183,7 +190,14 @@ fn sequence(
     config: &Config,
     args: &AccuracyArgs,
 ) -> anyhow::Result<SequenceFigures> {
-    let loaded = load(dataset)?;
+    let loaded = load(dataset, None)?;
+    anyhow::ensure!(
+        loaded.gt.len() >= 2 * SCALE_WINDOW,
+        "{} has ground truth for {} frames; the accuracy bench needs at least {}",
+        dataset.display(),
+        loaded.gt.len(),
+        2 * SCALE_WINDOW
+    );
     let mut runs = Vec::new();
     for _ in 0..args.runs {
         runs.push(run_once(&loaded, config, args.model.as_deref())?);

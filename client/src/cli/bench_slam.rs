@@ -8,14 +8,13 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::Context as _;
-use relfusion_slam::dataset::TumSequence;
-use relfusion_slam::dataset::trajectory::{StampedPose, stamped_se3};
+use relfusion_slam::dataset::trajectory::stamped_se3;
 use relfusion_slam::eval::{AlignMode, ate};
 use relfusion_slam::geometry::Sim3;
-use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
+use relfusion_slam::pipeline::Pipeline;
 use serde_json::json;
 
+use super::bench_accuracy::{Loaded, bench_config, load};
 use super::run::load_prior;
 
 #[derive(Debug, clap::Args)]
@@ -58,37 +57,12 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
         args.fps.is_none_or(|f| f.is_finite() && f > 0.0),
         "--fps must be positive"
     );
-    let mut config = match &args.config {
-        Some(path) => Config::load(path)?,
-        None => Config::default(),
-    };
+    let mut config = bench_config(args.config.as_deref(), args.no_dense, args.mapping_thread)?;
     config.pipeline.deterministic |= args.deterministic;
-    config.dense.enabled &= !args.no_dense;
-    config.pipeline.mapping_thread |= args.mapping_thread;
-    let seq = TumSequence::open(&args.dataset, None)
-        .with_context(|| format!("opening {}", args.dataset.display()))?;
-    let n = args.frames.unwrap_or(seq.len()).min(seq.len());
     let t_decode = Instant::now();
-    let frames: Vec<FrameInput> = (0..n)
-        .map(|i| {
-            Ok(FrameInput {
-                timestamp: seq.frames[i].timestamp,
-                rgb: seq.load_rgb(i)?,
-                depth: None,
-            })
-        })
-        .collect::<anyhow::Result<_>>()?;
+    let Loaded { seq, frames, gt } = load(&args.dataset, args.frames)?;
+    let n = frames.len();
     let decode_ms = 1e3 * t_decode.elapsed().as_secs_f64() / n.max(1) as f64;
-    let gt: Vec<StampedPose> = seq
-        .frames
-        .iter()
-        .filter_map(|f| {
-            f.world_from_camera.map(|p| StampedPose {
-                timestamp: f.timestamp,
-                world_from_camera: p,
-            })
-        })
-        .collect();
 
     let mut runs = Vec::new();
     for _ in 0..args.runs {
