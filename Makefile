@@ -25,7 +25,7 @@ setup:
 	@bash scripts/setup.sh >/dev/null
 
 test:
-	@env_lines=$$(bash scripts/setup.sh); eval "$$env_lines"; \
+	@env_lines=$$(bash scripts/setup.sh --test); eval "$$env_lines"; \
 	 cargo test --workspace --no-fail-fast
 
 demo:

@@ -3,8 +3,14 @@
 #  - Mesa's lavapipe Vulkan driver, so wgpu runs without a GPU (adapter "llvmpipe");
 #  - the ONNX Runtime shared library (1.31.1, matching ort's `api-31` feature), taken from the
 #    PyPI `onnxruntime` wheel because ort's own download feature cannot work offline.
+#  - with --test: Debian's Chromium and chromedriver, for the viewer's browser tests.
 # Prints the `export` lines the Makefile evaluates. Needs root or sudo for the apt part only.
 set -euo pipefail
+
+packages=(mesa-vulkan-drivers libvulkan1 python3 python3-pip ca-certificates)
+if [ "${1:-}" = "--test" ]; then
+  packages+=(chromium chromium-driver)
+fi
 
 ORT_VERSION=1.31.1
 RELFUSION_HOME="${RELFUSION_HOME:-${XDG_CACHE_HOME:-$HOME/.cache}/relfusion}"
@@ -19,7 +25,7 @@ as_root() {
 }
 
 missing=()
-for pkg in mesa-vulkan-drivers libvulkan1 python3 python3-pip ca-certificates; do
+for pkg in "${packages[@]}"; do
   case "$pkg" in
     python3|python3-pip)
       # Any working python3 with pip will do (a pyenv one counts): only fetch Debian's if none.

@@ -342,6 +342,7 @@ mod tests {
                 }),
                 tracking_state: TrackingState::Tracking as i32,
                 is_keyframe: false,
+                keyframe_id: 0,
             })),
         };
         let mut seen = Vec::new();

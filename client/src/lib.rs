@@ -10,6 +10,7 @@
 //! - [`fetch::fetch`]: a session's results into a folder.
 
 pub mod api;
+pub mod browser;
 pub mod dataset_stream;
 pub mod error;
 pub mod fetch;

@@ -68,6 +68,7 @@ fn pose_update() -> PoseUpdate {
         world_from_camera: Some(pose()),
         tracking_state: TrackingState::Tracking as i32,
         is_keyframe: true,
+        keyframe_id: 3,
     }
 }
 

@@ -27,6 +27,9 @@ pub enum BenchCommand {
     /// TSDF fusion of a saved run's keyframes: integration, meshing, re-integration, memory;
     /// GPU kernels vs CPU references.
     Fusion(super::bench_fusion::FusionArgs),
+    /// The live viewer in headless Chromium: bundle size and frame rate with an N-triangle
+    /// mesh (needs a running relfusiond and Debian's chromium + chromium-driver).
+    Viewer(super::bench_viewer::ViewerArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -57,6 +60,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Densify(args) => super::bench_densify::densify(&args),
         BenchCommand::Dense(args) => super::bench_dense::dense(&args),
         BenchCommand::Fusion(args) => super::bench_fusion::fusion(&args),
+        BenchCommand::Viewer(args) => super::bench_viewer::viewer(&args),
     }
 }
 

@@ -7,6 +7,7 @@ pub mod bench_densify;
 pub mod bench_fusion;
 pub mod bench_serve;
 pub mod bench_slam;
+pub mod bench_viewer;
 pub mod connect;
 pub mod eval;
 pub mod fetch;

@@ -2,8 +2,9 @@
 //!
 //! One module per concern: [`sessions`] (lifecycle), [`frames`] (one image per request),
 //! [`stream_ws`] (protobuf WebSocket), [`events_sse`] (JSON server-sent events), [`uploads`]
-//! (whole datasets), [`downloads`] (results), [`auth`] (bearer tokens), [`error`] (the one
-//! error shape) and [`openapi`] (the description served at `/openapi.json`). Handlers only
+//! (whole datasets), [`downloads`] (results), [`map`] (snapshot, wire schema), [`auth`]
+//! (bearer tokens), [`error`] (the one error shape), [`openapi`] (the description served at
+//! `/openapi.json`), [`docs`] (its page) and [`viewer`] (the live map viewer). Handlers only
 //! translate between HTTP and the session manager; no SLAM logic lives here.
 
 pub mod auth;
@@ -19,6 +20,7 @@ pub mod serve;
 pub mod sessions;
 pub mod stream_ws;
 pub mod uploads;
+pub mod viewer;
 
 use std::sync::Arc;
 
@@ -70,6 +72,11 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/docs", get(docs::page))
         .route("/docs/swagger-ui-bundle.js", get(docs::bundle))
         .route("/docs/swagger-ui.css", get(docs::css))
+        .route("/", get(viewer::page))
+        .route("/view/{id}", get(viewer::page))
+        .route("/viewer/viewer.js", get(viewer::script))
+        .route("/viewer/viewer.css", get(viewer::style))
+        .route("/viewer/licenses.txt", get(viewer::licenses))
         .fallback(error::no_route)
         .method_not_allowed_fallback(error::wrong_method)
         .layer(DefaultBodyLimit::max(body_limit))

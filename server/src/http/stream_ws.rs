@@ -73,15 +73,20 @@ pub async fn stream(
     let limit = usize::try_from(state.config.limits.max_frame_bytes)
         .unwrap_or(usize::MAX)
         .saturating_add(MESSAGE_OVERHEAD);
+    // Subscribe before the 101 goes out: a client that fetches the map snapshot once the socket
+    // is open (a viewer joining late) then sees every later update, with no gap.
+    let events = session.subscribe();
     Ok(upgrade
         .max_message_size(limit)
         .max_frame_size(limit)
-        .on_upgrade(move |socket| serve(socket, session)))
+        .on_upgrade(move |socket| serve(socket, session, events)))
 }
 
-async fn serve(socket: WebSocket, session: Arc<Session>) {
-    // Subscribe before anything is received, so no update of a frame sent here is missed.
-    let events = session.subscribe();
+async fn serve(
+    socket: WebSocket,
+    session: Arc<Session>,
+    events: broadcast::Receiver<SessionEvent>,
+) {
     let already_ended = session.info().state.is_terminal();
     let (sink, stream) = socket.split();
     let (reply_tx, reply_rx) = mpsc::channel(REPLY_QUEUE);

@@ -125,7 +125,7 @@ impl SessionEvent {
                 pose,
                 state,
                 is_keyframe,
-                ..
+                keyframe_id,
             } => vec![Message::Pose(v1::PoseUpdate {
                 session_id: session_id.to_string(),
                 frame_id: *frame_id,
@@ -133,6 +133,7 @@ impl SessionEvent {
                 world_from_camera: Some(sim3_to_proto(pose)),
                 tracking_state: tracking_state_to_proto(*state) as i32,
                 is_keyframe: *is_keyframe,
+                keyframe_id: *keyframe_id,
             })],
             SessionEvent::Keyframe {
                 keyframe_id,

@@ -37,6 +37,11 @@ fn tokens_scope_sessions_and_capacity_is_enforced() {
         "/v1/proto/relfusion/v1/session.proto",
         "/docs",
         "/docs/swagger-ui.css",
+        "/",
+        "/view/s-000000000000",
+        "/viewer/viewer.js",
+        "/viewer/viewer.css",
+        "/viewer/licenses.txt",
     ] {
         assert_eq!(
             get(&server, open, None).status,
