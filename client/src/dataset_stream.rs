@@ -8,9 +8,12 @@
 //! sender, never the receiver.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use relfusion_proto::v1::{ServerMessage, Sim3Pose, TrackingState, server_message};
+use relfusion_proto::v1::{
+    KeyframeDepth, MeshUpdate, ServerMessage, Sim3Pose, TrackingState, server_message,
+};
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::geometry::PinholeCamera;
 use serde::Serialize;
@@ -63,14 +66,15 @@ pub enum StreamEvent {
     Sent { frame_id: u64 },
     /// A frame's pose.
     Pose(PoseLine),
-    /// A keyframe was created or moved.
+    /// A keyframe was created or moved; `depth` when the dense layer finished it.
     Keyframe {
         keyframe_id: u64,
         frame_id: u64,
         pose: PoseLine,
+        depth: Option<Arc<KeyframeDepth>>,
     },
-    /// The fused mesh changed (revision).
-    Mesh { revision: u64 },
+    /// The fused mesh changed: the blocks that changed or lost their surface.
+    Mesh { update: Arc<MeshUpdate> },
     /// The server rejected something (the stream goes on).
     ServerError { code: i32, message: String },
 }
@@ -261,11 +265,12 @@ fn handle_update(
                     is_keyframe: true,
                     ..pose_line(k.world_from_camera.as_ref(), 0)
                 },
+                depth: k.depth.map(Arc::new),
             });
         }
         Some(server_message::Message::Mesh(m)) => {
             on_event(StreamEvent::Mesh {
-                revision: m.revision,
+                update: Arc::new(m),
             });
         }
         Some(server_message::Message::Error(e)) => {

@@ -15,6 +15,8 @@ pub mod dataset_stream;
 pub mod error;
 pub mod fetch;
 pub mod link;
+#[cfg(feature = "rerun")]
+pub mod recording;
 pub mod upload;
 pub mod ws;
 pub mod zenoh_transport;

@@ -37,13 +37,36 @@ pub fn bin_path(name: &str) -> PathBuf {
         None => "dev",
     };
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    let status = Command::new(cargo)
+    let mut command = Command::new(cargo);
+    // The variables cargo set for this test (CARGO_PKG_NAME, CARGO_MANIFEST_DIR, ...) must not
+    // reach the nested build: build scripts that watch them (ring's) would see them change and
+    // rebuild, here and again in the next `cargo test`.
+    for (key, _) in std::env::vars_os() {
+        if key.to_str().is_some_and(|k| {
+            [
+                "CARGO_PKG_",
+                "CARGO_MANIFEST_",
+                "CARGO_CRATE_",
+                "CARGO_BIN_",
+            ]
+            .iter()
+            .any(|prefix| k.starts_with(prefix))
+                || k == "CARGO_PRIMARY_PACKAGE"
+                || k == "CARGO_TARGET_TMPDIR"
+        }) {
+            command.env_remove(key);
+        }
+    }
+    let status = command
         .args([
             "build",
             "--quiet",
             "--workspace",
             "--bin",
             name,
+            // The `relfusion` the tests run writes rerun recordings too (`--rerun`).
+            "--features",
+            "relfusion-client/rerun",
             "--profile",
             profile,
             "--target-dir",

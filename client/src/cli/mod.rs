@@ -13,6 +13,7 @@ pub mod eval;
 pub mod fetch;
 pub mod gpu_info;
 pub mod prior;
+pub mod rerun_out;
 pub mod run;
 pub mod stream;
 pub mod synth;

@@ -20,7 +20,9 @@ use relfusion_slam::dense::{DepthPrior, ModelConfig, OnnxDepthPrior};
 use relfusion_slam::eval::fused_mesh::write_mesh_stats;
 use relfusion_slam::export::{write_mesh_glb, write_mesh_ply, write_points_ply};
 use relfusion_slam::geometry::Sim3;
-use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
+use relfusion_slam::pipeline::{Config, Event, FrameInput, Pipeline};
+
+use super::rerun_out::RunRecorder;
 use serde_json::json;
 
 #[derive(Debug, clap::Args)]
@@ -48,6 +50,10 @@ pub struct Args {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Also write the run as a rerun recording (images, poses, keyframe points, mesh blocks)
+    /// to open in the rerun viewer; needs the cargo feature `rerun`.
+    #[arg(long, value_name = "FILE.rrd")]
+    pub rerun: Option<PathBuf>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -67,7 +73,25 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
 
-    let outcome = run_sequence(&seq, n, config, prior, !args.quiet)?;
+    let mut recorder = super::rerun_out::open(args.rerun.as_deref(), |path| {
+        RunRecorder::create(path, &seq)
+    })?;
+    let outcome =
+        run_sequence(
+            &seq,
+            n,
+            config,
+            prior,
+            !args.quiet,
+            &mut |i, events| match &mut recorder {
+                Some(recorder) => match i {
+                    Some(i) => recorder.on_frame(&seq, i, events),
+                    None => recorder.on_events(events),
+                },
+                None => Ok(()),
+            },
+        )?;
+    let recording = recorder.map(|r| r.finish()).transpose()?;
     let (mut pipeline, wall_s, load_s) = (outcome.pipeline, outcome.wall_s, outcome.load_s);
 
     write_trajectory(&args.out.join("trajectory.txt"), &pipeline.trajectory())?;
@@ -119,6 +143,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "keyframes_not_fused": stats.keyframes_not_fused,
             "mesh_triangles": mesh.as_ref().map_or(0, |m| m.triangle_count()),
             "voxel_size": fusion.as_ref().map(|f| f.voxel_size),
+            "rerun": recording,
             "out": args.out,
         })
     );
@@ -126,6 +151,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 /// A finished run of the pipeline over a sequence.
+/// Sees the events of frame `Some(i)` after it went through the pipeline, and `None`'s: what
+/// finishing produced (the last dense keyframes, the mesh at the final poses).
+pub type FrameObserver<'a> = dyn FnMut(Option<usize>, &[Event]) -> anyhow::Result<()> + 'a;
+
 #[derive(Debug)]
 pub struct RunOutcome {
     pub pipeline: Pipeline,
@@ -143,6 +172,7 @@ pub fn run_sequence(
     config: Config,
     prior: Option<Box<dyn DepthPrior>>,
     progress: bool,
+    observe: &mut FrameObserver<'_>,
 ) -> anyhow::Result<RunOutcome> {
     let sensor_depth = config.dense.two_view.ground_truth_depth;
     if sensor_depth && seq.frames.iter().take(n).all(|f| f.depth.is_none()) {
@@ -164,16 +194,19 @@ pub fn run_sequence(
             None
         };
         load_s += tl.elapsed().as_secs_f64();
-        pipeline.push(FrameInput {
+        let events = pipeline.push(FrameInput {
             timestamp: frame.timestamp,
             rgb,
             depth,
         })?;
+        observe(Some(i), &events)?;
         if let Some(bar) = &bar {
             bar.inc(1);
         }
     }
     pipeline.finish()?;
+    // What finishing produced: the last dense keyframes, the mesh at the final poses.
+    observe(None, &pipeline.take_events())?;
     if let Some(bar) = bar {
         bar.finish_and_clear();
     }

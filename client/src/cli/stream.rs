@@ -17,6 +17,7 @@ use relfusion_slam::eval::{AlignMode, ate};
 use serde_json::{Value, json};
 
 use super::connect::{ConnectArgs, print_line, progress_bar, runtime};
+use super::rerun_out::StreamRecorder;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -44,6 +45,10 @@ pub struct Args {
     /// Stream only the first N frames.
     #[arg(long)]
     pub frames: Option<usize>,
+    /// Also write the session as a rerun recording (images, poses, keyframe points, mesh
+    /// blocks) to open in the rerun viewer; needs the cargo feature `rerun`.
+    #[arg(long, value_name = "FILE.rrd")]
+    pub rerun: Option<PathBuf>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -80,19 +85,27 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(bar) => bar.suspend(|| print_line(&value)),
         None => print_line(&value),
     };
+    let mut recorder = super::rerun_out::open(args.rerun.as_deref(), |path| {
+        StreamRecorder::create(path, &seq)
+    })?;
     runtime()?.block_on(async {
-        let summary = stream_dataset(&client, &args.dataset, &opts, |event| match event {
-            StreamEvent::Session { id } => print(json!({ "session": id })),
-            StreamEvent::Sent { .. } => {
-                if let Some(bar) = &bar {
-                    bar.inc(1);
+        let summary = stream_dataset(&client, &args.dataset, &opts, |event| {
+            if let Some(recorder) = &mut recorder {
+                recorder.on_event(&event);
+            }
+            match event {
+                StreamEvent::Session { id } => print(json!({ "session": id })),
+                StreamEvent::Sent { .. } => {
+                    if let Some(bar) = &bar {
+                        bar.inc(1);
+                    }
                 }
+                StreamEvent::Pose(pose) => print(json!(pose)),
+                StreamEvent::ServerError { code, message } => {
+                    print(json!({ "server_error": { "code": code, "message": message } }));
+                }
+                StreamEvent::Keyframe { .. } | StreamEvent::Mesh { .. } => {}
             }
-            StreamEvent::Pose(pose) => print(json!(pose)),
-            StreamEvent::ServerError { code, message } => {
-                print(json!({ "server_error": { "code": code, "message": message } }));
-            }
-            StreamEvent::Keyframe { .. } | StreamEvent::Mesh { .. } => {}
         })
         .await?;
         if let Some(bar) = &bar {
@@ -113,6 +126,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         if let Some(ate) = final_ate(&client, &summary.session_id, &seq).await {
             out["ate"] = ate;
+        }
+        if let Some(recorder) = recorder.take() {
+            out["rerun"] = json!(recorder.finish()?);
         }
         print(json!({ "summary": out }));
         if let Some(first) = summary.server_errors.first() {
