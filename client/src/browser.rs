@@ -3,6 +3,7 @@
 //! SwiftShader, Chromium's software renderer.
 
 use std::net::TcpListener;
+use std::os::unix::process::CommandExt as _;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -65,6 +66,9 @@ impl Driver {
         let path = chromedriver();
         let child = Command::new(&path)
             .arg(format!("--port={port}"))
+            // Its own process group: dropping the driver ends the browsers it started too,
+            // even when a test panics before closing them.
+            .process_group(0)
             .stdout(log)
             .stderr(Stdio::null())
             .spawn()
@@ -123,6 +127,11 @@ impl Driver {
 
 impl Drop for Driver {
     fn drop(&mut self) {
+        // The whole group: chromedriver and every Chromium process it started.
+        let _ = Command::new("kill")
+            .args(["-KILL", "--", &format!("-{}", self.child.id())])
+            .stderr(Stdio::null())
+            .status();
         let _ = self.child.kill();
         let _ = self.child.wait();
     }

@@ -64,14 +64,18 @@ pub fn bin_path(name: &str) -> PathBuf {
             "--workspace",
             "--bin",
             name,
-            // The `relfusion` the tests run writes rerun recordings too (`--rerun`).
-            "--features",
-            "relfusion-client/rerun",
             "--profile",
             profile,
             "--target-dir",
         ])
         .arg(target_dir)
+        // The `relfusion` the tests run writes rerun recordings too (`--rerun`). Only it:
+        // relfusiond keeps the feature set it ships with.
+        .args(if name == "relfusion" {
+            &["--features", "relfusion-client/rerun"][..]
+        } else {
+            &[]
+        })
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .status()
         .expect("run cargo build");
