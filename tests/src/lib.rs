@@ -131,3 +131,16 @@ pub fn relfusion_json(args: &[&str]) -> serde_json::Value {
         .or_else(|_| serde_json::from_str(&stdout))
         .unwrap_or_else(|e| panic!("not JSON ({e}): {stdout}"))
 }
+
+/// The face count a PLY header declares (`element face N`).
+pub fn ply_faces(bytes: &[u8]) -> u64 {
+    let header_end = bytes
+        .windows(10)
+        .position(|w| w == b"end_header")
+        .expect("ply header");
+    String::from_utf8_lossy(&bytes[..header_end])
+        .lines()
+        .find_map(|l| l.strip_prefix("element face "))
+        .and_then(|n| n.trim().parse().ok())
+        .expect("face count")
+}

@@ -9,7 +9,7 @@ use std::io::BufReader;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use relfusion_tests::{Relfusiond, bin_path, synth_sequence, temp_dir};
+use relfusion_tests::{Relfusiond, bin_path, ply_faces, synth_sequence, temp_dir};
 use rerun::external::re_log_encoding::Decoder;
 use rerun::log::{Chunk, LogMsg, RowId};
 use serde_json::Value;
@@ -118,17 +118,9 @@ fn static_rows(chunk: &Chunk, d: &rerun::ComponentDescriptor) -> usize {
     }
 }
 
-fn ply_faces(path: &Path) -> usize {
+fn mesh_ply_faces(path: &Path) -> usize {
     let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let end = bytes
-        .windows(10)
-        .position(|w| w == b"end_header")
-        .expect("ply header");
-    String::from_utf8_lossy(&bytes[..end])
-        .lines()
-        .find_map(|l| l.strip_prefix("element face "))
-        .and_then(|n| n.trim().parse().ok())
-        .expect("face count")
+    ply_faces(&bytes) as usize
 }
 
 fn tum_lines(path: &Path) -> usize {
@@ -236,7 +228,7 @@ fn stream_and_run_write_rerun_recordings_that_read_back() {
         FRAMES,
         tum_lines(&fetched.join("trajectory.txt")),
         summary["keyframes"].as_u64().expect("keyframes") as usize,
-        ply_faces(&fetched.join("mesh.ply")),
+        mesh_ply_faces(&fetched.join("mesh.ply")),
     );
     assert_eq!(
         contents.clears() as u64,

@@ -12,7 +12,7 @@ use std::time::Duration;
 
 use fantoccini::{Client, Locator};
 use relfusion_client::browser::{self, Driver};
-use relfusion_tests::{Relfusiond, bin_path, synth_sequence, temp_dir};
+use relfusion_tests::{Relfusiond, bin_path, ply_faces, synth_sequence, temp_dir};
 use serde_json::Value;
 
 const TOKEN: &str = "viewer-secret";
@@ -24,18 +24,6 @@ fn get(server: &Relfusiond, path: &str) -> Vec<u8> {
         .call()
         .unwrap_or_else(|e| panic!("GET {path}: {e}"));
     response.body_mut().read_to_vec().expect("body")
-}
-
-fn ply_faces(bytes: &[u8]) -> u64 {
-    let header_end = bytes
-        .windows(10)
-        .position(|w| w == b"end_header")
-        .expect("ply header");
-    String::from_utf8_lossy(&bytes[..header_end])
-        .lines()
-        .find_map(|l| l.strip_prefix("element face "))
-        .and_then(|n| n.trim().parse().ok())
-        .expect("face count")
 }
 
 fn tum_lines(bytes: &[u8]) -> u64 {
@@ -105,6 +93,10 @@ async fn the_viewer_follows_a_live_session_and_a_late_joiner_catches_up() {
     );
     let mut driver = Driver::start(&work).expect("chromedriver");
 
+    // The first browser is up before the stream starts: Chromium's start must not eat into the
+    // seconds the session runs.
+    let early = driver.browser(1024, 700).await.expect("browser");
+
     // The camera: a real client streaming at a camera's pace, every frame processed.
     let mut stream = Command::new(bin_path("relfusion"))
         .arg("stream")
@@ -138,7 +130,6 @@ async fn the_viewer_follows_a_live_session_and_a_late_joiner_catches_up() {
     let view = format!("{}/view/{id}?access_token={TOKEN}", server.url());
 
     stage("streaming");
-    let early = driver.browser(1024, 700).await.expect("browser");
     open(&early, &view).await;
 
     // Join late: after half of the frames have a pose.

@@ -37,8 +37,9 @@ pub async fn page() -> Html<&'static str> {
     Html(PAGE)
 }
 
-/// Long-lived caching is safe: the assets change only with the binary.
-fn asset(content_type: &'static str, body: &'static [u8]) -> Response {
+/// An asset embedded in the binary. Long-lived caching is safe: the assets change only with
+/// the binary.
+pub(super) fn asset(content_type: &'static str, body: &'static [u8]) -> Response {
     (
         [
             (header::CONTENT_TYPE, content_type),

@@ -1,16 +1,18 @@
 //! The live viewer (issue 23, item 1): `GET /` lists the caller's sessions, `GET /view/{id}`
 //! shows one live — trajectory, keyframes, the camera, the fused mesh patched block by block
 //! from `MeshUpdate`s, a status panel. The page is built from `server/viewer/` (three.js and
-//! protobufjs from npm, bundled by `scripts/build-viewer.sh`) into `server/assets/viewer/`,
+//! protobufjs from npm, bundled by `scripts/build-viewer.sh`) into `server/assets/viewer/` (its
+//! stylesheet is served from the source, `server/viewer/viewer.css`),
 //! embedded here: it works with no internet and no CDN. The pages are public; everything they
 //! show comes from the token-checked API (the token is entered once in the page, or passed as
 //! `?access_token=` in a link).
 
-use axum::http::header;
-use axum::response::{Html, IntoResponse, Response};
+use axum::response::{Html, Response};
+
+use super::docs::asset;
 
 const SCRIPT: &[u8] = include_bytes!("../../assets/viewer/viewer.js");
-const STYLE: &[u8] = include_bytes!("../../assets/viewer/viewer.css");
+const STYLE: &[u8] = include_bytes!("../../viewer/viewer.css");
 const LICENSES: &[u8] = include_bytes!("../../assets/viewer/licenses.txt");
 
 /// One shell for both pages: the script reads the path to know which it is.
@@ -32,18 +34,6 @@ const PAGE: &str = r#"<!DOCTYPE html>
 /// `GET /` and `GET /view/{id}`.
 pub async fn page() -> Html<&'static str> {
     Html(PAGE)
-}
-
-/// The assets change only with the binary; a day of caching is safe.
-fn asset(content_type: &'static str, body: &'static [u8]) -> Response {
-    (
-        [
-            (header::CONTENT_TYPE, content_type),
-            (header::CACHE_CONTROL, "public, max-age=86400"),
-        ],
-        body,
-    )
-        .into_response()
 }
 
 /// `GET /viewer/viewer.js`: the bundle (three.js, protobufjs and the viewer's code).

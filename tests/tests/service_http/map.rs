@@ -5,6 +5,8 @@
 
 use relfusion_proto::v1::MapSnapshot;
 
+use relfusion_tests::ply_faces;
+
 use super::client::*;
 
 fn map_bytes(server: &Relfusiond, id: &str) -> Vec<u8> {
@@ -21,18 +23,6 @@ fn map_bytes(server: &Relfusiond, id: &str) -> Vec<u8> {
         Some("application/x-protobuf")
     );
     response.body_mut().read_to_vec().expect("body")
-}
-
-fn ply_faces(bytes: &[u8]) -> u64 {
-    let header_end = bytes
-        .windows(10)
-        .position(|w| w == b"end_header")
-        .expect("ply header");
-    String::from_utf8_lossy(&bytes[..header_end])
-        .lines()
-        .find_map(|l| l.strip_prefix("element face "))
-        .and_then(|n| n.trim().parse().ok())
-        .expect("face count")
 }
 
 #[test]
