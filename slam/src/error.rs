@@ -48,6 +48,10 @@ pub enum Error {
     /// left out of the mesh, which goes on without it.
     #[error("keyframe {0} has no depth to fuse")]
     NothingToFuse(usize),
+    /// A saved map cannot be used: another format version, another camera, a missing or
+    /// inconsistent part.
+    #[error("map: {0}")]
+    Map(String),
 }
 
 /// Shorthand used throughout the crate.

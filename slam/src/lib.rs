@@ -21,6 +21,7 @@
 //! - [`fusion`]: TSDF fusion of the dense keyframes (sparse blocks, GPU kernels), marching
 //!   cubes, mesh deltas.
 //! - [`export`]: PLY point clouds and meshes, glTF binary meshes, for people to open.
+//! - [`map`]: saved maps (versioned format, atomic write, load) and localisation in them.
 //! - [`pipeline`]: `Pipeline::push(frame) -> events` over all of the above.
 //! - [`eval`]: ATE / RPE with Umeyama alignment, depth and mesh accuracy, diagnostics.
 //!
@@ -40,6 +41,7 @@ pub mod geometry;
 pub mod gpu;
 pub mod graph;
 pub mod image;
+pub mod map;
 pub mod mapping;
 pub mod npy;
 pub mod optim;

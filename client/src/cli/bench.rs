@@ -30,6 +30,8 @@ pub enum BenchCommand {
     /// The live viewer in headless Chromium: bundle size and frame rate with an N-triangle
     /// mesh (needs a running relfusiond and Debian's chromium + chromium-driver).
     Viewer(super::bench_viewer::ViewerArgs),
+    /// A saved map: load and save times, size on disk per keyframe, memory once loaded.
+    Map(super::bench_map::MapArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -61,6 +63,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Dense(args) => super::bench_dense::dense(&args),
         BenchCommand::Fusion(args) => super::bench_fusion::fusion(&args),
         BenchCommand::Viewer(args) => super::bench_viewer::viewer(&args),
+        BenchCommand::Map(args) => super::bench_map::map(&args),
     }
 }
 

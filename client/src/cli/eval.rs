@@ -44,6 +44,41 @@ pub enum EvalCommand {
     /// `OUT/keyframes.txt`; also scores the mesh fused from ground-truth depth and poses (the
     /// upper bound) and our mesh against that mesh.
     Mesh(MeshArgs),
+    /// How a sequence localised in a saved map (`relfusion run SEQ2 --map OUT/map --mode
+    /// localize`) did: the share of its frames that see the mapped area (true pose within
+    /// 0.3 m and 25° of a true pose of the mapping sequence) that got a pose, and their RMS
+    /// position error after the Sim(3) that aligns the map's own keyframes to the mapping
+    /// sequence's ground truth; localised frames more than `--wrong-m` off count as wrong.
+    Localize(LocalizeArgs),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct LocalizeArgs {
+    /// Ground truth of the sequence the map was made from.
+    #[arg(long)]
+    pub map_gt: PathBuf,
+    /// The map (`OUT/map` of the mapping run).
+    #[arg(long)]
+    pub map: PathBuf,
+    /// Ground truth of the localised sequence.
+    #[arg(long)]
+    pub gt: PathBuf,
+    /// The localised trajectory (`OUT2/trajectory.txt` of the localize run).
+    #[arg(long)]
+    pub est: PathBuf,
+    /// Overlap: largest distance to a mapped frame (metres).
+    #[arg(long, default_value_t = 0.3)]
+    pub overlap_m: f64,
+    /// Overlap: largest angle to that frame (degrees).
+    #[arg(long, default_value_t = 25.0)]
+    pub overlap_deg: f64,
+    /// Error above which a localised frame counts as wrong (metres).
+    #[arg(long, default_value_t = 0.2)]
+    pub wrong_m: f64,
+    /// The localised sequence's frames (`OUT2/localization.txt`, timestamps first): the ground
+    /// truth is scored at these times only (TUM's ground truth runs at 100 Hz, its video at 30).
+    #[arg(long)]
+    pub frames: Option<PathBuf>,
 }
 
 #[derive(Debug, clap::Args)]
@@ -160,6 +195,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
         EvalCommand::Depth(args) => depth(&args)?,
         EvalCommand::Ablation(args) => ablation(&args)?,
         EvalCommand::Mesh(args) => mesh(&args)?,
+        EvalCommand::Localize(args) => localize(&args)?,
     };
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
@@ -167,6 +203,57 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
 
 fn read_traj(path: &Path, what: &str) -> anyhow::Result<Vec<StampedPose>> {
     read_tum_trajectory(path).with_context(|| format!("reading the {what} trajectory"))
+}
+
+fn localize(args: &LocalizeArgs) -> anyhow::Result<serde_json::Value> {
+    let map_gt = read_traj(&args.map_gt, "map's ground-truth")?;
+    let mut gt = read_traj(&args.gt, "ground-truth")?;
+    if let Some(frames) = &args.frames {
+        gt = at_frames(&gt, frames)?;
+    }
+    let est = read_traj(&args.est, "localised")?;
+    let keyframes = relfusion_slam::map::read_keyframe_poses(&args.map)
+        .with_context(|| format!("reading {}", args.map.display()))?;
+    let scores = eval::localization::score_localization(
+        &map_gt,
+        &relfusion_slam::dataset::trajectory::stamped_se3(&keyframes),
+        &gt,
+        &est,
+        eval::localization::OverlapParams {
+            distance_m: args.overlap_m,
+            angle_deg: args.overlap_deg,
+        },
+        args.wrong_m,
+    )?;
+    Ok(serde_json::to_value(scores)?)
+}
+
+/// The ground-truth pose nearest to each frame timestamp listed in `frames` (first column),
+/// within [`DEFAULT_MAX_DT`].
+fn at_frames(gt: &[StampedPose], frames: &Path) -> anyhow::Result<Vec<StampedPose>> {
+    let text =
+        std::fs::read_to_string(frames).with_context(|| format!("reading {}", frames.display()))?;
+    let mut out = Vec::new();
+    for line in text
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+    {
+        let t: f64 = line
+            .split_whitespace()
+            .next()
+            .and_then(|v| v.parse().ok())
+            .with_context(|| format!("{}: bad line {line:?}", frames.display()))?;
+        let nearest = gt
+            .iter()
+            .min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()));
+        if let Some(p) = nearest.filter(|p| (p.timestamp - t).abs() <= DEFAULT_MAX_DT) {
+            out.push(StampedPose {
+                timestamp: t,
+                world_from_camera: p.world_from_camera,
+            });
+        }
+    }
+    Ok(out)
 }
 
 fn traj(args: &TrajArgs) -> anyhow::Result<serde_json::Value> {

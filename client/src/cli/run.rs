@@ -8,7 +8,11 @@
 //! maps `relfusion eval depth` and `relfusion eval ablation` read), and, from the fusion,
 //! `OUT/mesh.ply` and `OUT/mesh.glb` (the fused mesh at the optimised poses, with normals and
 //! colours) and `OUT/mesh.json` (voxel size and the fusion's counters, read by
-//! `relfusion eval mesh`); then prints a one-line JSON summary.
+//! `relfusion eval mesh`), and `OUT/map/` (the map to localise in later, `docs/map-format.md`);
+//! then prints a one-line JSON summary.
+//!
+//! With `--map MAP --mode localize` the sequence is localised in a saved map instead
+//! (`super::localize`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -54,9 +58,25 @@ pub struct Args {
     /// to open in the rerun viewer; needs the cargo feature `rerun`.
     #[arg(long, value_name = "FILE.rrd")]
     pub rerun: Option<PathBuf>,
+    /// A saved map (`OUT/map` of an earlier run) to work in instead of starting empty.
+    #[arg(long, value_name = "MAP")]
+    pub map: Option<PathBuf>,
+    /// What to do with `--map`: `localize` gives every frame a pose in the map's frame (or
+    /// reports it not localised) and never changes the map.
+    #[arg(long, value_enum, default_value = "localize", requires = "map")]
+    pub mode: MapMode,
+}
+
+/// What a run does with a loaded map.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum MapMode {
+    Localize,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    if let Some(map) = &args.map {
+        return super::localize::run(&args, map);
+    }
     let mut config = match &args.config {
         Some(path) => Config::load(path)?,
         None => Config::default(),
@@ -122,6 +142,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(fusion) = &fusion {
         write_mesh_stats(&args.out, fusion)?;
     }
+    let t_map = Instant::now();
+    let map_dir = args.out.join("map");
+    relfusion_slam::map::write_map(&map_dir, &pipeline.saved_map()?)
+        .with_context(|| format!("writing {}", map_dir.display()))?;
+    let map_save_s = t_map.elapsed().as_secs_f64();
     let stats = pipeline.stats();
     println!(
         "{}",
@@ -144,6 +169,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "mesh_triangles": mesh.as_ref().map_or(0, |m| m.triangle_count()),
             "voxel_size": fusion.as_ref().map(|f| f.voxel_size),
             "rerun": recording,
+            "map_save_s": map_save_s,
             "out": args.out,
         })
     );

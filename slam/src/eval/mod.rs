@@ -17,6 +17,7 @@
 //! - [`dense_depth`]: that accuracy per dense-layer stage over a run's stored keyframes.
 //! - [`depth_slope`]: whether a map's depth ratios are right, compressed or stretched.
 //! - [`ablation`]: Table II, re-densifying the stored keyframes with each energy.
+//! - [`localization`]: recall and accuracy of a sequence localised in a saved map.
 //! - [`mesh`]: surface accuracy and completeness of a fused mesh against ground-truth depth.
 
 pub mod ablation;
@@ -26,6 +27,7 @@ pub mod dense_depth;
 pub mod depth;
 pub mod depth_slope;
 pub mod fused_mesh;
+pub mod localization;
 pub mod mesh;
 pub mod rotation_gain;
 pub mod rpe;

@@ -90,6 +90,19 @@ impl Thumbnail {
         Self(v)
     }
 
+    /// The descriptor's cells, row-major ([`THUMBNAIL_SIZE`]).
+    pub fn values(&self) -> &[f32] {
+        &self.0
+    }
+
+    /// A descriptor from stored cells; `None` unless there are exactly
+    /// [`THUMBNAIL_SIZE`] finite ones.
+    pub fn from_values(values: Vec<f32>) -> Option<Self> {
+        (values.len() == THUMBNAIL_SIZE.0 * THUMBNAIL_SIZE.1
+            && values.iter().all(|v| v.is_finite()))
+        .then_some(Self(values))
+    }
+
     /// Normalised cross-correlation of the overlap of `self` and `other` shifted by (dx, dy)
     /// cells; 0 when either side is uniform there.
     fn correlation(&self, other: &Thumbnail, dx: isize, dy: isize) -> f64 {

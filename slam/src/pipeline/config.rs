@@ -127,6 +127,8 @@ pub struct Config {
     pub dense: DenseConfig,
     /// TSDF fusion of the dense keyframes and meshing (§III-F).
     pub fusion: crate::fusion::FusionConfig,
+    /// Localisation in a saved map (`relfusion run --map … --mode localize`).
+    pub localize: crate::map::LocalizeConfig,
 }
 
 impl Config {
@@ -157,6 +159,7 @@ impl Config {
             ));
         }
         self.tracking.validate()?;
+        self.localize.validate()?;
         self.mapping.validate()?;
         self.backend.validate()?;
         self.dense.validate()?;

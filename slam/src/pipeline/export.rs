@@ -4,9 +4,11 @@
 use nalgebra::{Vector2, Vector3};
 
 use super::Pipeline;
-use crate::Result;
 use crate::export::ColoredPoint;
 use crate::geometry::{PinholeCamera, Sim3};
+use crate::graph::Thumbnail;
+use crate::map::{DenseDepth, MapKeyframe, SavedMap};
+use crate::{Error, Result};
 
 /// Grey for points of keyframes without a colour image.
 const NO_COLOUR: [u8; 3] = [200, 200, 200];
@@ -58,6 +60,47 @@ impl Pipeline {
             );
         }
         points
+    }
+
+    /// The map as it stands, to save (`map::write_map`): every keyframe with its current
+    /// pose, semi-dense and dense depth and descriptor, the pose graph's edges, the voxel size.
+    /// Needs the back end at hand: after [`Pipeline::finish`], or in step.
+    pub fn saved_map(&self) -> Result<SavedMap> {
+        let backend = self.backend.backend().ok_or_else(|| {
+            Error::Backend("the pose graph is on its thread: finish the run first".into())
+        })?;
+        let poses = self.keyframe_poses();
+        let current_depth = self.current.zip(self.mapper.latest_depth());
+        let keyframes = self
+            .keyframes
+            .iter()
+            .zip(poses)
+            .map(|(kf, (id, world_from_keyframe))| {
+                let depth = match &current_depth {
+                    Some((current, depth)) if *current == id => depth.clone(),
+                    _ => kf.depth.clone(),
+                };
+                MapKeyframe {
+                    id,
+                    timestamp: kf.frame.timestamp,
+                    world_from_keyframe,
+                    frame: kf.frame.clone(),
+                    depth,
+                    dense: self.dense_keyframes.get(&id).map(|d| DenseDepth {
+                        camera: d.camera,
+                        idepth: d.idepth.clone(),
+                        variance: d.variance.clone(),
+                    }),
+                    thumbnail: Thumbnail::new(&kf.frame),
+                }
+            })
+            .collect();
+        Ok(SavedMap {
+            camera: self.camera,
+            keyframes,
+            edges: backend.graph().edges().to_vec(),
+            voxel_size: self.fusion_stats().map(|f| f.voxel_size as f32),
+        })
     }
 
     /// Every densified keyframe back-projected at its current pose, coloured from its image:

@@ -1,0 +1,160 @@
+//! Maps that outlive a run: what a finished pipeline knows, saved (`store`), loaded and used to
+//! localise a new camera in it (`localize`).
+//!
+//! A [`SavedMap`] holds every keyframe (its undistorted colour image, the semi-dense inverse
+//! depth and variance that tracking uses, the dense depth and variance the fusion integrates,
+//! the optimised pose and the appearance descriptor place recognition compares), the pose
+//! graph's Sim(3) edges with their information, the camera, and the fusion's voxel size: the
+//! mesh is rebuilt from the dense keyframes, so no TSDF is stored. The format on disk is
+//! versioned ([`FORMAT_VERSION`]) and documented in `docs/map-format.md`.
+
+pub mod localize;
+pub mod store;
+#[cfg(test)]
+mod tests;
+
+use std::sync::Arc;
+
+use crate::frame::Frame;
+use crate::geometry::{PinholeCamera, Sim3};
+use crate::graph::{Constraint, KeyframeId, Thumbnail};
+use crate::image::ImageF32;
+use crate::mapping::DepthMap;
+use crate::{Error, Result};
+
+pub use localize::{Localization, LocalizationState, LocalizeConfig, Localizer};
+pub use store::{read_keyframe_poses, read_map, write_map};
+
+/// Version of the on-disk layout; a reader refuses any other (the layout says what each
+/// version holds, `docs/map-format.md`).
+pub const FORMAT_VERSION: u32 = 1;
+
+/// The dense depth of a keyframe at the dense layer's working resolution.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DenseDepth {
+    /// Undistorted camera of the two maps.
+    pub camera: PinholeCamera,
+    /// Inverse depth in the keyframe's gauge (0 = invalid).
+    pub idepth: Arc<ImageF32>,
+    pub variance: Arc<ImageF32>,
+}
+
+/// One keyframe of a map.
+#[derive(Clone, Debug)]
+pub struct MapKeyframe {
+    pub id: KeyframeId,
+    pub timestamp: f64,
+    /// The optimised pose (Sim(3): the keyframe's depth is in its own scale).
+    pub world_from_keyframe: Sim3,
+    /// The keyframe's image (undistorted) with its pyramid.
+    pub frame: Arc<Frame>,
+    /// Semi-dense inverse depth and variance at full resolution (what tracking aligns to).
+    pub depth: Arc<DepthMap>,
+    /// The dense layer's result, when the keyframe was densified.
+    pub dense: Option<DenseDepth>,
+    /// Appearance descriptor for place recognition.
+    pub thumbnail: Thumbnail,
+}
+
+/// A whole map.
+#[derive(Clone, Debug)]
+pub struct SavedMap {
+    /// The camera as the frames arrive (with its distortion): a map only serves the same camera.
+    pub camera: PinholeCamera,
+    /// Keyframes by id order.
+    pub keyframes: Vec<MapKeyframe>,
+    /// The pose graph's edges (odometry, constraints found, loop closures).
+    pub edges: Vec<Constraint>,
+    /// Voxel size of the fusion (map units), when there was one.
+    pub voxel_size: Option<f32>,
+}
+
+impl SavedMap {
+    /// Checks what a reader must be able to rely on: keyframe ids `0..n` in order, sizes of
+    /// every map equal to the keyframe camera's, edges between existing keyframes, finite poses.
+    pub fn validate(&self) -> Result<()> {
+        let undistorted = self.camera.undistorted();
+        for (i, kf) in self.keyframes.iter().enumerate() {
+            let bad = |why: String| Err(Error::Map(format!("keyframe {i}: {why}")));
+            if kf.id != i {
+                return bad(format!("has id {}", kf.id));
+            }
+            if kf.frame.camera != undistorted {
+                return bad("its camera is not the map's".into());
+            }
+            let (w, h) = (undistorted.width as usize, undistorted.height as usize);
+            if (kf.depth.width, kf.depth.height) != (w, h) || kf.depth.pixels.len() != w * h {
+                return bad(format!(
+                    "depth is {}x{}, camera {w}x{h}",
+                    kf.depth.width, kf.depth.height
+                ));
+            }
+            if let Some(dense) = &kf.dense {
+                let (dw, dh) = (dense.camera.width as usize, dense.camera.height as usize);
+                for img in [&dense.idepth, &dense.variance] {
+                    if (img.width, img.height) != (dw, dh) {
+                        return bad("dense maps differ from their camera in size".into());
+                    }
+                }
+            }
+            if !valid_sim3(&kf.world_from_keyframe) {
+                return bad("its pose is not a finite similarity".into());
+            }
+        }
+        for e in &self.edges {
+            if !valid_sim3(&e.to_from_from) {
+                return Err(Error::Map(format!(
+                    "edge {} → {}: not a finite similarity",
+                    e.from, e.to
+                )));
+            }
+            if e.from >= self.keyframes.len() || e.to >= self.keyframes.len() || e.from == e.to {
+                return Err(Error::Map(format!(
+                    "edge {} → {} names a missing keyframe",
+                    e.from, e.to
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Bytes the loaded map holds in memory (images, pyramids, depth maps), for budgets and
+    /// the benchmark.
+    pub fn memory_bytes(&self) -> usize {
+        self.keyframes
+            .iter()
+            .map(|kf| {
+                let pyramid: usize = kf
+                    .frame
+                    .pyramid
+                    .levels
+                    .iter()
+                    .map(|l| {
+                        (l.image.data.len()
+                            + l.gx.data.len()
+                            + l.gy.data.len()
+                            + l.grad_mag.data.len())
+                            * 4
+                    })
+                    .sum();
+                let rgb = kf.frame.rgb.as_ref().map_or(0, |r| r.as_raw().len());
+                let depth = kf.depth.pixels.len() * std::mem::size_of_val(&kf.depth.pixels[0]);
+                let dense = kf
+                    .dense
+                    .as_ref()
+                    .map_or(0, |d| (d.idepth.data.len() + d.variance.data.len()) * 4);
+                pyramid + rgb + depth + dense
+            })
+            .sum()
+    }
+}
+
+/// Finite translation, finite positive scale and a unit quaternion (a manifest's rotation is
+/// not normalised on reading).
+fn valid_sim3(p: &Sim3) -> bool {
+    let q = p.rotation.quaternion().into_inner();
+    p.translation.iter().all(|v| v.is_finite())
+        && p.scale.is_finite()
+        && p.scale > 0.0
+        && (q.norm() - 1.0).abs() < 1e-6
+}
