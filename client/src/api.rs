@@ -8,8 +8,8 @@ use std::time::Duration;
 
 use bytes::Bytes;
 pub use relfusion_proto::http::{
-    CameraJson, CreateSession, CreatedSession, FrameAccepted, FramePolicy, Progress, SessionInfo,
-    SessionKind, SessionList, SessionState,
+    CameraJson, CreateSession, CreatedSession, FrameAccepted, FramePolicy, MapInfo, MapList,
+    MapMode, MapStart, Progress, SaveMap, SessionInfo, SessionKind, SessionList, SessionState,
 };
 use relfusion_slam::geometry::PinholeCamera;
 use reqwest::{Method, RequestBuilder, Response, StatusCode};
@@ -204,6 +204,37 @@ impl Client {
         Ok(list.sessions)
     }
 
+    /// `POST /v1/maps`: keeps the map of the finished session `session` (one of this token's).
+    pub async fn save_map(
+        &self,
+        session: &str,
+        name: Option<&str>,
+    ) -> Result<MapInfo, ClientError> {
+        let body = SaveMap {
+            session: session.to_string(),
+            name: name.map(String::from),
+        };
+        Self::json(self.request(Method::POST, "v1/maps")?.json(&body)).await
+    }
+
+    /// `GET /v1/maps`: this token's saved maps.
+    pub async fn maps(&self) -> Result<Vec<MapInfo>, ClientError> {
+        let list: MapList = Self::json(self.request(Method::GET, "v1/maps")?).await?;
+        Ok(list.maps)
+    }
+
+    /// `GET /v1/maps/{id}`.
+    pub async fn map_info(&self, id: &str) -> Result<MapInfo, ClientError> {
+        Self::json(self.request(Method::GET, &map_path(id))?).await
+    }
+
+    /// `DELETE /v1/maps/{id}`.
+    pub async fn delete_map(&self, id: &str) -> Result<(), ClientError> {
+        Self::send(self.request(Method::DELETE, &map_path(id))?)
+            .await
+            .map(drop)
+    }
+
     /// `DELETE /v1/sessions/{id}`: stops the session and removes its data.
     pub async fn delete(&self, id: &str) -> Result<(), ClientError> {
         Self::send(self.request(Method::DELETE, &session_path(id, ""))?)
@@ -268,6 +299,15 @@ impl Client {
 
 /// `v1/sessions/{id}` or `v1/sessions/{id}/{tail}`, the id percent-encoded so that an
 /// arbitrary string can never escape its path segment.
+/// `v1/maps/{id}` with `id` percent-encoded as one path segment.
+fn map_path(id: &str) -> String {
+    let mut url = Url::parse("http://x/v1/maps/").expect("constant URL parses");
+    if let Ok(mut segments) = url.path_segments_mut() {
+        segments.pop_if_empty().push(id);
+    }
+    url.path().trim_start_matches('/').to_string()
+}
+
 pub(crate) fn session_path(id: &str, tail: &str) -> String {
     let mut url = Url::parse("http://x/v1/sessions/").expect("constant URL parses");
     if let Ok(mut segments) = url.path_segments_mut() {
@@ -348,6 +388,7 @@ mod tests {
             config: serde_json::json!({"pipeline": {"deterministic": true}}),
             model: None,
             policy: FramePolicy::Wait,
+            map: None,
         };
         let v = serde_json::to_value(&req).expect("serialises");
         assert_eq!(v["policy"], "wait");

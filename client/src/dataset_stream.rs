@@ -41,6 +41,8 @@ pub struct StreamOptions {
     pub max_frames: Option<usize>,
     /// Intrinsics to use instead of the dataset's own (calibration.txt or a TUM preset).
     pub camera: Option<PinholeCamera>,
+    /// Start in this saved map (`POST /v1/maps`) instead of an empty one.
+    pub map: Option<relfusion_proto::http::MapStart>,
 }
 
 /// A pose as the CLI prints it: `world_from_camera` = `s·R(q)·p + t`, `q` = (x, y, z, w).
@@ -123,6 +125,7 @@ pub async fn stream_dataset(
         config: opts.config.clone(),
         model: opts.model.clone(),
         policy: opts.policy,
+        map: opts.map.clone(),
     };
     let t0 = Instant::now();
     let SessionLink {

@@ -22,8 +22,8 @@ pub mod ws;
 pub mod zenoh_transport;
 
 pub use api::{
-    CameraJson, Client, CreateSession, FramePolicy, SessionInfo, SessionKind, SessionState,
-    camera_json,
+    CameraJson, Client, CreateSession, FramePolicy, MapInfo, MapMode, MapStart, SessionInfo,
+    SessionKind, SessionState, camera_json,
 };
 pub use dataset_stream::{StreamEvent, StreamOptions, StreamSummary, stream_dataset};
 pub use error::ClientError;

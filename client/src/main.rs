@@ -37,6 +37,8 @@ enum Command {
     Upload(cli::upload::Args),
     /// Download a session's trajectory, keyframes, point cloud and mesh from relfusiond.
     Fetch(cli::fetch::Args),
+    /// Saved maps on relfusiond: keep a finished session's map, list, show, delete.
+    Maps(cli::maps::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -57,5 +59,6 @@ fn main() -> anyhow::Result<()> {
         Command::Stream(args) => cli::stream::run(args),
         Command::Upload(args) => cli::upload::run(args),
         Command::Fetch(args) => cli::fetch::run(args),
+        Command::Maps(args) => cli::maps::run(args),
     }
 }

@@ -19,6 +19,7 @@
 use std::time::{Duration, Instant};
 
 use relfusion_proto::Message as _;
+use relfusion_proto::http::MapMode;
 use relfusion_proto::v1::{
     self, CreateSessionReply, EndOfStream, MapSnapshot, MeshUpdate, ServerMessage, SessionConfig,
     SessionFinished, client_message, server_message,
@@ -153,6 +154,11 @@ pub fn session_config(req: &CreateSession) -> SessionConfig {
         policy: match req.policy {
             FramePolicy::DropOldest => v1::FramePolicy::DropOldest,
             FramePolicy::Wait => v1::FramePolicy::Wait,
+        } as i32,
+        map_id: req.map.as_ref().map(|m| m.id.clone()).unwrap_or_default(),
+        map_mode: match req.map.as_ref().map(|m| m.mode) {
+            Some(MapMode::Localize) => v1::MapMode::Localize,
+            None => v1::MapMode::Unspecified,
         } as i32,
     }
 }
@@ -467,8 +473,14 @@ mod tests {
             config: serde_json::json!({"pipeline": {"deterministic": true}}),
             model: None,
             policy: FramePolicy::Wait,
+            map: Some(relfusion_proto::http::MapStart {
+                id: "m-0123456789abcdef01234567".into(),
+                mode: MapMode::Localize,
+            }),
         };
         let c = session_config(&req);
+        assert_eq!(c.map_id, "m-0123456789abcdef01234567");
+        assert_eq!(c.map_mode(), v1::MapMode::Localize);
         let camera = c.camera.expect("camera");
         assert_eq!((camera.fy, camera.width), (301.0, 320));
         assert_eq!(camera.distortion.expect("distortion").k1, 0.1);

@@ -77,6 +77,71 @@ pub struct CreateSession {
     pub model: Option<String>,
     #[serde(default)]
     pub policy: FramePolicy,
+    /// Start in a saved map (`POST /v1/maps`) of the same camera instead of an empty one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub map: Option<MapStart>,
+}
+
+/// What a session does with a saved map.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(rename_all = "snake_case")]
+pub enum MapMode {
+    /// Every frame gets a pose in the map's frame (`tracking` / `relocalized`), or `lost` when
+    /// it is not in the map; the map is not changed and nothing new is mapped.
+    #[default]
+    Localize,
+}
+
+/// A session's saved map and mode.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(deny_unknown_fields)]
+pub struct MapStart {
+    /// The map's id (`m-` and 12 hex digits), one of the caller's.
+    pub id: String,
+    #[serde(default)]
+    pub mode: MapMode,
+}
+
+/// `POST /v1/maps`: keep a finished session's map.
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(deny_unknown_fields)]
+pub struct SaveMap {
+    /// The finished session (one of the caller's).
+    pub session: String,
+    /// A name to recognise it by (at most 128 characters).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+}
+
+/// A saved map.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapInfo {
+    /// `m-` and 12 random hex digits.
+    pub id: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    /// The session it was made by.
+    pub session: String,
+    /// Seconds since the Unix epoch.
+    pub created_unix: u64,
+    pub keyframes: u64,
+    /// The camera it serves (a session starting from it must use the same).
+    pub camera: CameraJson,
+    /// Its size on disk.
+    pub bytes: u64,
+    /// Its on-disk format version (docs/map-format.md).
+    pub format_version: u32,
+}
+
+/// `GET /v1/maps`: the caller's maps, oldest first.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapList {
+    pub maps: Vec<MapInfo>,
 }
 
 /// Where a session's frames come from.
@@ -167,6 +232,9 @@ pub struct SessionInfo {
     /// share allows); it finishes when it reaches them.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_keyframes: Option<u64>,
+    /// The saved map it started from, and the mode.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub map: Option<MapStart>,
 }
 
 /// A pose in events: `world_from_camera` as translation, unit quaternion `[x, y, z, w]` and

@@ -174,6 +174,8 @@ fn session_config_roundtrips() {
         config_json: r#"{"tracking":{"affine_lighting":false}}"#.into(),
         model_name: "midas_v21_small_256".into(),
         policy: FramePolicy::Wait as i32,
+        map_id: "m-0123456789abcdef01234567".into(),
+        map_mode: relfusion_proto::v1::MapMode::Localize as i32,
     });
     // A config written before `policy` existed decodes to the server default.
     let old = SessionConfig {
@@ -182,6 +184,10 @@ fn session_config_roundtrips() {
     };
     let decoded = SessionConfig::decode(old.encode_to_vec().as_slice()).expect("decode");
     assert_eq!(decoded.policy(), FramePolicy::Unspecified);
+    assert!(
+        decoded.map_id.is_empty(),
+        "no map: an empty one, as before maps existed"
+    );
 }
 
 #[test]

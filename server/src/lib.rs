@@ -12,6 +12,7 @@ pub mod convert;
 pub mod error;
 pub mod gpu_pool;
 pub mod http;
+pub mod maps;
 pub mod memory;
 pub mod metrics;
 pub mod session;

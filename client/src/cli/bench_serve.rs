@@ -183,6 +183,7 @@ fn request(frames: &Frames, policy: FramePolicy, args: &ServeArgs) -> CreateSess
         config: Value::Null,
         model: args.model.clone(),
         policy,
+        map: None,
     }
 }
 
@@ -268,6 +269,7 @@ async fn zenoh_ingest(
         config: Value::Null,
         model: None,
         policy: FramePolicy::DropOldest,
+        map: None,
     };
     let identity = client.zenoh_identity();
     let rate =

@@ -14,6 +14,7 @@ pub mod eval;
 pub mod fetch;
 pub mod gpu_info;
 pub mod localize;
+pub mod maps;
 pub mod prior;
 pub mod rerun_out;
 pub mod run;

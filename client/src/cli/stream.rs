@@ -49,6 +49,10 @@ pub struct Args {
     /// blocks) to open in the rerun viewer; needs the cargo feature `rerun`.
     #[arg(long, value_name = "FILE.rrd")]
     pub rerun: Option<PathBuf>,
+    /// Localise in this saved map (an id from `relfusion maps list`) instead of mapping: every
+    /// pose is in the map's frame, frames outside it are `lost`.
+    #[arg(long, value_name = "MAP_ID")]
+    pub map: Option<String>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -74,6 +78,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         max_frames: args.frames,
         camera: None,
+        map: args.map.clone().map(|id| relfusion_client::MapStart {
+            id,
+            mode: relfusion_client::MapMode::Localize,
+        }),
     };
     let seq = TumSequence::open(&args.dataset, None)
         .with_context(|| format!("opening {}", args.dataset.display()))?;
@@ -123,6 +131,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             out["state"] = json!(info.state);
             out["frames_processed"] = json!(info.frames_processed);
             out["keyframes"] = json!(info.keyframes);
+            if let Some(map) = &info.map {
+                out["map"] = json!(map);
+            }
         }
         if let Some(ate) = final_ate(&client, &summary.session_id, &seq).await {
             out["ate"] = ate;

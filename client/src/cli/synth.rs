@@ -13,9 +13,13 @@ pub struct Args {
     /// Output folder (created; existing files with the same names are overwritten).
     #[arg(long)]
     pub out: PathBuf,
-    /// Number of frames (30 Hz).
+    /// Number of frames.
     #[arg(long, default_value_t = 300)]
     pub frames: usize,
+    /// Frame rate (Hz): frame i is the view at time i / fps on the same path, so another rate
+    /// samples the same room from other poses.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
     /// Seed of the room (textures, furniture) and of the trajectory phases.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -79,6 +83,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         height: args.height,
         threads: args.threads,
         nuisances: args.nuisances(),
+        fps: args.fps,
         ..SynthConfig::default()
     };
     let start = Instant::now();

@@ -135,6 +135,8 @@ pub struct Quotas {
     pub max_stored_sessions: usize,
     /// Bytes on disk (uploads and results) in GiB.
     pub max_stored_gb: f64,
+    /// Saved maps (`POST /v1/maps`) one token keeps; more are refused until some are deleted.
+    pub max_maps: usize,
 }
 
 impl Default for Quotas {
@@ -144,6 +146,7 @@ impl Default for Quotas {
             max_uploads_in_flight: 4,
             max_stored_sessions: 200,
             max_stored_gb: 20.0,
+            max_maps: 20,
         }
     }
 }

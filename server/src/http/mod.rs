@@ -2,7 +2,8 @@
 //!
 //! One module per concern: [`sessions`] (lifecycle), [`frames`] (one image per request),
 //! [`stream_ws`] (protobuf WebSocket), [`events_sse`] (JSON server-sent events), [`uploads`]
-//! (whole datasets), [`downloads`] (results), [`map`] (snapshot, wire schema), [`auth`]
+//! (whole datasets), [`downloads`] (results), [`map`] (snapshot, wire schema), [`maps`] (saved
+//! maps), [`auth`]
 //! (bearer tokens), [`error`] (the one error shape), [`openapi`] (the description served at
 //! `/openapi.json`), [`docs`] (its page) and [`viewer`] (the live map viewer). Handlers only
 //! translate between HTTP and the session manager; no SLAM logic lives here.
@@ -15,6 +16,7 @@ pub mod error;
 pub mod events_sse;
 pub mod frames;
 pub mod map;
+pub mod maps;
 pub mod openapi;
 pub mod serve;
 pub mod sessions;
@@ -61,6 +63,8 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/sessions/{id}/mesh.ply", get(downloads::mesh_ply))
         .route("/v1/sessions/{id}/mesh.glb", get(downloads::mesh_glb))
         .route("/v1/sessions/{id}/map", get(map::map_snapshot))
+        .route("/v1/maps", post(maps::save_map).get(maps::list_maps))
+        .route("/v1/maps/{id}", get(maps::get_map).delete(maps::delete_map))
         .route("/v1/proto", get(map::proto_files))
         .route("/v1/proto/{*path}", get(map::proto_file))
         .route("/v1/uploads", post(uploads::upload))

@@ -39,6 +39,10 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         super::map::map_snapshot,
         super::map::proto_files,
         super::map::proto_file,
+        super::maps::save_map,
+        super::maps::list_maps,
+        super::maps::get_map,
+        super::maps::delete_map,
         super::healthz,
         super::readyz,
         super::metrics,
@@ -59,6 +63,11 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         Binary,
         super::events_sse::SseEvent,
         super::map::ProtoFiles,
+        relfusion_proto::http::MapStart,
+        relfusion_proto::http::MapMode,
+        relfusion_proto::http::SaveMap,
+        relfusion_proto::http::MapInfo,
+        relfusion_proto::http::MapList,
     )),
     modifiers(&BearerAuth),
     tags(
@@ -67,6 +76,7 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         (name = "streams", description = "WebSocket (protobuf) and server-sent events (JSON)"),
         (name = "uploads", description = "Whole datasets as tar or zip"),
         (name = "results", description = "Trajectory, keyframes, point cloud, mesh"),
+        (name = "maps", description = "Saved maps that outlive sessions; sessions localise in them"),
         (name = "service", description = "Health, readiness, metrics, version, this document"),
     )
 )]

@@ -6,6 +6,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 
+use relfusion_proto::http::MapStart;
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 use tokio::sync::{broadcast, watch};
@@ -84,6 +85,8 @@ pub struct Session {
     pub(crate) config: SlamConfig,
     /// Uploads: the dataset folder below the session's key.
     pub(crate) dataset: Option<String>,
+    /// The saved map it works in (`None`: it maps from nothing).
+    pub(crate) map: Option<MapStart>,
     total_frames: Option<u64>,
     pub(crate) counters: Counters,
     /// Live sessions: frames waiting for the pipeline.
@@ -169,6 +172,7 @@ impl Session {
             created_unix: meta.created_unix,
             config: meta.config,
             dataset: meta.dataset,
+            map: meta.map,
             total_frames: meta.total_frames,
             counters: Counters::restore(&meta.counters),
             queue,
@@ -246,6 +250,7 @@ impl Session {
             error: status.error,
             notice: status.notice,
             max_keyframes: Some(self.max_keyframes as u64),
+            map: self.map.clone(),
         }
     }
 
@@ -370,6 +375,7 @@ impl Session {
             notice: status.notice,
             upload_bytes: self.upload_bytes.load(Ordering::Relaxed),
             results_bytes: self.results_bytes.load(Ordering::Relaxed),
+            map: self.map.clone(),
         }
     }
 

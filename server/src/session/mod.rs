@@ -19,6 +19,7 @@
 
 pub mod admission;
 pub mod decode;
+mod engine;
 pub mod events;
 pub mod handle;
 pub mod input;

@@ -6,6 +6,7 @@
 //! `sessions/<id>/results/` holds the trajectory, keyframes, point cloud and a summary,
 //! written on finish and every few keyframes while running.
 
+use relfusion_proto::http::MapStart;
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 use serde::{Deserialize, Serialize};
@@ -95,6 +96,9 @@ pub struct SessionMeta {
     pub upload_bytes: u64,
     #[serde(default)]
     pub results_bytes: u64,
+    /// The saved map it started from (`None`: an empty one).
+    #[serde(default)]
+    pub map: Option<MapStart>,
 }
 
 impl SessionMeta {
@@ -140,6 +144,7 @@ impl SessionMeta {
             error: self.error.clone(),
             notice: self.notice.clone(),
             max_keyframes: None,
+            map: self.map.clone(),
         }
     }
 }

@@ -2,6 +2,7 @@
 //! into, and the checks and conversions between the JSON of the HTTP API (defined once, in
 //! `relfusion_proto::http`) and the pipeline's types.
 
+use relfusion_proto::http::MapStart;
 use relfusion_slam::geometry::{Distortion, PinholeCamera, Sim3};
 use serde::{Deserialize, Serialize};
 
@@ -105,18 +106,23 @@ pub struct SessionRequest {
     /// Depth model name (`None` = the server's default).
     pub model: Option<String>,
     pub policy: FramePolicy,
+    /// The saved map to start in (checked against the owner's maps by the manager).
+    pub map: Option<MapStart>,
 }
 
 impl SessionRequest {
     /// The typed form of an HTTP create request: the camera validated, the overrides merged
     /// over the defaults of a live session with its policy.
     pub fn from_http(req: CreateSession) -> Result<Self, ApiError> {
-        Self::live(
-            camera_from_json(&req.camera)?,
-            &req.config,
-            req.model,
-            req.policy,
-        )
+        Ok(Self {
+            map: req.map,
+            ..Self::live(
+                camera_from_json(&req.camera)?,
+                &req.config,
+                req.model,
+                req.policy,
+            )?
+        })
     }
 
     /// A live session's request: `overrides` (a partial config, `null` for none) merged over
@@ -132,6 +138,7 @@ impl SessionRequest {
             config: super::overrides::live_config(overrides, policy)?,
             model,
             policy,
+            map: None,
         })
     }
 }

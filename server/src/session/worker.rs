@@ -20,8 +20,10 @@ use std::time::{Duration, Instant};
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dense::DepthPrior;
 use relfusion_slam::export::{mesh_glb_bytes, mesh_ply_bytes};
-use relfusion_slam::pipeline::{Event, FrameInput, Pipeline, Stats, TrackingState};
+use relfusion_slam::pipeline::{Event, FrameInput, Stats, TrackingState};
 use serde_json::json;
+
+use super::engine::Engine;
 
 use super::events::{KeyframePose, SessionEvent};
 use super::handle::Session;
@@ -30,7 +32,6 @@ use super::persist::Results;
 use super::prior::SharedModel;
 use super::queue::Pop;
 use super::types::{SessionKind, SessionState};
-use crate::convert::{points_ply, tum_text};
 use crate::gpu_pool::PoolClient;
 use crate::metrics::{Metrics, Stage};
 
@@ -67,15 +68,21 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         .model
         .as_ref()
         .map(|m| Box::new(m.pooled(env.pool.clone(), env.metrics.clone())) as Box<dyn DepthPrior>);
-    let gpu = env.pool.gpu();
-    let pipeline = match Pipeline::with_gpu(session.config.clone(), *session.camera(), prior, gpu) {
-        Ok(p) => p,
-        Err(e) => return fail(session, None, format!("starting the pipeline: {e}")),
+    let engine = match Engine::start(
+        &session.config,
+        session.camera(),
+        prior,
+        env.pool.gpu(),
+        session.map.as_ref(),
+        session.store.as_ref(),
+    ) {
+        Ok(engine) => engine,
+        Err(e) => return fail(session, None, e),
     };
     let mut runner = Runner {
         session,
         env: &env,
-        pipeline,
+        engine,
         last_stats: Stats::default(),
         since_checkpoint: 0,
         keyframe_frames: std::collections::HashMap::new(),
@@ -107,7 +114,7 @@ fn fail(session: &Session, runner: Option<&Runner<'_>>, message: String) -> Outc
 struct Runner<'a> {
     session: &'a Arc<Session>,
     env: &'a WorkerEnv,
-    pipeline: Pipeline,
+    engine: Engine,
     last_stats: Stats,
     since_checkpoint: usize,
     /// Client frame id and timestamp of each keyframe, for pose-graph updates.
@@ -271,14 +278,17 @@ impl Runner<'_> {
         #[cfg(debug_assertions)]
         fault::maybe_panic(frame.frame_id);
         let events = self
-            .pipeline
-            .push(FrameInput {
-                timestamp: frame.timestamp,
-                rgb: frame.rgb,
-                depth: None,
-            })
+            .engine
+            .push(
+                frame.frame_id,
+                FrameInput {
+                    timestamp: frame.timestamp,
+                    rgb: frame.rgb,
+                    depth: None,
+                },
+            )
             .map_err(|e| format!("pipeline, frame {}: {e}", frame.frame_id))?;
-        let stats = self.pipeline.stats().clone();
+        let stats = self.engine.stats().clone();
         let metrics = &self.env.metrics;
         metrics.observe_stage(
             Stage::Tracking,
@@ -358,11 +368,19 @@ impl Runner<'_> {
         if s.cancelled.load(Ordering::SeqCst) {
             return Err("the session was deleted".into());
         }
-        let stats = self.pipeline.stats();
+        let stats = self.engine.stats();
+        // A localising session's trajectory is the poses it reported, in the map's frame.
+        let (trajectory, keyframes, pointcloud) = self.engine.result_files().unwrap_or_else(|| {
+            (
+                s.trajectory_tum(),
+                String::new(),
+                crate::convert::points_ply(&[]),
+            )
+        });
         let results = Results {
-            trajectory: tum_text(&self.pipeline.trajectory()),
-            keyframes: tum_text(&self.pipeline.keyframe_trajectory()),
-            pointcloud: points_ply(&self.pipeline.semidense_points()),
+            trajectory,
+            keyframes,
+            pointcloud,
             mesh: s
                 .current_mesh()
                 .map(|m| (mesh_ply_bytes(&m), mesh_glb_bytes(&m))),
@@ -382,9 +400,21 @@ impl Runner<'_> {
                 "mesh_revision": stats.mesh_revision,
             }),
         };
-        let bytes = results
+        let mut bytes = results
             .save(s.store.as_ref(), s.id())
             .map_err(|e| e.to_string())?;
+        if final_ {
+            // The map, to keep with `POST /v1/maps` (docs/map-format.md).
+            let key = super::persist::result_key(s.id(), "map");
+            let dir = s
+                .store
+                .local_path(&key)
+                .ok_or("maps need a filesystem store")?;
+            bytes += self
+                .engine
+                .write_map(&dir)
+                .map_err(|e| format!("saving the map: {e}"))?;
+        }
         s.set_results_bytes(bytes);
         Ok(())
     }
@@ -433,13 +463,13 @@ impl Runner<'_> {
             s.set_state(SessionState::Finishing, None);
         }
         let t0 = std::time::Instant::now();
-        let poses = match self.pipeline.finish() {
-            Ok(poses) => poses,
+        let (poses, events) = match self.engine.finish() {
+            Ok(finished) => finished,
             Err(e) => return fail(s, Some(&self), format!("final optimisation: {e}")),
         };
         // Keyframes the dense layer finished and fused while the session was finishing, and
         // the final mesh at the optimised poses.
-        for event in self.pipeline.take_events() {
+        for event in events {
             self.emit_dense(event);
         }
         s.update_keyframe_poses(&poses);

@@ -21,6 +21,7 @@ use super::{Shared, bump, proto_error, serve_queryable};
 use crate::convert::camera_from_proto;
 use crate::session::types::{FramePolicy, SessionRequest};
 use crate::{ApiError, ServerError};
+use relfusion_proto::http::{MapMode, MapStart};
 
 /// Declares `tenant`'s queryable and serves it until shutdown.
 pub(crate) async fn serve(
@@ -109,7 +110,19 @@ pub fn create_request(config: &SessionConfig) -> Result<SessionRequest, ApiError
         v1::FramePolicy::Wait => FramePolicy::Wait,
         v1::FramePolicy::DropOldest | v1::FramePolicy::Unspecified => FramePolicy::DropOldest,
     };
-    SessionRequest::live(camera_from_proto(camera)?, &overrides, model, policy)
+    let map = match config.map_id.trim() {
+        "" => None,
+        id => Some(MapStart {
+            id: id.to_string(),
+            mode: match config.map_mode() {
+                v1::MapMode::Localize | v1::MapMode::Unspecified => MapMode::Localize,
+            },
+        }),
+    };
+    Ok(SessionRequest {
+        map,
+        ..SessionRequest::live(camera_from_proto(camera)?, &overrides, model, policy)?
+    })
 }
 
 #[cfg(test)]
@@ -135,8 +148,17 @@ mod tests {
             config_json: r#"{"pipeline":{"deterministic":true}}"#.into(),
             model_name: " none ".into(),
             policy: v1::FramePolicy::Wait as i32,
+            map_id: "m-0123456789abcdef01234567".into(),
+            map_mode: v1::MapMode::Unspecified as i32,
         })
         .expect("valid");
+        assert_eq!(
+            req.map,
+            Some(MapStart {
+                id: "m-0123456789abcdef01234567".into(),
+                mode: MapMode::Localize
+            })
+        );
         assert_eq!(req.camera.width, 320);
         assert!(req.config.pipeline.deterministic);
         assert!(
@@ -152,6 +174,7 @@ mod tests {
         })
         .expect("valid");
         assert!(defaults.model.is_none());
+        assert!(defaults.map.is_none());
         assert!(defaults.config.pipeline.mapping_thread);
         assert_eq!(defaults.policy, FramePolicy::DropOldest);
     }

@@ -190,6 +190,7 @@ pub fn session_config(seq: &TumSequence, policy: FramePolicy, config_json: &str)
         config_json: config_json.into(),
         model_name: String::new(),
         policy: policy as i32,
+        ..Default::default()
     }
 }
 

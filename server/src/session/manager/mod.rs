@@ -39,6 +39,7 @@ use super::upload::{ArchiveKind, ExtractLimits, stage_upload};
 use super::worker::{self, Outcome, WorkerEnv};
 use crate::config::Config;
 use crate::gpu_pool::{GpuPool, device_count};
+use crate::maps::MapStore;
 use crate::memory::{MemoryPlan, SessionCost, resident_bytes};
 use crate::metrics::Metrics;
 use crate::storage::{FsStore, ObjectStore};
@@ -55,6 +56,8 @@ pub struct SessionManager {
     me: Weak<SessionManager>,
     config: Config,
     store: Arc<dyn ObjectStore>,
+    /// Saved maps (`/v1/maps`), in the same store.
+    maps: MapStore,
     metrics: Arc<Metrics>,
     pool: GpuPool,
     model: Option<SharedModel>,
@@ -82,7 +85,7 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-fn now_unix() -> u64 {
+pub(crate) fn now_unix() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs())
@@ -123,6 +126,7 @@ impl SessionManager {
         let manager = Arc::new_cyclic(|me| Self {
             me: me.clone(),
             config: config.clone(),
+            maps: MapStore::new(store.clone(), config.quotas.max_maps),
             store,
             metrics,
             pool,
@@ -154,6 +158,11 @@ impl SessionManager {
     /// The configuration in force.
     pub fn config(&self) -> &Config {
         &self.config
+    }
+
+    /// The saved maps.
+    pub fn maps(&self) -> &MapStore {
+        &self.maps
     }
 
     /// The shared metrics.
@@ -277,8 +286,20 @@ impl SessionManager {
             config,
             model,
             policy,
+            map,
         } = req;
         self.check_image_size(&camera)?;
+        if let Some(start) = &map {
+            let source = self.maps.source(start, owner)?;
+            if source.camera != camera {
+                return Err(ApiError::bad_request(format!(
+                    "map {} serves the camera {:?}, not this session's {:?}",
+                    start.id,
+                    crate::session::types::camera_json(&source.camera),
+                    crate::session::types::camera_json(&camera)
+                )));
+            }
+        }
         let model = self.resolve_model(model.as_deref())?;
         let max_keyframes = self.map_limit(&camera, &config)?;
         let meta = SessionMeta {
@@ -302,6 +323,7 @@ impl SessionManager {
             notice: None,
             upload_bytes: 0,
             results_bytes: 0,
+            map,
         };
         let session = {
             // Quota, slot and registration under one lock: racing creates cannot both pass.
@@ -495,6 +517,7 @@ impl SessionManager {
             notice: None,
             upload_bytes: staged.bytes,
             results_bytes: 0,
+            map: None,
         };
         // The acknowledgement point: once meta.json is durable, the upload exists.
         if let Err(e) = meta.save(self.store.as_ref()) {

@@ -45,6 +45,7 @@ fn request() -> CreateSession {
         config: json!({"pipeline": {"deterministic": true}}),
         model: None,
         policy: FramePolicy::Wait,
+        map: None,
     }
 }
 
@@ -249,6 +250,7 @@ async fn recovery_drops_unacknowledged_uploads_and_fails_interrupted_live_sessio
         notice: None,
         upload_bytes: 0,
         results_bytes: 0,
+        map: None,
     };
     meta.save(&store).expect("save");
     store

@@ -1,0 +1,137 @@
+//! What a session's worker drives: the SLAM pipeline (a map made from nothing) or a localiser
+//! in a saved map (`MapMode::Localize`, issue 24). One interface for the worker: frames in,
+//! pipeline events out, result files at the end.
+
+use relfusion_proto::http::MapStart;
+use relfusion_slam::dense::DepthPrior;
+use relfusion_slam::geometry::{PinholeCamera, Sim3};
+use relfusion_slam::map::{LocalizationState, Localizer, read_map};
+use relfusion_slam::pipeline::{
+    Config, Event, FrameInput, Pipeline, PoseEvent, Stats, TrackingState,
+};
+
+use crate::convert::points_ply;
+use crate::storage::ObjectStore;
+
+/// The optimised keyframe poses and the events finishing produced.
+type Finished = (Vec<(usize, Sim3)>, Vec<Event>);
+
+/// The session's engine.
+pub(crate) enum Engine {
+    /// Mapping: tracking, mapping, pose graph, dense layer, fusion.
+    Map(Box<Pipeline>),
+    /// Localising every frame in a saved map, which stays as it is.
+    Localize {
+        localizer: Box<Localizer>,
+        stats: Stats,
+    },
+}
+
+impl Engine {
+    /// The session's engine: a pipeline, or a localiser over the saved map `map` (its folder in
+    /// `store`), which must serve `camera`.
+    pub fn start(
+        config: &Config,
+        camera: &PinholeCamera,
+        prior: Option<Box<dyn DepthPrior>>,
+        gpu: Option<std::sync::Arc<relfusion_slam::gpu::GpuContext>>,
+        map: Option<&MapStart>,
+        store: &dyn ObjectStore,
+    ) -> Result<Self, String> {
+        let Some(start) = map else {
+            return Pipeline::with_gpu(config.clone(), *camera, prior, gpu)
+                .map(|p| Engine::Map(Box::new(p)))
+                .map_err(|e| format!("starting the pipeline: {e}"));
+        };
+        let dir = store
+            .local_path(&format!("maps/{}/map", start.id))
+            .ok_or("maps need a filesystem store")?;
+        let map =
+            read_map(&dir, Some(camera)).map_err(|e| format!("loading map {}: {e}", start.id))?;
+        let localizer = Localizer::new(&map, config.tracking.clone(), config.localize.clone())
+            .map_err(|e| format!("map {}: {e}", start.id))?;
+        Ok(Engine::Localize {
+            localizer: Box::new(localizer),
+            stats: Stats {
+                dense_mode: "off",
+                ..Stats::default()
+            },
+        })
+    }
+
+    /// One frame; what happened, as pipeline events (a localised frame is a pose: `tracking`
+    /// or `relocalized` in the map's frame; a frame not in the map is `lost`, at the identity).
+    pub fn push(&mut self, frame_id: u64, input: FrameInput) -> relfusion_slam::Result<Vec<Event>> {
+        match self {
+            Engine::Map(pipeline) => pipeline.push(input),
+            Engine::Localize { localizer, stats } => {
+                let t0 = std::time::Instant::now();
+                let result = localizer.localize(input.timestamp, input.rgb)?;
+                stats.frames += 1;
+                stats.tracking_s += t0.elapsed().as_secs_f64();
+                let state = match result.state {
+                    LocalizationState::Tracked => TrackingState::Tracking,
+                    LocalizationState::Relocalized => TrackingState::Relocalized,
+                    LocalizationState::NotLocalized => TrackingState::Lost,
+                };
+                if state == TrackingState::Lost {
+                    stats.frames_lost += 1;
+                }
+                Ok(vec![Event::Pose(PoseEvent {
+                    frame_id,
+                    timestamp: result.timestamp,
+                    world_from_camera: result.world_from_camera.unwrap_or_else(Sim3::identity),
+                    state,
+                    keyframe_id: result.keyframe.unwrap_or(0),
+                    is_keyframe: false,
+                })])
+            }
+        }
+    }
+
+    pub fn stats(&self) -> &Stats {
+        match self {
+            Engine::Map(pipeline) => pipeline.stats(),
+            Engine::Localize { stats, .. } => stats,
+        }
+    }
+
+    /// The pipeline's final optimisation and what it produced after the frames; nothing to do
+    /// for a localiser.
+    pub fn finish(&mut self) -> relfusion_slam::Result<Finished> {
+        match self {
+            Engine::Map(pipeline) => {
+                let poses = pipeline.finish()?;
+                Ok((poses, pipeline.take_events()))
+            }
+            Engine::Localize { .. } => Ok((Vec::new(), Vec::new())),
+        }
+    }
+
+    /// The trajectory, keyframes and semi-dense cloud as result files; `None` for a localiser
+    /// (whose trajectory is the poses it reported).
+    pub fn result_files(&self) -> Option<(String, String, Vec<u8>)> {
+        match self {
+            Engine::Map(pipeline) => Some((
+                crate::convert::tum_text(&pipeline.trajectory()),
+                crate::convert::tum_text(&pipeline.keyframe_trajectory()),
+                points_ply(&pipeline.semidense_points()),
+            )),
+            Engine::Localize { .. } => None,
+        }
+    }
+
+    /// Writes the session's map to `dir` (after [`Engine::finish`]); returns its bytes. A
+    /// localiser made no map.
+    pub fn write_map(&self, dir: &std::path::Path) -> Result<u64, String> {
+        let Engine::Map(pipeline) = self else {
+            return Ok(0);
+        };
+        let map = pipeline.saved_map().map_err(|e| e.to_string())?;
+        if map.keyframes.is_empty() {
+            return Ok(0);
+        }
+        relfusion_slam::map::write_map(dir, &map).map_err(|e| e.to_string())?;
+        Ok(crate::maps::folder_bytes(dir))
+    }
+}
