@@ -218,23 +218,9 @@ impl MapStore {
     }
 }
 
-/// Bytes of the files below `dir`.
+/// Bytes of the map in `dir` (0 when it cannot be read: the figure is for quotas only).
 pub(crate) fn folder_bytes(dir: &std::path::Path) -> u64 {
-    let mut total = 0;
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        let Ok(entries) = std::fs::read_dir(&d) else {
-            continue;
-        };
-        for entry in entries.flatten() {
-            match entry.metadata() {
-                Ok(m) if m.is_dir() => stack.push(entry.path()),
-                Ok(m) => total += m.len(),
-                Err(_) => {}
-            }
-        }
-    }
-    total
+    relfusion_slam::map::disk_bytes_by_file(dir).map_or(0, |parts| parts.values().sum())
 }
 
 #[cfg(test)]

@@ -2,7 +2,7 @@
 
 use std::sync::Arc;
 
-use crate::geometry::PinholeCamera;
+use crate::geometry::{PinholeCamera, UndistortMap};
 use crate::image::ImageF32;
 use crate::image::pyramid::{Pyramid, PyramidLevel};
 use crate::{Error, Result};
@@ -60,6 +60,36 @@ impl Frame {
             rgb,
             sensor_depth: None,
         })
+    }
+
+    /// A frame from a colour image as `camera` (with its distortion, undone by `undistort`,
+    /// which is `None` for an undistorted camera) delivers it; refuses another image size.
+    pub fn from_camera_rgb(
+        id: u64,
+        timestamp: f64,
+        camera: &PinholeCamera,
+        undistort: Option<&UndistortMap>,
+        rgb: ::image::RgbImage,
+    ) -> Result<Self> {
+        let (w, h) = rgb.dimensions();
+        if (w, h) != (camera.width, camera.height) {
+            return Err(Error::Shape(format!(
+                "frame is {w}x{h} but the camera is {}x{}",
+                camera.width, camera.height
+            )));
+        }
+        let rgb = match undistort {
+            Some(map) => map.apply_rgb(&rgb)?,
+            None => rgb,
+        };
+        let gray = ImageF32::from_rgb8(&rgb);
+        Self::new(
+            id,
+            timestamp,
+            camera.undistorted(),
+            &gray,
+            Some(Arc::new(rgb)),
+        )
     }
 
     /// Pyramid level `level` (0 = full resolution).

@@ -1,11 +1,11 @@
 //! `relfusion bench map --map OUT/map`: what a saved map costs — load and save times, size on
 //! disk per keyframe (by part), memory of the loaded map and of a localiser built on it.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context as _;
-use relfusion_slam::map::{LocalizeConfig, Localizer, read_map, write_map};
+use relfusion_slam::map::{LocalizeConfig, Localizer, disk_bytes_by_file, read_map, write_map};
 use relfusion_slam::tracking::TrackingConfig;
 use serde_json::json;
 
@@ -40,8 +40,8 @@ pub fn map(args: &MapArgs) -> anyhow::Result<()> {
         write_map(&copy, &map)?;
         saves.push(t.elapsed().as_secs_f64());
     }
-    let parts = part_sizes(&copy)?;
-    let total: u64 = parts.iter().map(|(_, b)| b).sum();
+    let parts = disk_bytes_by_file(&copy)?;
+    let total: u64 = parts.values().sum();
     let _ = std::fs::remove_dir_all(&scratch);
     let t = Instant::now();
     let localizer = Localizer::new(&map, TrackingConfig::default(), LocalizeConfig::default())?;
@@ -68,26 +68,6 @@ pub fn map(args: &MapArgs) -> anyhow::Result<()> {
         })
     );
     Ok(())
-}
-
-/// Bytes on disk by file name (`manifest.json`, `image.png`, ...), summed over keyframes.
-fn part_sizes(dir: &Path) -> anyhow::Result<Vec<(String, u64)>> {
-    let mut parts = std::collections::BTreeMap::<String, u64>::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for entry in std::fs::read_dir(&d)? {
-            let entry = entry?;
-            let meta = entry.metadata()?;
-            if meta.is_dir() {
-                stack.push(entry.path());
-            } else {
-                *parts
-                    .entry(entry.file_name().to_string_lossy().into_owned())
-                    .or_default() += meta.len();
-            }
-        }
-    }
-    Ok(parts.into_iter().collect())
 }
 
 fn median(values: &mut [f64]) -> f64 {

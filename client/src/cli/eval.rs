@@ -233,27 +233,24 @@ fn localize(args: &LocalizeArgs) -> anyhow::Result<serde_json::Value> {
 fn at_frames(gt: &[StampedPose], frames: &Path) -> anyhow::Result<Vec<StampedPose>> {
     let text =
         std::fs::read_to_string(frames).with_context(|| format!("reading {}", frames.display()))?;
-    let mut out = Vec::new();
-    for line in text
+    let stamps = text
         .lines()
         .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-    {
-        let t: f64 = line
-            .split_whitespace()
-            .next()
-            .and_then(|v| v.parse().ok())
-            .with_context(|| format!("{}: bad line {line:?}", frames.display()))?;
-        let nearest = gt
-            .iter()
-            .min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()));
-        if let Some(p) = nearest.filter(|p| (p.timestamp - t).abs() <= DEFAULT_MAX_DT) {
-            out.push(StampedPose {
-                timestamp: t,
-                world_from_camera: p.world_from_camera,
-            });
-        }
-    }
-    Ok(out)
+        .map(|line| {
+            line.split_whitespace()
+                .next()
+                .and_then(|v| v.parse::<f64>().ok())
+                .with_context(|| format!("{}: bad line {line:?}", frames.display()))
+        })
+        .collect::<anyhow::Result<Vec<f64>>>()?;
+    let gt_stamps: Vec<f64> = gt.iter().map(|p| p.timestamp).collect();
+    Ok(eval::associate(&gt_stamps, &stamps, DEFAULT_MAX_DT)
+        .into_iter()
+        .map(|(g, f)| StampedPose {
+            timestamp: stamps[f],
+            world_from_camera: gt[g].world_from_camera,
+        })
+        .collect())
 }
 
 fn traj(args: &TrajArgs) -> anyhow::Result<serde_json::Value> {

@@ -19,13 +19,10 @@
 //!   on a similar-looking view; two keyframes from different viewpoints rarely agree on it, so
 //!   frames outside the map are reported as not localised rather than given a wrong pose.
 
-use std::sync::Arc;
-
 use super::{MapKeyframe, SavedMap};
 use crate::frame::Frame;
 use crate::geometry::{PinholeCamera, SE3, Sim3, UndistortMap};
 use crate::graph::{KeyframeId, Thumbnail};
-use crate::image::ImageF32;
 use crate::tracking::{SE3Tracker, TrackingConfig, TrackingReference, TrackingResult};
 use crate::{Error, Result};
 
@@ -269,29 +266,9 @@ impl Localizer {
     }
 
     fn make_frame(&mut self, timestamp: f64, rgb: ::image::RgbImage) -> Result<Frame> {
-        if rgb.dimensions() != (self.camera.width, self.camera.height) {
-            return Err(Error::Shape(format!(
-                "frame is {}x{} but the map's camera is {}x{}",
-                rgb.width(),
-                rgb.height(),
-                self.camera.width,
-                self.camera.height
-            )));
-        }
-        let rgb = match &self.undistort {
-            Some(map) => map.apply_rgb(&rgb)?,
-            None => rgb,
-        };
-        let gray = ImageF32::from_rgb8(&rgb);
         let id = self.next_frame_id;
         self.next_frame_id += 1;
-        Frame::new(
-            id,
-            timestamp,
-            self.camera.undistorted(),
-            &gray,
-            Some(Arc::new(rgb)),
-        )
+        Frame::from_camera_rgb(id, timestamp, &self.camera, self.undistort.as_ref(), rgb)
     }
 
     /// LSD-SLAM's keyframe distance (ECCV 2014 eq. 16) without its weights:

@@ -23,7 +23,7 @@ use crate::mapping::DepthMap;
 use crate::{Error, Result};
 
 pub use localize::{Localization, LocalizationState, LocalizeConfig, Localizer};
-pub use store::{read_keyframe_poses, read_map, write_map};
+pub use store::{disk_bytes_by_file, read_keyframe_poses, read_map, write_map};
 
 /// Version of the on-disk layout; a reader refuses any other (the layout says what each
 /// version holds, `docs/map-format.md`).

@@ -429,6 +429,27 @@ fn grey_to_rgb(gray: &ImageF32) -> ::image::RgbImage {
     })
 }
 
+/// Bytes on disk of the map in `dir` by file name (`manifest.json`, `image.png`, …), summed
+/// over keyframes: what quotas and the benchmark count.
+pub fn disk_bytes_by_file(dir: &Path) -> Result<std::collections::BTreeMap<String, u64>> {
+    let mut parts = std::collections::BTreeMap::<String, u64>::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).map_err(|e| Error::io(&d, e))? {
+            let entry = entry.map_err(|e| Error::io(&d, e))?;
+            let meta = entry.metadata().map_err(|e| Error::io(entry.path(), e))?;
+            if meta.is_dir() {
+                stack.push(entry.path());
+            } else {
+                *parts
+                    .entry(entry.file_name().to_string_lossy().into_owned())
+                    .or_default() += meta.len();
+            }
+        }
+    }
+    Ok(parts)
+}
+
 fn sync_file(path: &Path) -> Result<()> {
     std::fs::File::open(path)
         .and_then(|f| f.sync_all())

@@ -12,7 +12,6 @@ use super::mapper::Observation;
 use crate::frame::Frame;
 use crate::geometry::{SE3, Sim3};
 use crate::graph::KeyframeId;
-use crate::image::ImageF32;
 use crate::mapping::{DepthFilter, needs_new_keyframe};
 use crate::tracking::{SE3Tracker, TrackingReference, TrackingResult};
 use crate::{Error, Result};
@@ -123,12 +122,14 @@ impl Pipeline {
     /// Undistorts and converts the input; rejects a size that does not match the camera.
     fn make_frame(&mut self, input: FrameInput) -> Result<Frame> {
         let (w, h) = input.rgb.dimensions();
-        if (w, h) != (self.camera.width, self.camera.height) {
-            return Err(Error::Shape(format!(
-                "frame is {w}x{h} but the camera is {}x{}",
-                self.camera.width, self.camera.height
-            )));
-        }
+        let mut frame = Frame::from_camera_rgb(
+            self.next_frame_id,
+            input.timestamp,
+            &self.camera,
+            self.undistort.as_ref(),
+            input.rgb,
+        )?;
+        self.next_frame_id += 1;
         let sensor_depth = match input.depth {
             Some(depth) if self.config.dense.two_view.ground_truth_depth => {
                 if (depth.width, depth.height) != (w as usize, h as usize) {
@@ -144,20 +145,6 @@ impl Pipeline {
             }
             _ => None,
         };
-        let rgb = match &self.undistort {
-            Some(map) => map.apply_rgb(&input.rgb)?,
-            None => input.rgb,
-        };
-        let gray = ImageF32::from_rgb8(&rgb);
-        let id = self.next_frame_id;
-        self.next_frame_id += 1;
-        let mut frame = Frame::new(
-            id,
-            input.timestamp,
-            self.camera.undistorted(),
-            &gray,
-            Some(Arc::new(rgb)),
-        )?;
         frame.sensor_depth = sensor_depth;
         Ok(frame)
     }
