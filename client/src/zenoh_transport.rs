@@ -158,6 +158,7 @@ pub fn session_config(req: &CreateSession) -> SessionConfig {
         map_id: req.map.as_ref().map(|m| m.id.clone()).unwrap_or_default(),
         map_mode: match req.map.as_ref().map(|m| m.mode) {
             Some(MapMode::Localize) => v1::MapMode::Localize,
+            Some(MapMode::Extend) => v1::MapMode::Extend,
             None => v1::MapMode::Unspecified,
         } as i32,
     }

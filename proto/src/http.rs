@@ -91,6 +91,11 @@ pub enum MapMode {
     /// it is not in the map; the map is not changed and nothing new is mapped.
     #[default]
     Localize,
+    /// Frames are `lost` until one is found in the map; from there the session maps on, new
+    /// keyframes linked to the old ones (loop closures across sessions), the old poses held.
+    /// The session's map (save it with `POST /v1/maps`) and mesh hold the old keyframes and
+    /// the new.
+    Extend,
 }
 
 /// A session's saved map and mode.

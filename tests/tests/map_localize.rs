@@ -4,12 +4,14 @@
 //! ground truth under the Sim(3) that aligns the map's own keyframes to theirs. Fails when
 //! fewer than 90 % of the frames that see the mapped area get a pose, when those poses are more
 //! than 0.05 m RMS off, or when any localised frame is more than 0.2 m off (a wrong pose given
-//! with confidence).
+//! with confidence). Then `--mode extend` maps frames 600-999 on from the first map: fails
+//! unless the merged map's keyframes of both videos are within 0.04 m RMS of their ground truth
+//! under one Sim(3), with the old keyframes unchanged and one mesh.
 
 use relfusion_tests::{data_dir, pydnet_model, relfusion_json, temp_dir};
 
 #[test]
-fn a_second_video_localises_in_the_map_of_the_first() {
+fn a_second_video_localises_in_the_map_of_the_first_and_extends_it() {
     let Some(model) = pydnet_model() else {
         return;
     };
@@ -100,5 +102,56 @@ fn a_second_video_localises_in_the_map_of_the_first() {
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(stderr.contains("camera"), "{stderr}");
     }
+
+    // `extend`: the second video maps on from where it is found in the first map. One merged
+    // map (the old keyframes unchanged, the new ones after them), one mesh, and its keyframes
+    // of both videos under one Sim(3) within 0.04 m RMS of their ground truth.
+    let extended = dir.join("extended");
+    let run = relfusion_json(&[
+        "run",
+        &path(&second),
+        "--map",
+        &path(&map),
+        "--mode",
+        "extend",
+        "--out",
+        &path(&extended),
+        "--model",
+        &path(&model),
+        "--deterministic",
+        "--quiet",
+    ]);
+    eprintln!("{run}");
+    assert_eq!(run["map_keyframes"].as_u64(), Some(keyframes), "{run}");
+    let total = run["keyframes"].as_u64().expect("keyframes");
+    assert!(total >= keyframes + 10, "{run}");
+    let old = relfusion_slam::map::read_keyframe_poses(&map).expect("map");
+    let merged = relfusion_slam::map::read_keyframe_poses(&extended.join("map")).expect("merged");
+    assert_eq!(merged.len() as u64, total);
+    for ((t0, p0), (t1, p1)) in old.iter().zip(&merged) {
+        assert_eq!(t0, t1, "the map's keyframes come first, in order");
+        assert!(
+            (p0.translation - p1.translation).norm() < 1e-9,
+            "the map's keyframes stay where they were"
+        );
+    }
+    assert!(merged[keyframes as usize..].iter().all(|(t, _)| *t >= 20.0));
+    assert!(run["mesh_triangles"].as_u64().unwrap_or(0) > 0, "{run}");
+    let ate = relfusion_json(&[
+        "eval",
+        "traj",
+        "--gt",
+        &path(&first.join("groundtruth.txt")),
+        "--gt",
+        &path(&second.join("groundtruth.txt")),
+        "--est",
+        &path(&extended.join("keyframes.txt")),
+    ]);
+    eprintln!("extended keyframes: {ate}");
+    assert_eq!(ate["matched"].as_u64(), Some(total), "{ate}");
+    assert!(
+        ate["ate_rmse_m"].as_f64().is_some_and(|v| v <= 0.04),
+        "{ate}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -4,7 +4,9 @@
 //! sequence of the same room — other poses, sensor noise — in that map. Fails when the map is
 //! lost in the restart, when fewer than 90 % of B's or C's frames get a pose, when their poses
 //! (under the Sim(3) that aligns the map's own keyframes to the first sequence's ground truth)
-//! are off, or when another token can see, use or delete the map.
+//! are off, or when another token can see, use or delete the map. Session D then extends the
+//! map with the second sequence: its new keyframes must land in the map's frame, the old ones
+//! stay, and its map is kept as a second map.
 
 use std::net::TcpListener;
 use std::path::Path;
@@ -287,6 +289,90 @@ fn a_saved_map_outlives_its_session_and_a_restart_and_new_sessions_localise_in_i
         assert_eq!(summary["keyframes"], 0, "the map is not changed: {summary}");
     }
 
+    // Session D extends the map with the other sequence (WebSocket): it maps on from where
+    // its frames are found, in the map's frame, and its map (kept like any other) holds the
+    // old keyframes, unchanged, and the new ones.
+    let lines = ok(
+        "stream (extend)",
+        &relfusion(&[
+            "stream",
+            s(&other),
+            "--server",
+            &url,
+            "--token",
+            "secret-a",
+            "--wait",
+            "--config",
+            s(&config),
+            "--map",
+            &map_id,
+            "--map-mode",
+            "extend",
+        ]),
+        &server,
+    );
+    let (poses, all) = localised(&lines);
+    let (rms, max) = errors(&gt, &poses, &gt_from_map);
+    eprintln!(
+        "extend: {} of {all} frames tracked live, rms {rms:.4} m, max {max:.4} m",
+        poses.len()
+    );
+    assert!(poses.len() * 10 >= all * 8, "{} of {all}", poses.len());
+    let summary = &lines.last().expect("summary")["summary"];
+    let old_keyframes = keyframes.len();
+    let total = summary["keyframes"].as_u64().expect("keyframes") as usize;
+    assert!(total > old_keyframes, "{summary}");
+    let extending = lines[0]["session"].as_str().expect("session").to_string();
+    let merged = ok(
+        "maps save (extended)",
+        &relfusion(&[
+            "maps", "--server", &url, "--token", "secret-a", "save", &extending, "--name",
+            "room 5+",
+        ]),
+        &server,
+    )
+    .remove(0);
+    assert_eq!(merged["keyframes"].as_u64(), Some(total as u64), "{merged}");
+    let fetched = work.join("d");
+    ok(
+        "fetch",
+        &relfusion(&[
+            "fetch",
+            &extending,
+            "--server",
+            &url,
+            "--token",
+            "secret-a",
+            "--out",
+            s(&fetched),
+        ]),
+        &server,
+    );
+    let both = parse_tum_trajectory(
+        &std::fs::read_to_string(fetched.join("keyframes.txt")).expect("keyframes"),
+        "keyframes",
+    )
+    .expect("parse");
+    assert_eq!(both.len(), total);
+    for (a, b) in keyframes.iter().zip(&both) {
+        let moved = (a.world_from_camera.translation - b.world_from_camera.translation).norm();
+        assert!(moved < 1e-5, "an old keyframe moved by {moved}");
+    }
+    let (rms, _) = errors(&gt, &both[old_keyframes..], &gt_from_map);
+    let trajectory = parse_tum_trajectory(
+        &std::fs::read_to_string(fetched.join("trajectory.txt")).expect("trajectory"),
+        "trajectory",
+    )
+    .expect("parse");
+    let (frames_rms, frames_max) = errors(&gt, &trajectory, &gt_from_map);
+    eprintln!(
+        "extend: new keyframes rms {rms:.4} m; {} frames after the final optimisation: rms \
+         {frames_rms:.4} m, max {frames_max:.4} m",
+        trajectory.len()
+    );
+    assert!(rms < 0.05, "new keyframes: rms {rms}");
+    assert!(frames_rms < 0.05, "frames: rms {frames_rms}");
+
     // A camera the map was not made with is refused with a clear error.
     let body = format!(
         r#"{{"camera":{{"fx":200,"fy":200,"cx":160,"cy":120,"width":320,"height":240}},"map":{{"id":"{map_id}","mode":"localize"}}}}"#
@@ -301,7 +387,7 @@ fn a_saved_map_outlives_its_session_and_a_restart_and_new_sessions_localise_in_i
         .expect("request");
     assert_eq!(response.status().as_u16(), 400);
 
-    // Deleted, it is gone.
+    // Deleted, it is gone; the extended map, made from it, stays.
     ok(
         "maps delete",
         &relfusion(&[
@@ -310,6 +396,7 @@ fn a_saved_map_outlives_its_session_and_a_restart_and_new_sessions_localise_in_i
         &server,
     );
     let listed = ok("maps list", &list("secret-a"), &server).remove(0);
-    assert_eq!(listed["maps"].as_array().map(Vec::len), Some(0), "{listed}");
+    assert_eq!(listed["maps"].as_array().map(Vec::len), Some(1), "{listed}");
+    assert_eq!(listed["maps"][0]["id"], merged["id"], "{listed}");
     let _ = std::fs::remove_dir_all(&work);
 }

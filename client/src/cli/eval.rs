@@ -104,9 +104,11 @@ pub struct MeshArgs {
 
 #[derive(Debug, clap::Args)]
 pub struct TrajArgs {
-    /// Ground-truth trajectory (TUM format).
-    #[arg(long)]
-    pub gt: PathBuf,
+    /// Ground-truth trajectory (TUM format). Repeat it for an estimate that spans several
+    /// sequences with distinct timestamps (a map extended by a second run): they are scored
+    /// as one trajectory under one alignment.
+    #[arg(long, required = true)]
+    pub gt: Vec<PathBuf>,
     /// Estimated trajectory (TUM format).
     #[arg(long)]
     pub est: PathBuf,
@@ -254,7 +256,11 @@ fn at_frames(gt: &[StampedPose], frames: &Path) -> anyhow::Result<Vec<StampedPos
 }
 
 fn traj(args: &TrajArgs) -> anyhow::Result<serde_json::Value> {
-    let gt = read_traj(&args.gt, "ground-truth")?;
+    let mut gt = Vec::new();
+    for path in &args.gt {
+        gt.extend(read_traj(path, "ground-truth")?);
+    }
+    gt.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
     let est = read_traj(&args.est, "estimated")?;
     let matched = associate_poses(&gt, &est, args.max_dt)?;
     let ate = ate_matched(&matched, args.align)?;

@@ -12,7 +12,10 @@
 //! then prints a one-line JSON summary.
 //!
 //! With `--map MAP --mode localize` the sequence is localised in a saved map instead
-//! (`super::localize`).
+//! (`super::localize`); with `--mode extend` the pipeline starts from the map's keyframes
+//! (`relfusion_slam::pipeline::Pipeline::extending`) and everything above covers both
+//! sequences: `keyframes.txt` and `OUT/map/` hold the old keyframes and the new, the mesh is
+//! fused from all of them, `trajectory.txt` holds the new frames.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -62,7 +65,8 @@ pub struct Args {
     #[arg(long, value_name = "MAP")]
     pub map: Option<PathBuf>,
     /// What to do with `--map`: `localize` gives every frame a pose in the map's frame (or
-    /// reports it not localised) and never changes the map.
+    /// reports it not localised) and never changes the map; `extend` maps on from where the
+    /// camera is found in the map and writes the merged map, mesh and keyframes of both.
     #[arg(long, value_enum, default_value = "localize", requires = "map")]
     pub mode: MapMode,
 }
@@ -71,12 +75,15 @@ pub struct Args {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum MapMode {
     Localize,
+    Extend,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    if let Some(map) = &args.map {
-        return super::localize::run(&args, map);
-    }
+    let extend = match (&args.map, args.mode) {
+        (Some(map), MapMode::Localize) => return super::localize::run(&args, map),
+        (Some(map), MapMode::Extend) => Some(map.clone()),
+        (None, _) => None,
+    };
     let mut config = match &args.config {
         Some(path) => Config::load(path)?,
         None => Config::default(),
@@ -96,21 +103,29 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut recorder = super::rerun_out::open(args.rerun.as_deref(), |path| {
         RunRecorder::create(path, &seq)
     })?;
-    let outcome =
-        run_sequence(
-            &seq,
-            n,
-            config,
-            prior,
-            !args.quiet,
-            &mut |i, events| match &mut recorder {
-                Some(recorder) => match i {
-                    Some(i) => recorder.on_frame(&seq, i, events),
-                    None => recorder.on_events(events),
-                },
-                None => Ok(()),
+    let t_map_load = Instant::now();
+    let pipeline = match &extend {
+        Some(map_dir) => {
+            let map = relfusion_slam::map::read_map(map_dir, Some(&seq.camera))
+                .with_context(|| format!("loading the map {}", map_dir.display()))?;
+            Pipeline::extending(config, seq.camera, prior, None, &map)?
+        }
+        None => Pipeline::new(config, seq.camera, prior)?,
+    };
+    let map_load_s = extend.is_some().then(|| t_map_load.elapsed().as_secs_f64());
+    let outcome = run_sequence(
+        &seq,
+        n,
+        pipeline,
+        !args.quiet,
+        &mut |i, events| match &mut recorder {
+            Some(recorder) => match i {
+                Some(i) => recorder.on_frame(&seq, i, events),
+                None => recorder.on_events(events),
             },
-        )?;
+            None => Ok(()),
+        },
+    )?;
     let recording = recorder.map(|r| r.finish()).transpose()?;
     let (mut pipeline, wall_s, load_s) = (outcome.pipeline, outcome.wall_s, outcome.load_s);
 
@@ -153,7 +168,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         json!({
             "frames": stats.frames,
             "keyframes": stats.keyframes,
+            "map": extend,
+            "map_keyframes": pipeline.map_keyframes(),
+            "map_load_s": map_load_s,
             "frames_lost": stats.frames_lost,
+            "fragments": stats.fragments,
+            "fragments_apart": stats.fragments_apart,
             "wall_s": wall_s,
             "ms_per_frame": 1e3 * wall_s / n.max(1) as f64,
             "ms_per_frame_excluding_image_loading": 1e3 * (wall_s - load_s) / n.max(1) as f64,
@@ -190,24 +210,22 @@ pub struct RunOutcome {
     pub load_s: f64,
 }
 
-/// Pushes the first `n` frames of `seq` through a new pipeline, unpaced, then finishes it
-/// (final pose-graph optimisation).
+/// Pushes the first `n` frames of `seq` through `pipeline` (new, or extending a map),
+/// unpaced, then finishes it (final pose-graph optimisation).
 pub fn run_sequence(
     seq: &TumSequence,
     n: usize,
-    config: Config,
-    prior: Option<Box<dyn DepthPrior>>,
+    mut pipeline: Pipeline,
     progress: bool,
     observe: &mut FrameObserver<'_>,
 ) -> anyhow::Result<RunOutcome> {
-    let sensor_depth = config.dense.two_view.ground_truth_depth;
+    let sensor_depth = pipeline.config().dense.two_view.ground_truth_depth;
     if sensor_depth && seq.frames.iter().take(n).all(|f| f.depth.is_none()) {
         anyhow::bail!(
             "dense.two_view.ground_truth_depth needs the sequence's depth images, and {} lists none",
             seq.root.join("depth.txt").display()
         );
     }
-    let mut pipeline = Pipeline::new(config, seq.camera, prior)?;
     let bar = progress.then(|| progress_bar(n as u64));
     let t0 = Instant::now();
     let mut load_s = 0.0;

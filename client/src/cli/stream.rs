@@ -49,10 +49,14 @@ pub struct Args {
     /// blocks) to open in the rerun viewer; needs the cargo feature `rerun`.
     #[arg(long, value_name = "FILE.rrd")]
     pub rerun: Option<PathBuf>,
-    /// Localise in this saved map (an id from `relfusion maps list`) instead of mapping: every
-    /// pose is in the map's frame, frames outside it are `lost`.
+    /// Start in this saved map (an id from `relfusion maps list`) instead of an empty one:
+    /// every pose is in the map's frame, frames outside it are `lost` (`--map-mode`).
     #[arg(long, value_name = "MAP_ID")]
     pub map: Option<String>,
+    /// What to do with `--map`: `localize` (the map is left as it is) or `extend` (map on
+    /// from where the camera is found; the session's map holds both).
+    #[arg(long, value_enum, default_value = "localize", requires = "map")]
+    pub map_mode: super::run::MapMode,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -80,7 +84,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         camera: None,
         map: args.map.clone().map(|id| relfusion_client::MapStart {
             id,
-            mode: relfusion_client::MapMode::Localize,
+            mode: match args.map_mode {
+                super::run::MapMode::Localize => relfusion_client::MapMode::Localize,
+                super::run::MapMode::Extend => relfusion_client::MapMode::Extend,
+            },
         }),
     };
     let seq = TumSequence::open(&args.dataset, None)

@@ -1,8 +1,8 @@
-//! What a session's worker drives: the SLAM pipeline (a map made from nothing) or a localiser
-//! in a saved map (`MapMode::Localize`, issue 24). One interface for the worker: frames in,
-//! pipeline events out, result files at the end.
+//! What a session's worker drives: the SLAM pipeline (a map made from nothing, or extending a
+//! saved map: `MapMode::Extend`) or a localiser in a saved map (`MapMode::Localize`, issue 24).
+//! One interface for the worker: frames in, pipeline events out, result files at the end.
 
-use relfusion_proto::http::MapStart;
+use relfusion_proto::http::{MapMode, MapStart};
 use relfusion_slam::dense::DepthPrior;
 use relfusion_slam::geometry::{PinholeCamera, Sim3};
 use relfusion_slam::map::{LocalizationState, Localizer, read_map};
@@ -18,7 +18,8 @@ type Finished = (Vec<(usize, Sim3)>, Vec<Event>);
 
 /// The session's engine.
 pub(crate) enum Engine {
-    /// Mapping: tracking, mapping, pose graph, dense layer, fusion.
+    /// Mapping: tracking, mapping, pose graph, dense layer, fusion (from nothing, or on from a
+    /// saved map).
     Map(Box<Pipeline>),
     /// Localising every frame in a saved map, which stays as it is.
     Localize {
@@ -28,8 +29,8 @@ pub(crate) enum Engine {
 }
 
 impl Engine {
-    /// The session's engine: a pipeline, or a localiser over the saved map `map` (its folder in
-    /// `store`), which must serve `camera`.
+    /// The session's engine: a pipeline, a pipeline extending the saved map `map` (its folder
+    /// in `store`), or a localiser over it; the map must serve `camera`.
     pub fn start(
         config: &Config,
         camera: &PinholeCamera,
@@ -48,6 +49,11 @@ impl Engine {
             .ok_or("maps need a filesystem store")?;
         let map =
             read_map(&dir, Some(camera)).map_err(|e| format!("loading map {}: {e}", start.id))?;
+        if start.mode == MapMode::Extend {
+            return Pipeline::extending(config.clone(), *camera, prior, gpu, &map)
+                .map(|p| Engine::Map(Box::new(p)))
+                .map_err(|e| format!("extending map {}: {e}", start.id));
+        }
         let localizer = Localizer::new(&map, config.tracking.clone(), config.localize.clone())
             .map_err(|e| format!("map {}: {e}", start.id))?;
         Ok(Engine::Localize {
@@ -86,6 +92,19 @@ impl Engine {
                     is_keyframe: false,
                 })])
             }
+        }
+    }
+
+    /// The keyframes of the map an extending pipeline started from (timestamp and pose, by
+    /// id); none otherwise.
+    pub fn map_keyframes(&self) -> Vec<(f64, Sim3)> {
+        match self {
+            Engine::Map(pipeline) => {
+                let mut poses = pipeline.keyframe_trajectory();
+                poses.truncate(pipeline.map_keyframes());
+                poses
+            }
+            Engine::Localize { .. } => Vec::new(),
         }
     }
 

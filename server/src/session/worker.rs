@@ -79,6 +79,12 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         Ok(engine) => engine,
         Err(e) => return fail(session, None, e),
     };
+    // An extended map's keyframes are the session's too: listed with their poses, counted
+    // towards its keyframe limit.
+    for (id, (timestamp, pose)) in engine.map_keyframes().into_iter().enumerate() {
+        session.record_keyframe(id as u64, timestamp, pose);
+        session.counters.keyframes.fetch_add(1, Ordering::Relaxed);
+    }
     let mut runner = Runner {
         session,
         env: &env,

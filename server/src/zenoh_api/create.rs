@@ -116,6 +116,7 @@ pub fn create_request(config: &SessionConfig) -> Result<SessionRequest, ApiError
             id: id.to_string(),
             mode: match config.map_mode() {
                 v1::MapMode::Localize | v1::MapMode::Unspecified => MapMode::Localize,
+                v1::MapMode::Extend => MapMode::Extend,
             },
         }),
     };

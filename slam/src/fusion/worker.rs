@@ -128,6 +128,12 @@ impl FusionLink {
         self.link.submit(job)
     }
 
+    /// Hands a keyframe over, waiting for queue room (a loaded map's keyframes, none of which
+    /// may be dropped).
+    pub fn send(&mut self, job: FusionJob) -> Result<()> {
+        self.link.send(job)
+    }
+
     /// Deltas ready now.
     pub fn poll(&mut self) -> Vec<FusionReply> {
         self.link.poll()

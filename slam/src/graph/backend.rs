@@ -94,6 +94,8 @@ pub struct ProcessReport {
     pub fallback_parent_edges: usize,
     /// Existing pairs of edges re-estimated after a depth update (and replaced).
     pub constraints_refreshed: usize,
+    /// Fragments joined to an older one by a constraint found between them.
+    pub fragments_merged: usize,
     /// The optimisation run, if any.
     pub optimize: Option<OptimizeReport>,
     /// The windowed bundle adjustment run, if any.
@@ -112,6 +114,10 @@ struct Entry {
     neighbours: BTreeSet<KeyframeId>,
     /// Candidates whose test failed, with the initial relative pose tried.
     failed: Vec<(KeyframeId, Sim3)>,
+    /// The fragment it belongs to: the id of the fragment's first keyframe. A keyframe without
+    /// a parent starts a fragment (the session's first keyframe, or a new map begun after
+    /// tracking was lost for good); a constraint between two fragments merges them.
+    fragment: KeyframeId,
 }
 
 /// Where a candidate comes from (decides its initial relative pose).
@@ -166,12 +172,24 @@ impl Backend {
             return Err(Error::Backend(format!("keyframe {} added twice", new.id)));
         }
         let keyframe = Keyframe::new(new.id, new.frame, new.depth)?;
-        let initial = new
-            .parent
-            .as_ref()
-            .and_then(|p| Some(self.graph.pose(p.id)? * p.parent_from_keyframe))
-            .unwrap_or(new.world_from_keyframe);
+        let parent = new.parent.as_ref().and_then(|p| {
+            Some((
+                self.graph.pose(p.id)?,
+                self.keyframes.get(&p.id)?.fragment,
+                p,
+            ))
+        });
+        let (initial, fragment) = match parent {
+            Some((world_from_parent, fragment, p)) => {
+                (world_from_parent * p.parent_from_keyframe, fragment)
+            }
+            None => (new.world_from_keyframe, new.id),
+        };
         self.graph.add_vertex(new.id, initial);
+        if fragment == new.id {
+            // A fragment's first keyframe fixes its gauge until it is merged into another.
+            self.graph.set_fixed(new.id, true)?;
+        }
         let order = self.keyframes.len();
         self.keyframes.insert(
             new.id,
@@ -181,10 +199,56 @@ impl Backend {
                 parent: new.parent,
                 neighbours: BTreeSet::new(),
                 failed: Vec::new(),
+                fragment,
             },
         );
         self.pending.push(new.id);
         Ok(())
+    }
+
+    /// Inserts a keyframe of a saved map (`crate::map`) at its saved pose: no constraint
+    /// search (its edges come with the map, [`Backend::add_map_edge`]); `fixed` holds the pose
+    /// constant in every later optimisation.
+    pub fn add_map_keyframe(
+        &mut self,
+        id: KeyframeId,
+        frame: Arc<Frame>,
+        depth: Arc<DepthMap>,
+        world_from_keyframe: Sim3,
+        fixed: bool,
+    ) -> Result<()> {
+        if self.keyframes.contains_key(&id) {
+            return Err(Error::Backend(format!("keyframe {id} added twice")));
+        }
+        let keyframe = Keyframe::new(id, frame, depth)?;
+        self.graph.add_vertex(id, world_from_keyframe);
+        self.graph.set_fixed(id, fixed || self.graph.len() == 1)?;
+        let order = self.keyframes.len();
+        // A saved map is one fragment: the one of its first keyframe.
+        let fragment = self
+            .keyframes
+            .values()
+            .map(|e| e.fragment)
+            .min()
+            .unwrap_or(id);
+        self.keyframes.insert(
+            id,
+            Entry {
+                keyframe,
+                order,
+                parent: None,
+                neighbours: BTreeSet::new(),
+                failed: Vec::new(),
+                fragment,
+            },
+        );
+        Ok(())
+    }
+
+    /// Adds an edge of a saved map between two of its keyframes (both already inserted).
+    pub fn add_map_edge(&mut self, edge: Constraint) -> Result<()> {
+        self.link(edge.from, edge.to);
+        self.graph.add_edge(edge)
     }
 
     /// Replaces the depth map of keyframe `id` — e.g. DeepRelativeFusion's two-view consistent
@@ -242,9 +306,15 @@ impl Backend {
     /// edge. Returns whether edges changed.
     fn run_window(&mut self, report: &mut ProcessReport) -> Result<bool> {
         let config = &self.config.window;
+        // Only the newest keyframe's fragment: poses of another are in another frame.
+        let Some(newest) = self.keyframes.values().max_by_key(|e| e.order) else {
+            return Ok(false);
+        };
+        let fragment = newest.fragment;
         let mut ids: Vec<(usize, KeyframeId)> = self
             .keyframes
             .iter()
+            .filter(|(_, e)| e.fragment == fragment)
             .map(|(id, e)| (e.order, *id))
             .collect();
         ids.sort_unstable();
@@ -397,10 +467,11 @@ impl Backend {
                 && c.order >= self.config.skip_initial_keyframes
                 && c.keyframe.levels.estimates > 0
         };
+        // Poses of another fragment are in another frame: only appearance proposes those.
         let mut close: Vec<(KeyframeId, f64)> = self
             .keyframes
             .iter()
-            .filter(|(cid, c)| eligible(**cid, c))
+            .filter(|(cid, c)| eligible(**cid, c) && c.fragment == entry.fragment)
             .filter_map(|(&cid, c)| {
                 let cpose = self.graph.pose(cid)?;
                 pose_proximity(&self.config, &entry.keyframe, &pose, &c.keyframe, &cpose)
@@ -521,6 +592,9 @@ impl Backend {
         let mut any = false;
         report.constraints_accepted += accepted.len();
         for (forward, backward) in accepted {
+            if self.merge_fragments(&forward)? {
+                report.fragments_merged += 1;
+            }
             self.link(forward.from, forward.to);
             self.graph.add_edge(forward)?;
             self.graph.add_edge(backward)?;
@@ -589,6 +663,56 @@ impl Backend {
             self.graph.add_edge(backward)?;
         }
         Ok(any)
+    }
+
+    /// When `edge` joins two fragments, moves the younger one (the larger first id) into the
+    /// older one's frame by the similarity the edge implies and releases its gauge: from then
+    /// on the optimisation treats them as one map. Returns whether it merged.
+    fn merge_fragments(&mut self, edge: &Constraint) -> Result<bool> {
+        let fragment = |id: KeyframeId| self.keyframes.get(&id).map(|e| e.fragment);
+        let (Some(from), Some(to)) = (fragment(edge.from), fragment(edge.to)) else {
+            return Ok(false);
+        };
+        let (Some(world_from_a), Some(world_from_b)) =
+            (self.graph.pose(edge.from), self.graph.pose(edge.to))
+        else {
+            return Ok(false);
+        };
+        if from == to {
+            return Ok(false);
+        }
+        // Maps the `from` fragment's frame into the `to` fragment's.
+        let to_world_from_from_world = world_from_b * edge.to_from_from * world_from_a.inverse();
+        let (keep, moved, transform) = if to < from {
+            (to, from, to_world_from_from_world)
+        } else {
+            (from, to, to_world_from_from_world.inverse())
+        };
+        let members: Vec<KeyframeId> = self
+            .keyframes
+            .iter()
+            .filter(|(_, e)| e.fragment == moved)
+            .map(|(id, _)| *id)
+            .collect();
+        for id in members {
+            if let Some(pose) = self.graph.pose(id) {
+                self.graph.add_vertex(id, transform * pose);
+            }
+            if let Some(e) = self.keyframes.get_mut(&id) {
+                e.fragment = keep;
+            }
+        }
+        self.graph.set_fixed(moved, false)?;
+        tracing::info!(kept = keep, merged = moved, "map fragments merged");
+        Ok(true)
+    }
+
+    /// The fragment of every keyframe (the id of its fragment's first keyframe).
+    pub fn fragments(&self) -> HashMap<KeyframeId, KeyframeId> {
+        self.keyframes
+            .iter()
+            .map(|(id, e)| (*id, e.fragment))
+            .collect()
     }
 
     fn link(&mut self, a: KeyframeId, b: KeyframeId) {

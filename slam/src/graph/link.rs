@@ -89,7 +89,11 @@ impl BackendLink {
     /// A back end with `config`, on its own thread when `threaded` (commands then wait only
     /// while [`BackendConfig::channel_capacity`] are queued).
     pub fn new(config: BackendConfig, threaded: bool) -> Result<Self> {
-        let backend = Backend::new(config)?;
+        Self::with_backend(Backend::new(config)?, threaded)
+    }
+
+    /// [`BackendLink::new`] around a back end that already holds keyframes (a loaded map).
+    pub fn with_backend(backend: Backend, threaded: bool) -> Result<Self> {
         let spec = WorkerSpec {
             name: "backend",
             priority: Priority::Graph,

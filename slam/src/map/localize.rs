@@ -358,8 +358,10 @@ impl Localizer {
         .map(|r| (last.keyframe, r))
     }
 
-    /// Place recognition, alignment and verification by a second keyframe.
-    fn relocalise(&mut self, frame: &Frame) -> Option<(KeyframeId, TrackingResult)> {
+    /// Place recognition, alignment and verification by a second keyframe: the map keyframe
+    /// and the frame's alignment to it (also how an extended map finds its camera,
+    /// `pipeline::extend`).
+    pub(crate) fn relocalise(&mut self, frame: &Frame) -> Option<(KeyframeId, TrackingResult)> {
         let thumbnail = Thumbnail::new(frame);
         let mut ranked: Vec<(KeyframeId, f64)> = self
             .anchors

@@ -32,9 +32,9 @@ fn render(scene: &Scene, camera: &PinholeCamera, pose: &SE3, t: f64) -> FrameInp
     }
 }
 
-/// A map of the first 5 s of the orbit (dense layer on when `dense`), with the ground truth of
-/// its frames.
-fn mapped(dense: bool) -> (SavedMap, Vec<StampedPose>) {
+/// A map of the first `frames` of the orbit (dense layer on when `dense`), with the ground truth
+/// of its frames.
+fn mapped(dense: bool, frames: usize) -> (SavedMap, Vec<StampedPose>) {
     let synth = synth();
     let camera = synth.camera().expect("camera");
     let scene = Scene::generate(synth.seed);
@@ -43,7 +43,6 @@ fn mapped(dense: bool) -> (SavedMap, Vec<StampedPose>) {
     config.pipeline.init = DepthInit::Random;
     config.dense.enabled = dense;
     let mut pipeline = Pipeline::new(config, camera, None).expect("pipeline");
-    let frames = if dense { 60 } else { synth.frames };
     let mut gt = Vec::new();
     for (i, pose) in synth.poses().iter().enumerate().take(frames) {
         let t = i as f64 / FPS;
@@ -61,7 +60,7 @@ fn mapped(dense: bool) -> (SavedMap, Vec<StampedPose>) {
 
 fn localisation_map() -> &'static (SavedMap, Vec<StampedPose>) {
     static MAP: OnceLock<(SavedMap, Vec<StampedPose>)> = OnceLock::new();
-    MAP.get_or_init(|| mapped(false))
+    MAP.get_or_init(|| mapped(false, synth().frames))
 }
 
 fn temp_dir(name: &str) -> PathBuf {
@@ -82,7 +81,7 @@ fn entries(dir: &Path) -> Vec<String> {
 
 #[test]
 fn map_round_trip_keeps_keyframes_depth_edges_and_poses() {
-    let (map, _) = mapped(true);
+    let (map, _) = mapped(true, 60);
     assert!(
         map.keyframes.len() >= 3,
         "{} keyframes",
@@ -243,4 +242,104 @@ fn localizer_refuses_frames_of_another_size() {
         .localize(0.0, ::image::RgbImage::new(64, 48))
         .expect_err("size");
     assert!(matches!(err, Error::Shape(_)), "{err}");
+}
+
+#[test]
+fn an_extended_map_keeps_its_keyframes_and_maps_on_in_its_frame() {
+    // The map covers the first 100 frames of the orbit; the second run starts inside it, half
+    // a frame off the mapped views, and goes on 90 frames (a tenth of the orbit) beyond it.
+    let (map, gt) = mapped(false, 100);
+    let synth = synth();
+    let camera = synth.camera().expect("camera");
+    let scene = Scene::generate(synth.seed);
+    let trajectory = Trajectory::new(synth.motion, synth.seed);
+    let gt_from_map = gt_from_map(&map, &gt);
+    let mut config = Config::default();
+    config.pipeline.deterministic = true;
+    let mut pipeline = Pipeline::extending(config, camera, None, None, &map).expect("extend");
+    assert_eq!(pipeline.map_keyframes(), map.keyframes.len());
+    // A view of another room first: not in the map, so lost, and no map of its own is begun.
+    let other_room = Scene::generate(7);
+    let events = pipeline
+        .push(render(&other_room, &camera, &SE3::identity(), 0.0))
+        .expect("push");
+    let lost = events.iter().any(|e| {
+        matches!(e, crate::pipeline::Event::Pose(p) if p.state == crate::pipeline::TrackingState::Lost)
+    });
+    assert!(lost, "{events:?}");
+    assert_eq!(pipeline.stats().keyframes, map.keyframes.len());
+    let mut truth = Vec::new();
+    for i in 70..190 {
+        let t = (f64::from(i) + 0.5) / FPS;
+        let pose = trajectory.world_from_camera(t);
+        pipeline
+            .push(render(&scene, &camera, &pose, t))
+            .expect("push");
+        truth.push(StampedPose {
+            timestamp: t,
+            world_from_camera: pose,
+        });
+    }
+    let poses = pipeline.finish().expect("finish");
+    let n = map.keyframes.len();
+    assert!(
+        poses.len() >= n + 3,
+        "{} keyframes, {n} from the map",
+        poses.len()
+    );
+    for (kf, (id, pose)) in map.keyframes.iter().zip(&poses) {
+        assert_eq!(kf.id, *id);
+        let moved = (kf.world_from_keyframe.translation - pose.translation).norm();
+        assert!(moved < 1e-9, "map keyframe {id} moved by {moved}");
+    }
+    // The new frames in the map's frame: where they see the mapped area (up to frame 100)
+    // within the map's own accuracy under the map's alignment to the ground truth; beyond it,
+    // the extension keeps the map's scale (its own alignment's scale within 10 % of the map's)
+    // and its shape.
+    let trajectory = pipeline.trajectory();
+    let matched = associate_poses(&truth, &stamped_se3(&trajectory), 1e-3).expect("matched");
+    let rms_under = |gt_from_est: &Sim3, until: f64| {
+        let e: Vec<f64> = matched
+            .gt
+            .iter()
+            .zip(&matched.est)
+            .filter(|(g, _)| g.timestamp < until)
+            .map(|(g, e)| {
+                (g.world_from_camera.translation
+                    - gt_from_est.act(&e.world_from_camera.translation))
+                .norm()
+            })
+            .collect();
+        (e.iter().map(|v| v * v).sum::<f64>() / e.len() as f64).sqrt()
+    };
+    let own = align(&matched, AlignMode::Sim3).expect("own alignment");
+    let (in_map, shape) = (
+        rms_under(&gt_from_map, 100.0 / FPS),
+        rms_under(&own, f64::INFINITY),
+    );
+    let scale = own.scale / gt_from_map.scale;
+    eprintln!(
+        "extended: {} keyframes ({n} from the map), {} of 120 frames tracked, rms {in_map:.4} m \
+         in the mapped area, {shape:.4} m under its own alignment, scale {scale:.3} of the map's",
+        poses.len(),
+        matched.gt.len()
+    );
+    assert!(
+        matched.gt.len() >= 110,
+        "{} of 120 frames tracked",
+        matched.gt.len()
+    );
+    assert!(in_map < 0.05, "rms {in_map:.4} m in the mapped area");
+    assert!(shape < 0.05, "rms {shape:.4} m under its own alignment");
+    assert!((0.9..1.1).contains(&scale), "scale {scale:.3} of the map's");
+    // One merged map, which saves and loads like any other.
+    let merged = pipeline.saved_map().expect("merged map");
+    assert_eq!(merged.keyframes.len(), poses.len());
+    assert!(merged.edges.len() > map.edges.len());
+    assert!(
+        pipeline
+            .mesh()
+            .expect("mesh")
+            .is_some_and(|m| !m.is_empty())
+    );
 }

@@ -54,6 +54,14 @@ pub struct PipelineConfig {
     pub seed: u64,
     /// How many recent keyframes relocalisation tries after tracking is lost.
     pub relocalisation_candidates: usize,
+    /// Seconds (of frame time) tracking may stay lost, relocalisation failing on every frame,
+    /// before a new map fragment is begun at the frame (ORB-SLAM3's Atlas starts a new map
+    /// when it cannot relocalise; LSD-SLAM stays lost until the camera returns). The fragment is
+    /// placed where the camera was last seen and merged into the map when the back end finds a
+    /// constraint between them (`graph::Backend`). 0 = never. Default 2 s: long enough for
+    /// relocalisation to find a camera that comes straight back (docs/tuning.md, "Map
+    /// fragments").
+    pub new_fragment_after_lost_s: f64,
     /// Start tracking from a constant-velocity prediction (the last inter-frame motion applied
     /// once more), falling back to the last pose when that fails. Default false, LSD-SLAM's
     /// behaviour (start from the last pose): it did not help overall (docs/tuning.md,
@@ -105,6 +113,7 @@ impl Default for PipelineConfig {
             mapping_queue: 8,
             seed: 0,
             relocalisation_candidates: 8,
+            new_fragment_after_lost_s: 2.0,
             constant_velocity: false,
             prior_fill: true,
             prior_fill_var: 0.1,
@@ -127,8 +136,11 @@ pub struct Config {
     pub dense: DenseConfig,
     /// TSDF fusion of the dense keyframes and meshing (§III-F).
     pub fusion: crate::fusion::FusionConfig,
-    /// Localisation in a saved map (`relfusion run --map … --mode localize`).
+    /// Localisation in a saved map (`relfusion run --map … --mode localize`; also how
+    /// `--mode extend` finds its first frame in the map).
     pub localize: crate::map::LocalizeConfig,
+    /// Extending a saved map (`relfusion run --map … --mode extend`).
+    pub extend: super::ExtendConfig,
 }
 
 impl Config {
@@ -152,6 +164,12 @@ impl Config {
         }
         if !(self.pipeline.prior_fill_var.is_finite() && self.pipeline.prior_fill_var > 0.0) {
             return Err(Error::Config("pipeline.prior_fill_var must be > 0".into()));
+        }
+        let fragment = self.pipeline.new_fragment_after_lost_s;
+        if !(fragment.is_finite() && fragment >= 0.0) {
+            return Err(Error::Config(
+                "pipeline.new_fragment_after_lost_s must be ≥ 0".into(),
+            ));
         }
         if !(1..=256).contains(&self.pipeline.mapping_queue) {
             return Err(Error::Config(

@@ -1,12 +1,19 @@
 //! What a run leaves behind, at the current keyframe poses (optimised after
-//! [`Pipeline::finish`]): the trajectories and the semi-dense and dense point clouds.
+//! [`Pipeline::finish`]): the trajectories, the semi-dense and dense point clouds and the map.
+//!
+//! A map fragment that was never merged (`pipeline.new_fragment_after_lost_s`) has its poses in
+//! a frame of its own, so only the main fragment is exported: the one with the most keyframes,
+//! with every fragment merged into it (ORB-SLAM3 likewise saves the trajectory of its largest
+//! map).
+
+use std::collections::{BTreeMap, HashMap};
 
 use nalgebra::{Vector2, Vector3};
 
 use super::Pipeline;
 use crate::export::ColoredPoint;
 use crate::geometry::{PinholeCamera, Sim3};
-use crate::graph::Thumbnail;
+use crate::graph::{Constraint, KeyframeId, Thumbnail};
 use crate::map::{DenseDepth, MapKeyframe, SavedMap};
 use crate::{Error, Result};
 
@@ -14,10 +21,33 @@ use crate::{Error, Result};
 const NO_COLOUR: [u8; 3] = [200, 200, 200];
 
 impl Pipeline {
+    /// Whether each keyframe belongs to the main fragment (see the module docs). All do while
+    /// the back end is on its thread (it knows the fragments) or when there is one fragment.
+    fn exported(&self) -> Vec<bool> {
+        let n = self.keyframes.len();
+        let Some(fragments) = self.backend.backend().map(|b| b.fragments()) else {
+            return vec![true; n];
+        };
+        let mut sizes: BTreeMap<KeyframeId, usize> = BTreeMap::new();
+        for fragment in fragments.values() {
+            *sizes.entry(*fragment).or_default() += 1;
+        }
+        // The largest; of equals, the oldest.
+        let main = sizes
+            .iter()
+            .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
+            .map(|(f, _)| *f);
+        (0..n)
+            .map(|id| fragments.get(&id).is_none_or(|f| Some(*f) == main))
+            .collect()
+    }
+
     /// Keyframe timestamps with their current poses (for `keyframes.txt`).
     pub fn keyframe_trajectory(&self) -> Vec<(f64, Sim3)> {
+        let exported = self.exported();
         self.keyframe_poses()
             .into_iter()
+            .filter(|(id, _)| exported[*id])
             .map(|(id, pose)| (self.keyframes[id].frame.timestamp, pose))
             .collect()
     }
@@ -26,9 +56,10 @@ impl Pipeline {
     /// are left out.
     pub fn trajectory(&self) -> Vec<(f64, Sim3)> {
         let poses = self.keyframe_poses();
+        let exported = self.exported();
         self.frames
             .iter()
-            .filter(|f| !f.lost)
+            .filter(|f| !f.lost && exported[f.keyframe])
             .map(|f| {
                 (
                     f.timestamp,
@@ -41,9 +72,13 @@ impl Pipeline {
     /// The semi-dense points of every keyframe at its current pose, coloured from its image.
     pub fn semidense_points(&self) -> Vec<ColoredPoint> {
         let poses = self.keyframe_poses();
+        let exported = self.exported();
         let mut points = Vec::new();
         let current_depth = self.current.zip(self.mapper.latest_depth());
         for (id, (kf, (_, world_from_kf))) in self.keyframes.iter().zip(poses).enumerate() {
+            if !exported[id] {
+                continue;
+            }
             let depth = match &current_depth {
                 Some((current, depth)) if *current == id => depth.clone(),
                 _ => kf.depth.clone(),
@@ -62,26 +97,34 @@ impl Pipeline {
         points
     }
 
-    /// The map as it stands, to save (`map::write_map`): every keyframe with its current
-    /// pose, semi-dense and dense depth and descriptor, the pose graph's edges, the voxel size.
-    /// Needs the back end at hand: after [`Pipeline::finish`], or in step.
+    /// The map as it stands, to save (`map::write_map`): every keyframe of the main fragment
+    /// (renumbered `0..n` in order) with its current pose, semi-dense and dense depth and
+    /// descriptor, the pose graph's edges between them, the voxel size. Needs the back end at
+    /// hand: after [`Pipeline::finish`], or in step.
     pub fn saved_map(&self) -> Result<SavedMap> {
         let backend = self.backend.backend().ok_or_else(|| {
             Error::Backend("the pose graph is on its thread: finish the run first".into())
         })?;
         let poses = self.keyframe_poses();
+        let exported = self.exported();
+        let renumbered: HashMap<KeyframeId, KeyframeId> = (0..self.keyframes.len())
+            .filter(|id| exported[*id])
+            .enumerate()
+            .map(|(new, old)| (old, new))
+            .collect();
         let current_depth = self.current.zip(self.mapper.latest_depth());
         let keyframes = self
             .keyframes
             .iter()
             .zip(poses)
-            .map(|(kf, (id, world_from_keyframe))| {
+            .filter_map(|(kf, (id, world_from_keyframe))| {
+                let new_id = *renumbered.get(&id)?;
                 let depth = match &current_depth {
                     Some((current, depth)) if *current == id => depth.clone(),
                     _ => kf.depth.clone(),
                 };
-                MapKeyframe {
-                    id,
+                Some(MapKeyframe {
+                    id: new_id,
                     timestamp: kf.frame.timestamp,
                     world_from_keyframe,
                     frame: kf.frame.clone(),
@@ -92,13 +135,25 @@ impl Pipeline {
                         variance: d.variance.clone(),
                     }),
                     thumbnail: Thumbnail::new(&kf.frame),
-                }
+                })
+            })
+            .collect();
+        let edges = backend
+            .graph()
+            .edges()
+            .iter()
+            .filter_map(|e| {
+                Some(Constraint {
+                    from: *renumbered.get(&e.from)?,
+                    to: *renumbered.get(&e.to)?,
+                    ..e.clone()
+                })
             })
             .collect();
         Ok(SavedMap {
             camera: self.camera,
             keyframes,
-            edges: backend.graph().edges().to_vec(),
+            edges,
             voxel_size: self.fusion_stats().map(|f| f.voxel_size as f32),
         })
     }
@@ -107,7 +162,11 @@ impl Pipeline {
     /// the dense point cloud (`dense.ply`).
     pub fn dense_points(&self) -> Result<Vec<ColoredPoint>> {
         let mut points = Vec::new();
+        let exported = self.exported();
         for (kf, world_from_kf) in self.dense_keyframes() {
+            if !exported[kf.keyframe_id] {
+                continue;
+            }
             let (w, h) = (kf.idepth.width, kf.idepth.height);
             let colors = match &self.keyframes[kf.keyframe_id].frame.rgb {
                 Some(rgb) => Some(crate::dense::resample::box_downsample_rgb(rgb, w, h)?),

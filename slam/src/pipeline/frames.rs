@@ -24,7 +24,10 @@ impl Pipeline {
         let frame = Arc::new(self.make_frame(input)?);
         self.stats.frames += 1;
         if self.current.is_none() {
-            return self.start(frame);
+            return match self.map {
+                Some(_) => self.start_in_map(frame),
+                None => self.start(frame),
+            };
         }
         let kf_id = self.current.unwrap_or_default();
         let mapped = self.mapper.published()?;
@@ -43,6 +46,7 @@ impl Pipeline {
         if !result.good {
             return self.lost_or_relocalised(&frame);
         }
+        self.lost_since = None;
         let state = if std::mem::take(&mut self.lost) {
             TrackingState::Relocalized
         } else {
@@ -94,7 +98,7 @@ impl Pipeline {
     }
 
     /// Records a frame's pose relative to its keyframe and reports it.
-    fn record_frame(
+    pub(super) fn record_frame(
         &mut self,
         frame: &Frame,
         keyframe: KeyframeId,
@@ -192,6 +196,7 @@ impl Pipeline {
                 .propagate_to(frame.clone(), &result.frame_from_keyframe)?,
             };
             self.keyframe_creation_s += t0.elapsed().as_secs_f64();
+            self.lost_since = None;
             let candidate = KeyframeCandidate {
                 frame: frame.clone(),
                 source_id: kf,
@@ -200,6 +205,14 @@ impl Pipeline {
                 state: TrackingState::Relocalized,
             };
             return self.new_keyframe(candidate, propagated);
+        }
+        if let Some(events) = self.relocalise_in_map(frame)? {
+            return Ok(events);
+        }
+        let since = *self.lost_since.get_or_insert(frame.timestamp);
+        let after = self.config.pipeline.new_fragment_after_lost_s;
+        if after > 0.0 && frame.timestamp - since >= after {
+            return self.start_fragment(frame.clone());
         }
         self.lost = true;
         self.stats.frames_lost += 1;

@@ -60,6 +60,32 @@ impl Pipeline {
     /// The first frame becomes the first keyframe, its depth initialised from the prior (or
     /// randomly).
     pub(super) fn start(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
+        self.start_at(frame, Sim3::identity())
+    }
+
+    /// Tracking stayed lost for `pipeline.new_fragment_after_lost_s`: the frame begins a new
+    /// map fragment, initialised like the first keyframe and placed where the camera was last
+    /// seen (the last good frame's pose, in the current keyframe's scale). The back end holds
+    /// it apart from the map until a constraint joins them.
+    pub(super) fn start_fragment(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
+        let last_seen = self.current.map(|id| {
+            self.current_pose(id) * Sim3::from_se3(&self.last_frame_from_keyframe.inverse(), 1.0)
+        });
+        self.finish_current()?;
+        self.lost = false;
+        self.lost_since = None;
+        self.velocity = None;
+        self.stats.fragments += 1;
+        tracing::info!(
+            frame = frame.id,
+            keyframe = self.keyframes.len(),
+            "tracking stayed lost: new map fragment"
+        );
+        self.start_at(frame, last_seen.unwrap_or_else(Sim3::identity))
+    }
+
+    /// A keyframe with no parent (a map's or a fragment's first) at `world_from_keyframe`.
+    fn start_at(&mut self, frame: Arc<Frame>, world_from_keyframe: Sim3) -> Result<Vec<Event>> {
         let mut filter = DepthFilter::new(frame.clone(), self.config.mapping.clone())?;
         let prior_depth = match (
             self.config.pipeline.init,
@@ -80,7 +106,7 @@ impl Pipeline {
         self.begin_keyframe(
             frame,
             filter,
-            Sim3::identity(),
+            world_from_keyframe,
             None,
             prior_depth,
             Some(TrackingState::Initializing),

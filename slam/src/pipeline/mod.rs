@@ -17,11 +17,13 @@
 //!   hand-over to the back end and the dense layer;
 //! - [`layers`]: the dense layer's and the fusion's results coming back;
 //! - [`export`]: trajectories and point clouds at the current poses;
+//! - [`extend`]: a pipeline that starts from a saved map and extends it;
 //! - [`mapper`]: the current keyframe's depth mapping, in step or on its own thread.
 
 pub mod config;
 pub mod events;
 mod export;
+mod extend;
 mod frames;
 mod keyframes;
 mod layers;
@@ -34,6 +36,7 @@ use std::sync::Arc;
 
 pub use config::{Config, DepthInit, PipelineConfig};
 pub use events::{Event, KeyframeEvent, PoseEvent, TrackingState};
+pub use extend::ExtendConfig;
 
 use crate::Result;
 use crate::background::{Link, Priority, WorkerSpec};
@@ -44,9 +47,10 @@ use crate::fusion::worker::FusionLink;
 use crate::fusion::{FusionStats, Mesh};
 use crate::geometry::{PinholeCamera, SE3, Sim3, UndistortMap};
 use crate::gpu::GpuContext;
-use crate::graph::{BackendLink, KeyframeId};
+use crate::graph::{Backend, BackendLink, KeyframeId};
 use crate::image::ImageF32;
 use crate::tracking::SE3Tracker;
+use extend::MapOrigin;
 use keyframes::{FrameRecord, KeyframeRecord};
 use mapper::KeyframeMapper;
 
@@ -67,6 +71,11 @@ pub struct Stats {
     pub frames: usize,
     pub keyframes: usize,
     pub frames_lost: usize,
+    /// Map fragments begun after tracking stayed lost (`pipeline.new_fragment_after_lost_s`).
+    pub fragments: usize,
+    /// Of the map's fragments, those still apart from the first at the end of the run (no
+    /// constraint joined them); set by [`Pipeline::finish`].
+    pub fragments_apart: usize,
     /// Accumulated wall time of tracking, mapping and keyframe creation (seconds).
     pub tracking_s: f64,
     pub mapping_s: f64,
@@ -121,10 +130,14 @@ pub struct Pipeline {
     /// current keyframe's scale (the constant-velocity model of the tracking guess).
     velocity: Option<SE3>,
     lost: bool,
+    /// Timestamp of the first frame of the current run of lost frames.
+    lost_since: Option<f64>,
     next_frame_id: u64,
     stats: Stats,
     /// The keyframe poses last reported in an [`Event::KeyframePoses`].
     reported_poses: HashMap<KeyframeId, Sim3>,
+    /// The saved map this pipeline extends, if any ([`Pipeline::extending`]).
+    map: Option<MapOrigin>,
 }
 
 impl Pipeline {
@@ -142,10 +155,21 @@ impl Pipeline {
     /// [`Pipeline::new`] with the kernels on `gpu` (a service gives each session the context
     /// of the GPU its pool worker owns).
     pub fn with_gpu(
+        config: Config,
+        camera: PinholeCamera,
+        prior: Option<Box<dyn DepthPrior>>,
+        gpu: Option<Arc<GpuContext>>,
+    ) -> Result<Self> {
+        Self::build(config, camera, prior, gpu, None)
+    }
+
+    /// [`Pipeline::with_gpu`] with a back end that may already hold keyframes (a loaded map).
+    fn build(
         mut config: Config,
         camera: PinholeCamera,
         prior: Option<Box<dyn DepthPrior>>,
         gpu: Option<Arc<GpuContext>>,
+        backend: Option<Backend>,
     ) -> Result<Self> {
         config.validate()?;
         let threaded = !config.pipeline.deterministic;
@@ -158,7 +182,10 @@ impl Pipeline {
             .is_some()
             .then(|| UndistortMap::new(&camera));
         let tracker = SE3Tracker::new(config.tracking.clone())?;
-        let backend = BackendLink::new(config.backend.clone(), threaded)?;
+        let backend = match backend {
+            Some(backend) => BackendLink::with_backend(backend, threaded)?,
+            None => BackendLink::new(config.backend.clone(), threaded)?,
+        };
         let prior: Option<SharedPrior> = prior.map(|p| Arc::new(std::sync::Mutex::new(p)));
         let dense = if config.dense.enabled {
             config.dense.validate()?;
@@ -201,12 +228,14 @@ impl Pipeline {
             last_frame_from_keyframe: SE3::identity(),
             velocity: None,
             lost: false,
+            lost_since: None,
             next_frame_id: 0,
             stats: Stats {
                 dense_mode,
                 ..Stats::default()
             },
             reported_poses: HashMap::new(),
+            map: None,
             config,
         })
     }
@@ -251,6 +280,11 @@ impl Pipeline {
             self.apply_dense(replies)?;
         }
         self.backend.finish()?;
+        if let Some(backend) = self.backend.backend() {
+            let fragments: std::collections::BTreeSet<KeyframeId> =
+                backend.fragments().into_values().collect();
+            self.stats.fragments_apart = fragments.len().saturating_sub(1);
+        }
         let poses = self.keyframe_poses();
         self.finish_fusion(&poses)?;
         Ok(poses)

@@ -346,3 +346,88 @@ fn pipeline_scale_drift_over_a_1000_frame_loop_stays_within_1_1() {
         .expect("windows with a scale");
     assert!(drift <= 1.1, "scale drift {drift} over 1000 frames");
 }
+
+/// A camera that is covered for 1 s and uncovered elsewhere (a third of the orbit on) loses
+/// tracking for good: relocalisation against the recent keyframes cannot find it. With
+/// `new_fragment_after_lost_s` it begins a new fragment 2 s after it was lost, maps on there,
+/// and the fragment is merged into the map when the orbit brings the camera back to the start;
+/// without, every frame until then is lost.
+fn covered_and_moved(config: Config) -> (Pipeline, Vec<StampedPose>) {
+    let synth = SynthConfig {
+        frames: 330,
+        seed: 2,
+        width: 320,
+        height: 240,
+        ..Default::default()
+    };
+    let camera = synth.camera().expect("camera");
+    let (scene, covered) = (Scene::generate(synth.seed), Scene::generate(7));
+    let poses = synth.poses();
+    // Orbit frames 0-89, 30 frames of something else in front of the lens, orbit 180-329.
+    let shown: Vec<(&Scene, usize)> = (0..90)
+        .map(|i| (&scene, i))
+        .chain((0..30).map(|i| (&covered, i)))
+        .chain((180..330).map(|i| (&scene, i)))
+        .collect();
+    let mut pipeline = Pipeline::new(config, camera, None).expect("pipeline");
+    let mut gt = Vec::new();
+    for (k, (s, i)) in shown.into_iter().enumerate() {
+        let timestamp = k as f64 / synth.fps;
+        let (rgb, _) = render_frame(s, &camera, &poses[i]);
+        pipeline
+            .push(FrameInput {
+                timestamp,
+                rgb,
+                depth: None,
+            })
+            .expect("push");
+        if std::ptr::eq(s, &scene) {
+            gt.push(StampedPose {
+                timestamp,
+                world_from_camera: poses[i],
+            });
+        }
+    }
+    pipeline.finish().expect("finish");
+    (pipeline, gt)
+}
+
+#[test]
+fn a_camera_lost_for_good_starts_a_fragment_that_is_merged_when_it_returns() {
+    let (pipeline, gt) = covered_and_moved(deterministic());
+    let stats = pipeline.stats().clone();
+    let trajectory = pipeline.trajectory();
+    let result = ate(&gt, &stamped(&trajectory), AlignMode::Sim3).expect("ate");
+    eprintln!(
+        "with fragments: {} fragment(s), {} left apart, {} of {} frames with a pose, ATE {:.4}",
+        stats.fragments,
+        stats.fragments_apart,
+        result.matched,
+        gt.len(),
+        result.rmse
+    );
+    assert_eq!(stats.fragments, 1, "{stats:?}");
+    assert_eq!(
+        stats.fragments_apart, 0,
+        "the fragment was merged: {stats:?}"
+    );
+    assert!(
+        result.matched >= gt.len() - 70,
+        "{} of {}",
+        result.matched,
+        gt.len()
+    );
+    assert!(
+        result.rmse < 0.05,
+        "ATE {} over both fragments",
+        result.rmse
+    );
+
+    let mut without = deterministic();
+    without.pipeline.new_fragment_after_lost_s = 0.0;
+    let (pipeline, _) = covered_and_moved(without);
+    let lost = pipeline.trajectory().len();
+    eprintln!("without fragments: {lost} frames with a pose");
+    assert_eq!(pipeline.stats().fragments, 0);
+    assert!(lost < result.matched, "{lost} vs {}", result.matched);
+}
