@@ -10,6 +10,7 @@ pub mod api_error;
 pub mod config;
 pub mod convert;
 pub mod error;
+pub mod folders;
 pub mod gpu_pool;
 pub mod http;
 pub mod maps;

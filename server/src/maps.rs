@@ -2,12 +2,12 @@
 //! the token that saved it, listed, described, deleted, and started from by new sessions.
 //!
 //! Keys: `maps/<id>/meta.json` (who owns it, where it came from, its camera) and
-//! `maps/<id>/map/` (the map in the format of `docs/map-format.md`). A map is copied there from
-//! the session's `results/map/` by reading it whole (every part checked) and writing it
-//! atomically; its metadata is written last and removed first, so a map without metadata is
-//! never listed and a crash in between leaves at worst an unlisted folder.
+//! `maps/<id>/map/` (the map in the format of `docs/map-format.md`), through the object-store
+//! interface ([`crate::folders`]). A map is copied there from the session's `results/map/` by
+//! reading it whole (every part checked) and writing it again; its metadata is written last and
+//! removed first, so a map without metadata is never listed and a crash in between leaves at
+//! worst an unlisted folder.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use relfusion_proto::http::{MapInfo, MapStart};
@@ -54,11 +54,15 @@ impl MapMeta {
     }
 }
 
-/// A map a session may start from: its folder and camera.
+/// A map a session may start from.
 #[derive(Clone, Debug)]
 pub struct MapSource {
-    pub dir: PathBuf,
     pub camera: PinholeCamera,
+}
+
+/// Key prefix of map `id`'s files.
+pub fn map_prefix(id: &str) -> String {
+    format!("maps/{id}/map")
 }
 
 /// The saved maps of every owner.
@@ -147,23 +151,17 @@ impl MapStore {
     /// Where a session of `owner` starting from `start` finds the map (404 when not theirs).
     pub fn source(&self, start: &MapStart, owner: &Owner) -> Result<MapSource, ApiError> {
         let meta = self.owned(&start.id, owner)?;
-        let dir = self
-            .store
-            .local_path(&format!("maps/{}/map", meta.id))
-            .ok_or_else(|| ApiError::internal("maps need a filesystem store"))?;
         Ok(MapSource {
-            dir,
             camera: meta.camera,
         })
     }
 
-    /// Keeps the map in `source` (a finished session's `results/map/`) as a new map of
+    /// Keeps the map of finished session `session` (its `results/map/`) as a new map of
     /// `owner`. Blocking (reads and writes the whole map): call it off the async runtime.
     pub fn save(
         &self,
         owner: &Owner,
         session: &str,
-        source: &std::path::Path,
         name: Option<String>,
     ) -> Result<MapInfo, ApiError> {
         if let Some(name) = &name
@@ -179,15 +177,21 @@ impl MapStore {
                 "this token keeps {held} maps, the most quotas.max_maps allows: delete one first"
             )));
         }
-        let map = relfusion_slam::map::read_map(source, None)
+        let source = crate::folders::fetch(
+            self.store.as_ref(),
+            &crate::session::persist::result_key(session, "map"),
+        )
+        .map_err(|e| ApiError::internal(format!("reading session {session}'s map: {e}")))?;
+        let map = relfusion_slam::map::read_map(source.path(), None)
             .map_err(|e| ApiError::conflict(format!("session {session} has no usable map: {e}")))?;
         let id = new_id();
-        let dir = self
-            .store
-            .local_path(&format!("maps/{id}/map"))
-            .ok_or_else(|| ApiError::internal("maps need a filesystem store"))?;
-        relfusion_slam::map::write_map(&dir, &map)
-            .map_err(|e| ApiError::internal(format!("writing the map: {e}")))?;
+        let bytes = crate::folders::store(self.store.as_ref(), &map_prefix(&id), |dir| {
+            relfusion_slam::map::write_map(dir, &map).map_err(|e| e.to_string())
+        })
+        .map_err(|e| {
+            let _ = self.store.delete_prefix(&format!("maps/{id}/"));
+            ApiError::internal(format!("writing the map: {e}"))
+        })?;
         let meta = MapMeta {
             version: META_VERSION,
             id: id.clone(),
@@ -197,7 +201,7 @@ impl MapStore {
             created_unix: crate::session::manager::now_unix(),
             keyframes: map.keyframes.len() as u64,
             camera: map.camera,
-            bytes: folder_bytes(&dir),
+            bytes,
             format_version: relfusion_slam::map::FORMAT_VERSION,
         };
         let bytes = serde_json::to_vec_pretty(&meta).unwrap_or_default();
@@ -216,11 +220,6 @@ impl MapStore {
             .and_then(|()| self.store.delete_prefix(&format!("maps/{id}/")))
             .map_err(|e| ApiError::internal(e.to_string()))
     }
-}
-
-/// Bytes of the map in `dir` (0 when it cannot be read: the figure is for quotas only).
-pub(crate) fn folder_bytes(dir: &std::path::Path) -> u64 {
-    relfusion_slam::map::disk_bytes_by_file(dir).map_or(0, |parts| parts.values().sum())
 }
 
 #[cfg(test)]

@@ -12,7 +12,6 @@ use relfusion_proto::http::{MapInfo, MapList, SaveMap};
 use super::auth::Auth;
 use super::error::{ApiJson, ErrorBody};
 use crate::session::SessionState;
-use crate::session::persist::result_key;
 use crate::{ApiError, AppState};
 
 /// Keeps the map of a finished session as a saved map of the caller.
@@ -43,15 +42,9 @@ pub async fn save_map(
             session.state()
         )));
     }
-    let source = session
-        .store
-        .local_path(&result_key(session.id(), "map"))
-        .ok_or_else(|| ApiError::internal("maps need a filesystem store"))?;
     let sessions = state.sessions.clone();
     let info = tokio::task::spawn_blocking(move || {
-        sessions
-            .maps()
-            .save(&owner, &request.session, &source, request.name)
+        sessions.maps().save(&owner, &request.session, request.name)
     })
     .await
     .map_err(|e| ApiError::internal(format!("saving the map: {e}")))??;

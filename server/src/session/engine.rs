@@ -44,11 +44,10 @@ impl Engine {
                 .map(|p| Engine::Map(Box::new(p)))
                 .map_err(|e| format!("starting the pipeline: {e}"));
         };
-        let dir = store
-            .local_path(&format!("maps/{}/map", start.id))
-            .ok_or("maps need a filesystem store")?;
-        let map =
-            read_map(&dir, Some(camera)).map_err(|e| format!("loading map {}: {e}", start.id))?;
+        let dir = crate::folders::fetch(store, &crate::maps::map_prefix(&start.id))
+            .map_err(|e| format!("fetching map {}: {e}", start.id))?;
+        let map = read_map(dir.path(), Some(camera))
+            .map_err(|e| format!("loading map {}: {e}", start.id))?;
         if start.mode == MapMode::Extend {
             return Pipeline::extending(config.clone(), *camera, prior, gpu, &map)
                 .map(|p| Engine::Map(Box::new(p)))
@@ -140,9 +139,9 @@ impl Engine {
         }
     }
 
-    /// Writes the session's map to `dir` (after [`Engine::finish`]); returns its bytes. A
-    /// localiser made no map.
-    pub fn write_map(&self, dir: &std::path::Path) -> Result<u64, String> {
+    /// Writes the session's map under `key` of `store` (after [`Engine::finish`]); returns its
+    /// bytes. A localiser, or a pipeline without keyframes, made no map.
+    pub fn write_map(&self, store: &dyn ObjectStore, key: &str) -> Result<u64, String> {
         let Engine::Map(pipeline) = self else {
             return Ok(0);
         };
@@ -150,7 +149,8 @@ impl Engine {
         if map.keyframes.is_empty() {
             return Ok(0);
         }
-        relfusion_slam::map::write_map(dir, &map).map_err(|e| e.to_string())?;
-        Ok(crate::maps::folder_bytes(dir))
+        crate::folders::store(store, key, |dir| {
+            relfusion_slam::map::write_map(dir, &map).map_err(|e| e.to_string())
+        })
     }
 }

@@ -412,13 +412,9 @@ impl Runner<'_> {
         if final_ {
             // The map, to keep with `POST /v1/maps` (docs/map-format.md).
             let key = super::persist::result_key(s.id(), "map");
-            let dir = s
-                .store
-                .local_path(&key)
-                .ok_or("maps need a filesystem store")?;
             bytes += self
                 .engine
-                .write_map(&dir)
+                .write_map(s.store.as_ref(), &key)
                 .map_err(|e| format!("saving the map: {e}"))?;
         }
         s.set_results_bytes(bytes);
