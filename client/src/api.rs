@@ -32,6 +32,13 @@ pub fn camera_json(c: &PinholeCamera) -> CameraJson {
     }
 }
 
+fn http_client(tls: &rustls::ClientConfig) -> Result<reqwest::Client, ClientError> {
+    Ok(reqwest::Client::builder()
+        .connect_timeout(Duration::from_secs(10))
+        .use_preconfigured_tls(tls.clone())
+        .build()?)
+}
+
 /// A connection to one `relfusiond` (cheap to clone: the HTTP connection pool is shared).
 #[derive(Clone, Debug)]
 pub struct Client {
@@ -40,6 +47,8 @@ pub struct Client {
     /// The token's name: the Zenoh user and tenant (HTTP does not need it).
     user: Option<String>,
     http: reqwest::Client,
+    /// What HTTPS and WSS trust ([`crate::tls`]).
+    tls: std::sync::Arc<rustls::ClientConfig>,
 }
 
 impl Client {
@@ -62,15 +71,27 @@ impl Client {
             let path = format!("{}/", url.path());
             url.set_path(&path);
         }
-        let http = reqwest::Client::builder()
-            .connect_timeout(Duration::from_secs(10))
-            .build()?;
+        let tls = crate::tls::client_config(&[])?;
         Ok(Self {
             base: url,
             token: token.filter(|t| !t.is_empty()),
             user: None,
-            http,
+            http: http_client(&tls)?,
+            tls,
         })
+    }
+
+    /// The same client trusting also the CA certificates in `pem` (a private CA that signed
+    /// the server's certificate), for HTTPS and WSS alike.
+    pub fn with_root_ca(mut self, pem: &[u8]) -> Result<Self, ClientError> {
+        self.tls = crate::tls::client_config(pem)?;
+        self.http = http_client(&self.tls)?;
+        Ok(self)
+    }
+
+    /// The TLS configuration the WebSocket transport connects with.
+    pub(crate) fn tls(&self) -> std::sync::Arc<rustls::ClientConfig> {
+        self.tls.clone()
     }
 
     /// The server's base URL (always ends with `/`).

@@ -17,6 +17,7 @@ pub mod fetch;
 pub mod link;
 #[cfg(feature = "rerun")]
 pub mod recording;
+pub mod tls;
 pub mod upload;
 pub mod ws;
 pub mod zenoh_transport;

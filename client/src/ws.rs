@@ -31,7 +31,14 @@ pub async fn connect(client: &Client, session_id: &str) -> Result<SessionLink, C
         request.headers_mut().insert("authorization", value);
     }
     // Nagle off: a pose update is small and latency is the point of a live stream.
-    let (socket, _) = match tokio_tungstenite::connect_async_with_config(request, None, true).await
+    let connector = tokio_tungstenite::Connector::Rustls(client.tls());
+    let (socket, _) = match tokio_tungstenite::connect_async_tls_with_config(
+        request,
+        None,
+        true,
+        Some(connector),
+    )
+    .await
     {
         Ok(ok) => ok,
         // The upgrade was refused with an HTTP answer: surface the server's JSON error.

@@ -62,6 +62,7 @@ pub fn app(state: Arc<AppState>) -> axum::Router {
 /// end with their sessions) `limits.shutdown_grace_s` to complete.
 pub async fn run(
     listener: tokio::net::TcpListener,
+    tls: Option<tokio_rustls::TlsAcceptor>,
     state: Arc<AppState>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
@@ -76,7 +77,7 @@ pub async fn run(
     let router = app(state.clone());
     let limits = state.config.http.clone();
     let mut server = tokio::spawn(async move {
-        http::serve::serve(listener, router, &limits, async move {
+        http::serve::serve(listener, tls, router, &limits, async move {
             let _ = stop_rx.await;
         })
         .await;

@@ -107,6 +107,8 @@ async fn main() -> anyhow::Result<()> {
         );
         return Ok(());
     }
+    // A bad certificate or key stops the start, before anything listens.
+    let tls = relfusion_server::http::tls::acceptor(&config.tls).map_err(anyhow::Error::msg)?;
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("binding {}", config.listen))?;
@@ -118,7 +120,7 @@ async fn main() -> anyhow::Result<()> {
     // The one stdout line: scripts and tests read the bound address from it (port 0).
     println!("listening on {addr}");
     tracing::info!(%addr, data_dir = %state.config.data_dir.display(), "relfusiond ready");
-    relfusion_server::run(listener, Arc::new(state), shutdown_signal()).await?;
+    relfusion_server::run(listener, tls, Arc::new(state), shutdown_signal()).await?;
     tracing::info!("stopped");
     Ok(())
 }

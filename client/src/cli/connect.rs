@@ -1,5 +1,6 @@
 //! What every service subcommand (`stream`, `upload`, `fetch`, `bench serve`) needs to reach a
-//! `relfusiond`: its URL and, when the server has auth on, a bearer token.
+//! `relfusiond`: its URL (`http://` or `https://`; WebSockets follow as `ws://`/`wss://`),
+//! a CA to trust beyond the web's roots, and, when the server has auth on, a bearer token.
 
 use relfusion_client::Client;
 
@@ -18,6 +19,10 @@ pub struct ConnectArgs {
     /// tokens) [default: $RELFUSION_USER].
     #[arg(long)]
     pub user: Option<String>,
+    /// PEM file of a CA certificate to trust for `https://` servers besides the web's roots (a
+    /// private CA that signed the server's certificate) [default: $RELFUSION_CA_CERT].
+    #[arg(long, value_name = "PEM")]
+    pub ca_cert: Option<std::path::PathBuf>,
 }
 
 impl ConnectArgs {
@@ -40,7 +45,19 @@ impl ConnectArgs {
             .user
             .clone()
             .or_else(|| std::env::var("RELFUSION_USER").ok());
-        Ok(Client::new(&self.server(), token)?.with_user(user))
+        let client = Client::new(&self.server(), token)?.with_user(user);
+        let ca = self
+            .ca_cert
+            .clone()
+            .or_else(|| std::env::var_os("RELFUSION_CA_CERT").map(Into::into));
+        Ok(match ca {
+            Some(path) => {
+                let pem = std::fs::read(&path)
+                    .map_err(|e| anyhow::anyhow!("--ca-cert {}: {e}", path.display()))?;
+                client.with_root_ca(&pem)?
+            }
+            None => client,
+        })
     }
 }
 

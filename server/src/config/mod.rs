@@ -39,6 +39,19 @@ pub struct Config {
     pub auth: AuthConfig,
     /// The Zenoh endpoints.
     pub zenoh: ZenohConfig,
+    /// HTTPS/WSS on `listen` instead of plain HTTP, when a certificate is given.
+    pub tls: TlsConfig,
+}
+
+/// The optional TLS listener: a certificate chain and its private key, PEM files (what an
+/// ingress or `certbot` hands out). Both or neither.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TlsConfig {
+    /// The server's certificate chain, leaf first (`RELFUSIOND_TLS_CERT`).
+    pub cert: Option<PathBuf>,
+    /// Its private key, PKCS#8, PKCS#1 or SEC1 (`RELFUSIOND_TLS_KEY`).
+    pub key: Option<PathBuf>,
 }
 
 impl Default for Config {
@@ -54,6 +67,7 @@ impl Default for Config {
             model: ModelSettings::default(),
             auth: AuthConfig::default(),
             zenoh: ZenohConfig::default(),
+            tls: TlsConfig::default(),
         }
     }
 }
@@ -218,6 +232,8 @@ pub const ENV_VARS: &[&str] = &[
     "RELFUSIOND_ZENOH_USER",
     "RELFUSIOND_ZENOH_PASSWORD",
     "RELFUSIOND_MEMORY_BUDGET_MB",
+    "RELFUSIOND_TLS_CERT",
+    "RELFUSIOND_TLS_KEY",
 ];
 
 impl Config {
@@ -294,6 +310,12 @@ impl Config {
             self.zenoh.connect = list(&v);
             self.zenoh.enabled = true;
         }
+        if let Some(v) = env("RELFUSIOND_TLS_CERT") {
+            self.tls.cert = Some(PathBuf::from(v));
+        }
+        if let Some(v) = env("RELFUSIOND_TLS_KEY") {
+            self.tls.key = Some(PathBuf::from(v));
+        }
         if let Some(v) = env("RELFUSIOND_ZENOH_USER") {
             self.zenoh.user = v.trim().to_string();
         }
@@ -344,6 +366,9 @@ impl Config {
     /// names are usable as Zenoh user names and key chunks.
     pub fn validate(&self) -> Result<(), String> {
         limits::validate(&self.limits, &self.http, &self.quotas, &self.retention)?;
+        if self.tls.cert.is_some() != self.tls.key.is_some() {
+            return Err("tls: give both cert and key (PEM files), or neither".into());
+        }
         if !matches!(self.zenoh.mode.as_str(), "peer" | "client") {
             return Err(format!(
                 "zenoh.mode must be \"peer\" or \"client\", got {:?}",

@@ -21,6 +21,7 @@ pub mod openapi;
 pub mod serve;
 pub mod sessions;
 pub mod stream_ws;
+pub mod tls;
 pub mod uploads;
 pub mod viewer;
 

@@ -7,6 +7,8 @@
 //!   ready for them (hyper's header-read timer), which also closes idle keep-alive
 //!   connections: half-sent headers cannot hold a connection.
 //! - Request bodies are bounded in size and time by [`super::body`].
+//! - With TLS ([`super::tls`]) the handshake runs in the connection's task and must finish
+//!   within the same header timeout.
 //!
 //! On shutdown the listener closes, every connection finishes its request in flight and
 //! closes (hyper's graceful shutdown), and the loop returns once they have.
@@ -20,16 +22,19 @@ use axum::body::Body;
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
+use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::TcpListener;
 use tokio::sync::{Semaphore, watch};
+use tokio_rustls::TlsAcceptor;
 use tower::ServiceExt as _;
 
 use crate::config::HttpLimits;
 
-/// Serves `router` on `listener` until `shutdown` resolves, then waits for open connections to
-/// finish their requests (the caller bounds that wait).
+/// Serves `router` on `listener` (over TLS with `tls`) until `shutdown` resolves, then waits
+/// for open connections to finish their requests (the caller bounds that wait).
 pub async fn serve(
     listener: TcpListener,
+    tls: Option<TlsAcceptor>,
     router: Router,
     limits: &HttpLimits,
     shutdown: impl Future<Output = ()>,
@@ -65,27 +70,21 @@ pub async fn serve(
                 .clone()
                 .map_request(|request: hyper::Request<Incoming>| request.map(Body::new)),
         );
-        let mut stop = stop_rx.clone();
+        let stop = stop_rx.clone();
         let closed = closed_tx.clone();
+        let tls = tls.clone();
         tokio::spawn(async move {
-            let mut builder = hyper::server::conn::http1::Builder::new();
-            builder
-                .timer(TokioTimer::new())
-                .header_read_timeout(header_timeout)
-                .max_buf_size(64 * 1024);
-            let conn = builder
-                .serve_connection(TokioIo::new(stream), service)
-                .with_upgrades();
-            tokio::pin!(conn);
-            let result = tokio::select! {
-                result = conn.as_mut() => result,
-                _ = stop.changed() => {
-                    conn.as_mut().graceful_shutdown();
-                    conn.as_mut().await
+            match tls {
+                None => serve_connection(stream, service, header_timeout, stop).await,
+                Some(acceptor) => {
+                    match tokio::time::timeout(header_timeout, acceptor.accept(stream)).await {
+                        Ok(Ok(stream)) => {
+                            serve_connection(stream, service, header_timeout, stop).await;
+                        }
+                        Ok(Err(e)) => tracing::debug!(%peer, "TLS handshake failed: {e}"),
+                        Err(_) => tracing::debug!(%peer, "TLS handshake timed out"),
+                    }
                 }
-            };
-            if let Err(e) = result {
-                tracing::debug!(%peer, "connection ended: {e}");
             }
             drop(slot);
             drop(closed);
@@ -96,4 +95,39 @@ pub async fn serve(
     drop(closed_tx);
     // Resolves once every connection task has dropped its sender.
     let _ = closed_rx.changed().await;
+}
+
+/// One HTTP/1.1 connection (with upgrades) until it ends or `stop` asks for a graceful close.
+async fn serve_connection<IO, S>(
+    io: IO,
+    service: S,
+    header_timeout: Duration,
+    mut stop: watch::Receiver<()>,
+) where
+    IO: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+    S: hyper::service::Service<hyper::Request<Incoming>, Response = axum::response::Response>
+        + Send
+        + 'static,
+    S::Future: Send + 'static,
+    S::Error: std::error::Error + Send + Sync + 'static,
+{
+    let mut builder = hyper::server::conn::http1::Builder::new();
+    builder
+        .timer(TokioTimer::new())
+        .header_read_timeout(header_timeout)
+        .max_buf_size(64 * 1024);
+    let conn = builder
+        .serve_connection(TokioIo::new(io), service)
+        .with_upgrades();
+    tokio::pin!(conn);
+    let result = tokio::select! {
+        result = conn.as_mut() => result,
+        _ = stop.changed() => {
+            conn.as_mut().graceful_shutdown();
+            conn.as_mut().await
+        }
+    };
+    if let Err(e) = result {
+        tracing::debug!("connection ended: {e}");
+    }
 }
