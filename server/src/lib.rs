@@ -56,6 +56,13 @@ pub fn app(state: Arc<AppState>) -> axum::Router {
     http::router(state)
 }
 
+/// The Zenoh side of a running server.
+enum ZenohSide {
+    Up(zenoh_api::ZenohHandle),
+    /// Still waiting for its router.
+    Joining(tokio::task::JoinHandle<Result<zenoh_api::ZenohHandle, ServerError>>),
+}
+
 /// Serves `app` on `listener` until `shutdown` resolves; then stops accepting connections,
 /// shuts the sessions down gracefully (live sessions finish their queued frames and persist
 /// their results, uploads stop and re-run on restart) and gives open requests (event streams
@@ -67,10 +74,23 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
     // Zenoh (when enabled) serves the same sessions; it closes after them so that their last
-    // updates still go out.
-    let zenoh = match state.config.zenoh.enabled {
-        true => Some(zenoh_api::start(&state.config, state.sessions.clone()).await?),
-        false => None,
+    // updates still go out. A client of a router joins in the background (the router may come
+    // up after relfusiond); a peer is up before HTTP is, or relfusiond does not start.
+    let zenoh = match (
+        state.config.zenoh.enabled,
+        state.config.zenoh.mode == "client",
+    ) {
+        (false, _) => None,
+        (true, false) => Some(ZenohSide::Up(
+            zenoh_api::start(&state.config, state.sessions.clone()).await?,
+        )),
+        (true, true) => {
+            zenoh_api::check(&state.config, &state.sessions)?;
+            let (config, sessions) = (state.config.clone(), state.sessions.clone());
+            Some(ZenohSide::Joining(tokio::spawn(async move {
+                zenoh_api::start(&config, sessions).await
+            })))
+        }
     };
     let janitor = state.sessions.spawn_janitor();
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
@@ -87,8 +107,15 @@ pub async fn run(
     let _ = stop_tx.send(());
     janitor.abort();
     state.sessions.shutdown().await;
-    if let Some(zenoh) = zenoh {
-        zenoh.close().await;
+    match zenoh {
+        Some(ZenohSide::Up(zenoh)) => zenoh.close().await,
+        Some(ZenohSide::Joining(task)) if task.is_finished() => match task.await {
+            Ok(Ok(zenoh)) => zenoh.close().await,
+            Ok(Err(e)) => tracing::warn!("Zenoh did not start: {e}"),
+            Err(e) => tracing::warn!("Zenoh's start stopped: {e}"),
+        },
+        Some(ZenohSide::Joining(task)) => task.abort(),
+        None => {}
     }
     let grace = std::time::Duration::from_secs(state.config.limits.shutdown_grace_s);
     if tokio::time::timeout(grace, &mut server).await.is_err() {

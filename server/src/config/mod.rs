@@ -226,6 +226,7 @@ pub const ENV_VARS: &[&str] = &[
     "RELFUSIOND_DATA_DIR",
     "RELFUSIOND_MAX_SESSIONS",
     "RELFUSIOND_MODEL",
+    "RELFUSIOND_ZENOH",
     "RELFUSIOND_ZENOH_LISTEN",
     "RELFUSIOND_ZENOH_CONNECT",
     "RELFUSIOND_TOKENS",
@@ -315,6 +316,18 @@ impl Config {
         }
         if let Some(v) = env("RELFUSIOND_TLS_KEY") {
             self.tls.key = Some(PathBuf::from(v));
+        }
+        if let Some(v) = env("RELFUSIOND_ZENOH") {
+            self.zenoh.enabled = match v.trim() {
+                "on" | "true" | "1" => true,
+                "off" | "false" | "0" => false,
+                other => {
+                    return Err(bad(
+                        "RELFUSIOND_ZENOH",
+                        format!("{other:?}: on or off (true/false, 1/0)"),
+                    ));
+                }
+            };
         }
         if let Some(v) = env("RELFUSIOND_ZENOH_USER") {
             self.zenoh.user = v.trim().to_string();

@@ -231,9 +231,7 @@ pub async fn start(
     // every start) for as long as the Zenoh runtime may re-read it.
     let users_file = sessions.temp_dir().join("zenoh-users");
     let zconfig = setup::zenoh_config(config, &users_file)?;
-    let zenoh = zenoh::open(zconfig)
-        .await
-        .map_err(|e| ServerError::Startup(format!("opening the Zenoh session: {e}")))?;
+    let zenoh = open(zconfig, config.zenoh.mode == "client").await?;
     let (shutdown, shutdown_rx) = watch::channel(false);
     let shared = Arc::new(Shared {
         zenoh,
@@ -261,6 +259,37 @@ pub async fn start(
         shutdown,
         tasks,
     })
+}
+
+/// Checks the Zenoh settings of `config` without opening anything (what [`start`] would refuse
+/// before connecting).
+pub fn check(config: &Config, sessions: &SessionManager) -> Result<(), ServerError> {
+    setup::zenoh_config(config, &sessions.temp_dir().join("zenoh-users")).map(|_| ())
+}
+
+/// Opens the Zenoh session. A client whose router does not answer yet (containers start in
+/// any order) tries again after 1 s, doubling up to 30 s, for as long as it takes; a peer's
+/// failure (its listen endpoint taken) is final.
+async fn open(
+    zconfig: zenoh::Config,
+    wait_for_router: bool,
+) -> Result<zenoh::Session, ServerError> {
+    let mut wait = std::time::Duration::from_secs(1);
+    loop {
+        match zenoh::open(zconfig.clone()).await {
+            Ok(session) => return Ok(session),
+            Err(e) if wait_for_router => {
+                tracing::warn!("the Zenoh router does not answer ({e}); trying again in {wait:?}");
+                tokio::time::sleep(wait).await;
+                wait = (wait * 2).min(std::time::Duration::from_secs(30));
+            }
+            Err(e) => {
+                return Err(ServerError::Startup(format!(
+                    "opening the Zenoh session: {e}"
+                )));
+            }
+        }
+    }
 }
 
 impl ZenohHandle {

@@ -4,4 +4,5 @@
 mod auth;
 mod client;
 mod intruder;
+mod late_router;
 mod stream;
