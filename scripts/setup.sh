@@ -3,7 +3,8 @@
 #  - Mesa's lavapipe Vulkan driver, so wgpu runs without a GPU (adapter "llvmpipe");
 #  - the ONNX Runtime shared library (1.31.1, matching ort's `api-31` feature), taken from the
 #    PyPI `onnxruntime` wheel because ort's own download feature cannot work offline.
-#  - with --test: Debian's Chromium and chromedriver, for the viewer's browser tests.
+#  - with --test: Debian's Chromium and chromedriver, for the viewer's browser tests, and
+#    kubernetes-validate (PyPI, with the Kubernetes API schemas) for the deploy files' test.
 # Prints the `export` lines the Makefile evaluates. Needs root or sudo for the apt part only.
 set -euo pipefail
 
@@ -56,3 +57,17 @@ fi
 [ -f "$ORT_LIB" ] || { log "ONNX Runtime library missing after install: $ORT_LIB"; exit 1; }
 
 echo "export ORT_DYLIB_PATH=$ORT_LIB"
+
+if [ "${1:-}" = "--test" ]; then
+  KV_VERSION=1.37.0
+  PYDEPS="$RELFUSION_HOME/pydeps-kubernetes-validate-$KV_VERSION"
+  if [ ! -d "$PYDEPS" ]; then
+    log "installing kubernetes-validate $KV_VERSION into $PYDEPS"
+    rm -rf "$PYDEPS.partial"
+    # --target leaves every Python environment as it is (PEP 668 allows it with the flag).
+    python3 -m pip install -q --target "$PYDEPS.partial" --break-system-packages \
+      "kubernetes-validate==$KV_VERSION" >&2
+    mv "$PYDEPS.partial" "$PYDEPS"
+  fi
+  echo "export RELFUSION_PYDEPS=$PYDEPS"
+fi

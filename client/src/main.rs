@@ -39,6 +39,8 @@ enum Command {
     Fetch(cli::fetch::Args),
     /// Saved maps on relfusiond: keep a finished session's map, list, show, delete.
     Maps(cli::maps::Args),
+    /// Exit 0 when relfusiond answers its liveness check (`/healthz`), 1 otherwise.
+    Health(cli::health::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -60,5 +62,6 @@ fn main() -> anyhow::Result<()> {
         Command::Upload(args) => cli::upload::run(args),
         Command::Fetch(args) => cli::fetch::run(args),
         Command::Maps(args) => cli::maps::run(args),
+        Command::Health(args) => cli::health::run(args),
     }
 }

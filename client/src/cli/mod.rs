@@ -13,6 +13,7 @@ pub mod connect;
 pub mod eval;
 pub mod fetch;
 pub mod gpu_info;
+pub mod health;
 pub mod localize;
 pub mod maps;
 pub mod prior;
