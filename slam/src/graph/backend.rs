@@ -673,14 +673,14 @@ impl Backend {
         let (Some(from), Some(to)) = (fragment(edge.from), fragment(edge.to)) else {
             return Ok(false);
         };
+        if from == to {
+            return Ok(false);
+        }
         let (Some(world_from_a), Some(world_from_b)) =
             (self.graph.pose(edge.from), self.graph.pose(edge.to))
         else {
             return Ok(false);
         };
-        if from == to {
-            return Ok(false);
-        }
         // Maps the `from` fragment's frame into the `to` fragment's.
         let to_world_from_from_world = world_from_b * edge.to_from_from * world_from_a.inverse();
         let (keep, moved, transform) = if to < from {

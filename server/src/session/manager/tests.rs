@@ -370,7 +370,8 @@ async fn shutdown_finishes_live_sessions_and_persists_their_results() {
     for i in 0..4u64 {
         s.push_frame(FrameData {
             frame_id: None,
-            timestamp: i as f64,
+            // 30 frames/s: a camera lost for 2 s would begin a map fragment.
+            timestamp: i as f64 / 30.0,
             bytes: png(64, 48, i as f32 * 0.5),
         })
         .await
