@@ -323,8 +323,9 @@ impl Fuser {
         Ok(moved)
     }
 
-    /// De-integrates a keyframe (kept input only) and forgets it.
-    fn remove_keyframe(&mut self, id: KeyframeId) -> Result<()> {
+    /// De-integrates a keyframe (kept input only: one whose input went for the memory budget
+    /// stays in the volume) and forgets it.
+    pub fn remove_keyframe(&mut self, id: KeyframeId) -> Result<()> {
         let Some(f) = self.fused.remove(&id) else {
             return Ok(());
         };

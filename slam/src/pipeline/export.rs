@@ -4,7 +4,7 @@
 //! A map fragment that was never merged (`pipeline.new_fragment_after_lost_s`) has its poses in
 //! a frame of its own, so only the main fragment is exported: the one with the most keyframes,
 //! with every fragment merged into it (ORB-SLAM3 likewise saves the trajectory of its largest
-//! map).
+//! map). The final mesh leaves the others out too (`Pipeline::finish_fusion`).
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -23,7 +23,7 @@ const NO_COLOUR: [u8; 3] = [200, 200, 200];
 impl Pipeline {
     /// Whether each keyframe belongs to the main fragment (see the module docs). All do while
     /// the back end is on its thread (it knows the fragments) or when there is one fragment.
-    fn exported(&self) -> Vec<bool> {
+    pub(super) fn exported(&self) -> Vec<bool> {
         let n = self.keyframes.len();
         let Some(fragments) = self.backend.backend().map(|b| b.fragments()) else {
             return vec![true; n];

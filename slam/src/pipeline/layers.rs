@@ -11,7 +11,7 @@ use crate::Result;
 use crate::dense::DenseKeyframe;
 use crate::dense::layer::{DenseJob, DenseOutput};
 use crate::fusion::MeshDelta;
-use crate::fusion::worker::{FusionJob, FusionReply};
+use crate::fusion::worker::{FusionJob, FusionLink, FusionReply};
 use crate::geometry::Sim3;
 use crate::graph::{BackendCommand, KeyframeId};
 
@@ -137,13 +137,27 @@ impl Pipeline {
     }
 
     /// Re-integrates at the final poses and meshes; the fuser stays for [`Pipeline::mesh`].
+    /// Keyframes of fragments left apart are taken out of the mesh, which then shows what the
+    /// other exports show (the main fragment): their poses are only a guess.
     pub(super) fn finish_fusion(&mut self, poses: &[(KeyframeId, Sim3)]) -> Result<()> {
+        let exported = self.exported();
         let Some(fusion) = &mut self.fusion else {
             return Ok(());
         };
         fusion.post_poses(poses.to_vec());
         let replies = fusion.finish()?;
         self.apply_fusion(replies);
+        let apart = exported.iter().enumerate().filter(|(_, e)| !**e);
+        if let Some(fuser) = self.fusion.as_mut().and_then(FusionLink::fuser) {
+            let mut removed = false;
+            for (id, _) in apart {
+                fuser.remove_keyframe(id)?;
+                removed = true;
+            }
+            if removed && let Some(delta) = fuser.take_delta()? {
+                self.push_mesh_event(delta);
+            }
+        }
         Ok(())
     }
 }

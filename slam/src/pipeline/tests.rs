@@ -352,7 +352,7 @@ fn pipeline_scale_drift_over_a_1000_frame_loop_stays_within_1_1() {
 /// `new_fragment_after_lost_s` it begins a new fragment 2 s after it was lost, maps on there,
 /// and the fragment is merged into the map when the orbit brings the camera back to the start;
 /// without, every frame until then is lost.
-fn covered_and_moved(config: Config) -> (Pipeline, Vec<StampedPose>) {
+fn covered_and_moved(config: Config, resumed_until: usize) -> (Pipeline, Vec<StampedPose>) {
     let synth = SynthConfig {
         frames: 330,
         seed: 2,
@@ -363,11 +363,11 @@ fn covered_and_moved(config: Config) -> (Pipeline, Vec<StampedPose>) {
     let camera = synth.camera().expect("camera");
     let (scene, covered) = (Scene::generate(synth.seed), Scene::generate(7));
     let poses = synth.poses();
-    // Orbit frames 0-89, 30 frames of something else in front of the lens, orbit 180-329.
+    // Orbit frames 0-89, 30 frames of something else in front of the lens, orbit from 180.
     let shown: Vec<(&Scene, usize)> = (0..90)
         .map(|i| (&scene, i))
         .chain((0..30).map(|i| (&covered, i)))
-        .chain((180..330).map(|i| (&scene, i)))
+        .chain((180..resumed_until).map(|i| (&scene, i)))
         .collect();
     let mut pipeline = Pipeline::new(config, camera, None).expect("pipeline");
     let mut gt = Vec::new();
@@ -394,7 +394,7 @@ fn covered_and_moved(config: Config) -> (Pipeline, Vec<StampedPose>) {
 
 #[test]
 fn a_camera_lost_for_good_starts_a_fragment_that_is_merged_when_it_returns() {
-    let (pipeline, gt) = covered_and_moved(deterministic());
+    let (pipeline, gt) = covered_and_moved(deterministic(), 330);
     let stats = pipeline.stats().clone();
     let trajectory = pipeline.trajectory();
     let result = ate(&gt, &stamped(&trajectory), AlignMode::Sim3).expect("ate");
@@ -425,9 +425,63 @@ fn a_camera_lost_for_good_starts_a_fragment_that_is_merged_when_it_returns() {
 
     let mut without = deterministic();
     without.pipeline.new_fragment_after_lost_s = 0.0;
-    let (pipeline, _) = covered_and_moved(without);
+    let (pipeline, _) = covered_and_moved(without, 330);
     let lost = pipeline.trajectory().len();
     eprintln!("without fragments: {lost} frames with a pose");
     assert_eq!(pipeline.stats().fragments, 0);
     assert!(lost < result.matched, "{lost} vs {}", result.matched);
+}
+
+#[test]
+fn a_fragment_never_merged_is_left_out_of_every_export_and_the_mesh() {
+    // The camera does not come back: the fragment (frames 180-239) stays apart.
+    let (mut pipeline, gt) = covered_and_moved(deterministic(), 240);
+    let stats = pipeline.stats().clone();
+    assert_eq!(
+        (stats.fragments, stats.fragments_apart),
+        (1, 1),
+        "{stats:?}"
+    );
+    let exported = pipeline.exported();
+    let kept: Vec<KeyframeId> = (0..exported.len()).filter(|&id| exported[id]).collect();
+    assert!(
+        kept.len() < exported.len(),
+        "a fragment apart is not exported"
+    );
+    // The exports hold the main fragment only: the frames before the lens was covered.
+    let trajectory = pipeline.trajectory();
+    assert!(!trajectory.is_empty());
+    assert!(
+        trajectory.iter().all(|(t, _)| *t < 90.0 / 30.0),
+        "only frames of the main fragment"
+    );
+    assert_eq!(pipeline.keyframe_trajectory().len(), kept.len());
+    let result = ate(&gt, &stamped(&trajectory), AlignMode::Sim3).expect("ate");
+    assert!(
+        result.rmse < 0.05,
+        "ATE {} of the main fragment",
+        result.rmse
+    );
+    let map = pipeline.saved_map().expect("map");
+    assert_eq!(map.keyframes.len(), kept.len());
+    assert!(
+        map.edges
+            .iter()
+            .all(|e| e.from < kept.len() && e.to < kept.len())
+    );
+    // The mesh shows the main fragment only.
+    let fused: Vec<KeyframeId> = pipeline
+        .fusion
+        .as_mut()
+        .and_then(crate::fusion::worker::FusionLink::fuser)
+        .expect("fuser")
+        .fused_poses()
+        .into_iter()
+        .map(|(id, _)| id)
+        .collect();
+    assert!(!fused.is_empty());
+    assert!(
+        fused.iter().all(|id| exported[*id]),
+        "fused {fused:?}, exported {kept:?}"
+    );
 }
