@@ -2,7 +2,7 @@
 
 use std::collections::HashMap;
 use std::path::PathBuf;
-use std::process::Command;
+use std::process::{Command, Output};
 use std::sync::{Mutex, OnceLock};
 
 pub mod attacks;
@@ -111,6 +111,31 @@ pub fn temp_dir(tag: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("create temp dir");
     dir
+}
+
+/// Runs `relfusion ARGS` and returns what it did (the caller checks the exit status).
+pub fn relfusion(args: &[&str]) -> Output {
+    Command::new(bin_path("relfusion"))
+        .args(args)
+        .output()
+        .expect("run relfusion")
+}
+
+/// The JSON values of `text`, one per non-empty line (what `relfusion stream` and the other
+/// service commands print).
+pub fn json_lines(text: &str) -> Vec<serde_json::Value> {
+    text.lines()
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON ({e}): {l}")))
+        .collect()
+}
+
+/// A free loopback TCP port (for a server's or a Zenoh endpoint's listen address).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("bind a free port")
+        .port()
 }
 
 /// Runs `relfusion ARGS`, asserts it succeeded and parses its JSON output (the last line, or

@@ -4,7 +4,7 @@
 use std::ffi::OsStr;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 
 use crate::bin_path;
 
@@ -78,6 +78,18 @@ impl Relfusiond {
     /// The server's log so far (its stderr).
     pub fn log(&self) -> String {
         std::fs::read_to_string(self.data_dir.with_extension("log")).unwrap_or_default()
+    }
+
+    /// The stdout of a client command `what` that talked to this server, after asserting it
+    /// succeeded (its stderr and this server's log otherwise).
+    pub fn ok_stdout(&self, what: &str, out: &Output) -> String {
+        assert!(
+            out.status.success(),
+            "{what} failed: {}\n--- server log ---\n{}",
+            String::from_utf8_lossy(&out.stderr),
+            self.log()
+        );
+        String::from_utf8(out.stdout.clone()).expect("stdout is UTF-8")
     }
 
     /// The process id (for RSS measurements).

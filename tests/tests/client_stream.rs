@@ -6,41 +6,17 @@
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{StampedPose, read_tum_trajectory};
 use relfusion_slam::eval::{AlignMode, ate};
-use relfusion_tests::{Relfusiond, bin_path, synth_sequence, temp_dir};
+use relfusion_tests::{Relfusiond, json_lines, relfusion, synth_sequence, temp_dir};
 use serde_json::Value;
 
 /// Frames of the test sequence (320×240).
 const FRAMES: usize = 100;
 const SEED: u64 = 11;
-
-fn relfusion(args: &[&str]) -> Output {
-    Command::new(bin_path("relfusion"))
-        .args(args)
-        .output()
-        .expect("run relfusion")
-}
-
-fn ok_stdout(what: &str, out: &Output, server: &Relfusiond) -> String {
-    assert!(
-        out.status.success(),
-        "{what} failed: {}\n--- server log ---\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        server.log()
-    );
-    String::from_utf8(out.stdout.clone()).expect("stdout is UTF-8")
-}
-
-fn json_lines(text: &str) -> Vec<Value> {
-    text.lines()
-        .filter(|l| !l.trim().is_empty())
-        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON ({e}): {l}")))
-        .collect()
-}
 
 fn groundtruth(seq: &TumSequence) -> Vec<StampedPose> {
     seq.groundtruth()
@@ -74,7 +50,7 @@ fn stream_gives_every_pose_and_the_same_trajectory_as_run() {
         "--config",
         path_str(&config),
     ]);
-    let lines = json_lines(&ok_stdout("relfusion stream", &out, &server));
+    let lines = json_lines(&server.ok_stdout("relfusion stream", &out));
     let id = lines[0]["session"]
         .as_str()
         .unwrap_or_else(|| panic!("first line names the session: {}", lines[0]))
@@ -114,7 +90,7 @@ fn stream_gives_every_pose_and_the_same_trajectory_as_run() {
     let fetched = work.join("fetched");
     let out = relfusion(&["fetch", &id, "--server", &url, "--out", path_str(&fetched)]);
     let report: Value =
-        serde_json::from_str(ok_stdout("relfusion fetch", &out, &server).trim()).expect("JSON");
+        serde_json::from_str(server.ok_stdout("relfusion fetch", &out).trim()).expect("JSON");
     assert_eq!(report["session"], id.as_str());
     for file in ["trajectory.txt", "keyframes.txt", "pointcloud.ply"] {
         let len = std::fs::metadata(fetched.join(file))
@@ -136,7 +112,7 @@ fn stream_gives_every_pose_and_the_same_trajectory_as_run() {
         "--deterministic",
         "--quiet",
     ]);
-    ok_stdout("relfusion run", &out, &server);
+    server.ok_stdout("relfusion run", &out);
     let served = read_tum_trajectory(&fetched.join("trajectory.txt")).expect("served trajectory");
     let run = read_tum_trajectory(&local.join("trajectory.txt")).expect("run trajectory");
     assert_eq!(served.len(), run.len(), "same number of poses");
@@ -162,7 +138,7 @@ fn upload_follows_progress_to_completion() {
     let url = server.url();
 
     let out = relfusion(&["upload", path_str(&seq_dir), "--server", &url]);
-    let lines = json_lines(&ok_stdout("relfusion upload", &out, &server));
+    let lines = json_lines(&server.ok_stdout("relfusion upload", &out));
     let id = lines[0]["uploaded"]["session"]
         .as_str()
         .unwrap_or_else(|| panic!("first line acknowledges the upload: {}", lines[0]))
@@ -188,7 +164,7 @@ fn upload_follows_progress_to_completion() {
 
     let fetched = work.join("fetched");
     let out = relfusion(&["fetch", &id, "--server", &url, "--out", path_str(&fetched)]);
-    ok_stdout("relfusion fetch", &out, &server);
+    server.ok_stdout("relfusion fetch", &out);
     let trajectory = read_tum_trajectory(&fetched.join("trajectory.txt")).expect("trajectory");
     assert_eq!(trajectory.len(), FRAMES, "every uploaded frame has a pose");
 }

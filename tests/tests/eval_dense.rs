@@ -14,7 +14,7 @@
 //! - `filtered`: the same pixels, all exact → 100 %.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use std::sync::Arc;
 
 use nalgebra::Vector3;
@@ -24,7 +24,7 @@ use relfusion_slam::dense::store::write_dense_keyframes;
 use relfusion_slam::dense::{DenseKeyframe, DenseMode, DenseStages, DenseTimings, ScaleShift};
 use relfusion_slam::geometry::{SE3, SO3, Sim3};
 use relfusion_slam::image::ImageF32;
-use relfusion_tests::{bin_path, synth_sequence, temp_dir};
+use relfusion_tests::{relfusion, synth_sequence, temp_dir};
 use serde_json::Value;
 
 /// Map units per metre are 1/SIGMA: the trajectory alignment must find scale SIGMA.
@@ -172,13 +172,6 @@ fn build_run(tag: &str) -> Fixture {
         run,
         expected,
     }
-}
-
-fn relfusion(args: &[&str]) -> Output {
-    Command::new(bin_path("relfusion"))
-        .args(args)
-        .output()
-        .expect("run relfusion")
 }
 
 fn json_of(out: &Output, what: &str) -> Value {

@@ -8,15 +8,14 @@
 //! map with the second sequence: its new keyframes must land in the map's frame, the old ones
 //! stay, and its map is kept as a second map.
 
-use std::net::TcpListener;
-use std::path::Path;
-use std::process::{Command, Output};
+use std::path::{Path, PathBuf};
+use std::process::Output;
 
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{StampedPose, parse_tum_trajectory};
 use relfusion_slam::eval::{AlignMode, DEFAULT_MAX_DT, align, associate_poses};
 use relfusion_slam::geometry::{SE3, SO3, Sim3};
-use relfusion_tests::{Relfusiond, bin_path, synth_sequence, temp_dir};
+use relfusion_tests::{Relfusiond, free_port, json_lines, relfusion, synth_sequence, temp_dir};
 use serde_json::Value;
 
 const MAP_FRAMES: usize = 150;
@@ -24,25 +23,8 @@ const LOCALISED_FRAMES: usize = 100;
 const SEED: u64 = 5;
 const TOKENS: (&str, &str) = ("RELFUSIOND_TOKENS", "alice:secret-a,bob:secret-b");
 
-fn relfusion(args: &[&str]) -> Output {
-    Command::new(bin_path("relfusion"))
-        .args(args)
-        .output()
-        .expect("run relfusion")
-}
-
 fn ok(what: &str, out: &Output, server: &Relfusiond) -> Vec<Value> {
-    assert!(
-        out.status.success(),
-        "{what} failed: {}\n--- server log ---\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        server.log()
-    );
-    String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .filter(|l| !l.trim().is_empty())
-        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON ({e}): {l}")))
-        .collect()
+    json_lines(&server.ok_stdout(what, out))
 }
 
 fn refused(out: &Output) -> String {
@@ -54,17 +36,33 @@ fn refused(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("bind a free port")
-        .port()
-}
-
 fn spawn(data: &Path) -> (Relfusiond, String) {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let server = Relfusiond::spawn(data, ["--zenoh-listen", &endpoint], &[TOKENS]);
     (server, endpoint)
+}
+
+/// Downloads `session`'s results (alice's) into `out`; returns `out`.
+fn fetch(server: &Relfusiond, session: &str, out: PathBuf) -> PathBuf {
+    let url = server.url();
+    let args = [
+        "fetch",
+        session,
+        "--server",
+        &url,
+        "--token",
+        "secret-a",
+        "--out",
+        s(&out),
+    ];
+    ok("fetch", &relfusion(&args), server);
+    out
+}
+
+/// A fetched TUM trajectory file.
+fn tum(dir: &Path, name: &str) -> Vec<StampedPose> {
+    let text = std::fs::read_to_string(dir.join(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
+    parse_tum_trajectory(&text, name).expect("parse")
 }
 
 fn s(p: &Path) -> &str {
@@ -194,26 +192,8 @@ fn a_saved_map_outlives_its_session_and_a_restart_and_new_sessions_localise_in_i
     );
     assert_eq!(saved["session"], session.as_str());
     assert_eq!(saved["camera"]["width"], 320);
-    let fetched = work.join("a");
-    ok(
-        "fetch",
-        &relfusion(&[
-            "fetch",
-            &session,
-            "--server",
-            &url,
-            "--token",
-            "secret-a",
-            "--out",
-            s(&fetched),
-        ]),
-        &server,
-    );
-    let keyframes = parse_tum_trajectory(
-        &std::fs::read_to_string(fetched.join("keyframes.txt")).expect("keyframes"),
-        "keyframes",
-    )
-    .expect("parse");
+    let fetched = fetch(&server, &session, work.join("a"));
+    let keyframes = tum(&fetched, "keyframes.txt");
     let matched = associate_poses(&groundtruth(&map_seq), &keyframes, DEFAULT_MAX_DT).expect("kf");
     let gt_from_map = align(&matched, AlignMode::Sim3).expect("alignment");
 
@@ -333,37 +313,15 @@ fn a_saved_map_outlives_its_session_and_a_restart_and_new_sessions_localise_in_i
     )
     .remove(0);
     assert_eq!(merged["keyframes"].as_u64(), Some(total as u64), "{merged}");
-    let fetched = work.join("d");
-    ok(
-        "fetch",
-        &relfusion(&[
-            "fetch",
-            &extending,
-            "--server",
-            &url,
-            "--token",
-            "secret-a",
-            "--out",
-            s(&fetched),
-        ]),
-        &server,
-    );
-    let both = parse_tum_trajectory(
-        &std::fs::read_to_string(fetched.join("keyframes.txt")).expect("keyframes"),
-        "keyframes",
-    )
-    .expect("parse");
+    let fetched = fetch(&server, &extending, work.join("d"));
+    let both = tum(&fetched, "keyframes.txt");
     assert_eq!(both.len(), total);
     for (a, b) in keyframes.iter().zip(&both) {
         let moved = (a.world_from_camera.translation - b.world_from_camera.translation).norm();
         assert!(moved < 1e-5, "an old keyframe moved by {moved}");
     }
     let (rms, _) = errors(&gt, &both[old_keyframes..], &gt_from_map);
-    let trajectory = parse_tum_trajectory(
-        &std::fs::read_to_string(fetched.join("trajectory.txt")).expect("trajectory"),
-        "trajectory",
-    )
-    .expect("parse");
+    let trajectory = tum(&fetched, "trajectory.txt");
     let (frames_rms, frames_max) = errors(&gt, &trajectory, &gt_from_map);
     eprintln!(
         "extend: new keyframes rms {rms:.4} m; {} frames after the final optimisation: rms \

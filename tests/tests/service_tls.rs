@@ -8,7 +8,7 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 use rcgen::{BasicConstraints, CertificateParams, IsCa, KeyPair};
-use relfusion_tests::{Relfusiond, bin_path, synth_sequence, temp_dir};
+use relfusion_tests::{Relfusiond, bin_path, json_lines, relfusion, synth_sequence, temp_dir};
 use serde_json::Value;
 
 const TOKENS: (&str, &str) = ("RELFUSIOND_TOKENS", "alice:secret-a");
@@ -33,25 +33,8 @@ fn make_certificates(dir: &Path) {
     std::fs::write(dir.join("server.key"), key.serialize_pem()).expect("server.key");
 }
 
-fn relfusion(args: &[&str]) -> Output {
-    Command::new(bin_path("relfusion"))
-        .args(args)
-        .output()
-        .expect("run relfusion")
-}
-
-fn json_lines(what: &str, out: &Output, server: &Relfusiond) -> Vec<Value> {
-    assert!(
-        out.status.success(),
-        "{what} failed: {}\n--- server log ---\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        server.log()
-    );
-    String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .filter(|l| !l.trim().is_empty())
-        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON ({e}): {l}")))
-        .collect()
+fn ok(what: &str, out: &Output, server: &Relfusiond) -> Vec<Value> {
+    json_lines(&server.ok_stdout(what, out))
 }
 
 fn s(p: &Path) -> &str {
@@ -83,7 +66,7 @@ fn the_client_streams_and_fetches_over_tls_with_the_ca_it_is_given() {
     std::fs::write(&config, r#"{"pipeline":{"deterministic":true}}"#).expect("config");
 
     // Frames in and poses out over wss://, then the results over https://.
-    let lines = json_lines(
+    let lines = ok(
         "stream over wss",
         &relfusion(&[
             "stream",
@@ -120,7 +103,7 @@ fn the_client_streams_and_fetches_over_tls_with_the_ca_it_is_given() {
         args.extend_from_slice(extra);
         relfusion(&args)
     };
-    json_lines("fetch over https", &fetch(&["--ca-cert", s(&ca)]), &server);
+    ok("fetch over https", &fetch(&["--ca-cert", s(&ca)]), &server);
     let trajectory = std::fs::read_to_string(fetched.join("trajectory.txt")).expect("trajectory");
     assert!(trajectory.lines().filter(|l| !l.starts_with('#')).count() >= 30);
 

@@ -23,7 +23,7 @@ use std::sync::Arc;
 
 use super::Pipeline;
 use super::events::{Event, TrackingState};
-use super::keyframes::{KeyframeCandidate, KeyframeRecord};
+use super::keyframes::KeyframeRecord;
 use crate::dense::{DenseKeyframe, DenseMode, DenseTimings, DepthPrior};
 use crate::frame::Frame;
 use crate::fusion::worker::FusionJob;
@@ -31,7 +31,6 @@ use crate::geometry::{PinholeCamera, SE3};
 use crate::gpu::GpuContext;
 use crate::graph::Backend;
 use crate::map::{Localizer, SavedMap};
-use crate::mapping::DepthFilter;
 use crate::tracking::TrackingReference;
 use crate::{Error, Result};
 
@@ -174,24 +173,6 @@ impl Pipeline {
         let Some((kf, result)) = map.localizer.relocalise(frame) else {
             return Ok(None);
         };
-        self.lost = false;
-        self.lost_since = None;
-        self.velocity = None;
-        let t0 = std::time::Instant::now();
-        let propagated = DepthFilter::from_depth_map(
-            self.keyframes[kf].frame.clone(),
-            &self.keyframes[kf].depth,
-            self.config.mapping.clone(),
-        )?
-        .propagate_to(frame.clone(), &result.frame_from_keyframe)?;
-        self.keyframe_creation_s += t0.elapsed().as_secs_f64();
-        let candidate = KeyframeCandidate {
-            frame: frame.clone(),
-            source_id: kf,
-            frame_from_source: result.frame_from_keyframe,
-            information: result.information,
-            state: TrackingState::Relocalized,
-        };
-        self.new_keyframe(candidate, propagated).map(Some)
+        self.relocalised_at(frame, kf, &result).map(Some)
     }
 }

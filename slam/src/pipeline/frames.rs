@@ -181,30 +181,7 @@ impl Pipeline {
             .map(|&id| (self.keyframes[id].reference.as_ref(), guess(id)))
             .collect();
         if let Some((i, result)) = self.tracker.try_relocalise(&refs, frame) {
-            let kf = candidates[i];
-            self.lost = false;
-            let t0 = std::time::Instant::now();
-            let propagated = match self.current {
-                Some(current) if current == kf => self.mapper.with_filter(|filter| {
-                    filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
-                })?,
-                _ => DepthFilter::from_depth_map(
-                    self.keyframes[kf].frame.clone(),
-                    &self.keyframes[kf].depth,
-                    self.config.mapping.clone(),
-                )?
-                .propagate_to(frame.clone(), &result.frame_from_keyframe)?,
-            };
-            self.keyframe_creation_s += t0.elapsed().as_secs_f64();
-            self.lost_since = None;
-            let candidate = KeyframeCandidate {
-                frame: frame.clone(),
-                source_id: kf,
-                frame_from_source: result.frame_from_keyframe,
-                information: result.information,
-                state: TrackingState::Relocalized,
-            };
-            return self.new_keyframe(candidate, propagated);
+            return self.relocalised_at(frame, candidates[i], &result);
         }
         if let Some(events) = self.relocalise_in_map(frame)? {
             return Ok(events);
@@ -223,6 +200,40 @@ impl Pipeline {
             keyframe_from_frame,
             TrackingState::Lost,
         )])
+    }
+
+    /// `frame` was relocalised against keyframe `kf`: it becomes a new keyframe whose depth is
+    /// propagated from `kf`'s (its live filter when it is the current keyframe).
+    pub(super) fn relocalised_at(
+        &mut self,
+        frame: &Arc<Frame>,
+        kf: KeyframeId,
+        result: &TrackingResult,
+    ) -> Result<Vec<Event>> {
+        self.lost = false;
+        self.lost_since = None;
+        self.velocity = None;
+        let t0 = std::time::Instant::now();
+        let propagated = match self.current {
+            Some(current) if current == kf => self.mapper.with_filter(|filter| {
+                filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
+            })?,
+            _ => DepthFilter::from_depth_map(
+                self.keyframes[kf].frame.clone(),
+                &self.keyframes[kf].depth,
+                self.config.mapping.clone(),
+            )?
+            .propagate_to(frame.clone(), &result.frame_from_keyframe)?,
+        };
+        self.keyframe_creation_s += t0.elapsed().as_secs_f64();
+        let candidate = KeyframeCandidate {
+            frame: frame.clone(),
+            source_id: kf,
+            frame_from_source: result.frame_from_keyframe,
+            information: result.information,
+            state: TrackingState::Relocalized,
+        };
+        self.new_keyframe(candidate, propagated)
     }
 }
 

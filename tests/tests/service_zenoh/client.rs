@@ -3,7 +3,6 @@
 //! speaking the key space of `relfusion_proto::zenoh_keys`, and a real `relfusiond` listening
 //! on a loopback Zenoh endpoint.
 
-use std::net::TcpListener;
 pub use std::path::Path;
 pub use std::time::{Duration, Instant};
 
@@ -19,7 +18,7 @@ pub use relfusion_proto::zenoh_keys::{
 pub use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::StampedPose;
 use relfusion_slam::geometry::SE3;
-pub use relfusion_tests::{Relfusiond, bin_path, synth_sequence, temp_dir};
+pub use relfusion_tests::{Relfusiond, bin_path, free_port, synth_sequence, temp_dir};
 pub use zenoh::Wait as _;
 pub use zenoh::handlers::{FifoChannel, FifoChannelHandler};
 pub use zenoh::pubsub::Subscriber;
@@ -33,13 +32,6 @@ pub const SEED: u64 = 29;
 pub const PATIENCE: Duration = Duration::from_secs(60);
 
 /// A port nobody listens on now (the OS's pick for a listener that is dropped at once).
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("bind a free port")
-        .port()
-}
-
 /// `relfusiond` with Zenoh listening on a free loopback port; returns it and the endpoint.
 pub fn spawn_server(work: &Path, envs: &[(&str, &str)]) -> (Relfusiond, String) {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());

@@ -2,20 +2,14 @@
 //! (HTTP serves at once) and joins the router when it comes up. Fails when relfusiond exits
 //! for want of a router, or when its node status never reaches the router's clients.
 
-use std::net::TcpListener;
-
-use relfusion_tests::{Relfusiond, temp_dir};
+use relfusion_tests::{Relfusiond, free_port, temp_dir};
 
 use super::client::{node_status, zenoh_client};
 
 #[test]
 fn a_node_started_before_its_router_joins_it_when_it_comes_up() {
     let work = temp_dir("zenoh-late-router");
-    let port = TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("free port")
-        .port();
-    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     // The deploy files' setting: a client of a router that is not there yet.
     let late = work.join("late.toml");
     std::fs::write(
