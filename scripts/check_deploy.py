@@ -109,6 +109,8 @@ def check_image(root):
         ("libxext6", "NVIDIA's Vulkan driver needs libxext6"),
         ("/etc/vulkan/icd.d/nvidia_icd.json", "no NVIDIA Vulkan ICD file"),
         ("HEALTHCHECK", "no HEALTHCHECK"),
+        ("ARG ORT_PACKAGE=onnxruntime", "no build argument for the GPU build of ONNX Runtime"),
+        ('"${ORT_PACKAGE}==', "the ONNX Runtime package does not follow ORT_PACKAGE"),
     ]:
         if needle not in dockerfile:
             fail(f"Dockerfile: {why}")

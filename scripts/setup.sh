@@ -4,7 +4,8 @@
 #  - the ONNX Runtime shared library (1.31.1, matching ort's `api-31` feature), taken from the
 #    PyPI `onnxruntime` wheel because ort's own download feature cannot work offline.
 #  - with --test: Debian's Chromium and chromedriver, for the viewer's browser tests, and
-#    kubernetes-validate (PyPI, with the Kubernetes API schemas) for the deploy files' test.
+#    kubernetes-validate (PyPI, with the Kubernetes API schemas) for the deploy files' test,
+#    and s3s-fs (crates.io), the S3-compatible server of the object-store tests.
 # Prints the `export` lines the Makefile evaluates. Needs root or sudo for the apt part only.
 set -euo pipefail
 
@@ -70,4 +71,16 @@ if [ "${1:-}" = "--test" ]; then
     mv "$PYDEPS.partial" "$PYDEPS"
   fi
   echo "export RELFUSION_PYDEPS=$PYDEPS"
+  # A real S3-compatible server for the object-store tests: s3s-fs from crates.io (0.14.1, the
+  # newest that builds with this toolchain), compiled once into the cache.
+  S3S_VERSION=0.14.1
+  S3S_ROOT="$RELFUSION_HOME/s3s-fs-$S3S_VERSION"
+  if [ ! -x "$S3S_ROOT/bin/s3s-fs" ]; then
+    log "installing s3s-fs $S3S_VERSION into $S3S_ROOT"
+    rm -rf "$S3S_ROOT.partial"
+    cargo install s3s-fs --version "$S3S_VERSION" --locked --features binary \
+      --root "$S3S_ROOT.partial" >&2
+    rm -rf "$S3S_ROOT" && mv "$S3S_ROOT.partial" "$S3S_ROOT"
+  fi
+  echo "export RELFUSION_S3S_FS=$S3S_ROOT/bin/s3s-fs"
 fi

@@ -240,6 +240,9 @@ pub struct SessionInfo {
     /// The saved map it started from, and the mode.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub map: Option<MapStart>,
+    /// The node it runs on (`[zenoh] node`): where the cluster placed it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub node: Option<String>,
 }
 
 /// A pose in events: `world_from_camera` as translation, unit quaternion `[x, y, z, w]` and

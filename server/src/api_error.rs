@@ -85,6 +85,27 @@ impl ApiError {
     }
 
     /// The protobuf error code for the same failure (Zenoh replies, WebSocket errors).
+    /// The stable code `code` names (an error that crossed the cluster as text); unknown
+    /// codes read as `internal`.
+    pub fn known_code(code: &str) -> &'static str {
+        const CODES: [&str; 13] = [
+            "conflict",
+            "forbidden",
+            "gone",
+            "internal",
+            "invalid_argument",
+            "not_found",
+            "payload_too_large",
+            "quota_exceeded",
+            "request_timeout",
+            "resource_exhausted",
+            "unauthorized",
+            "unsupported_media_type",
+            "unavailable",
+        ];
+        CODES.into_iter().find(|c| *c == code).unwrap_or("internal")
+    }
+
     pub fn proto_code(&self) -> relfusion_proto::v1::ErrorCode {
         use relfusion_proto::v1::ErrorCode;
         match self.status {

@@ -7,6 +7,7 @@
 //! gracefully.
 
 pub mod api_error;
+pub mod cluster;
 pub mod config;
 pub mod convert;
 pub mod error;
@@ -35,6 +36,8 @@ pub struct AppState {
     pub metrics: Arc<metrics::Metrics>,
     /// Request bodies buffered at once ([`http::body`]).
     pub body_budget: http::body::BodyBudget,
+    /// This node in the cluster (placement, routing to other nodes; inert without Zenoh).
+    pub cluster: Arc<cluster::Cluster>,
 }
 
 impl AppState {
@@ -43,6 +46,7 @@ impl AppState {
         let metrics = Arc::new(metrics::Metrics::new());
         let sessions = session::SessionManager::open(&config, metrics.clone())?;
         Ok(Self {
+            cluster: cluster::Cluster::new(sessions.clone()),
             body_budget: http::body::BodyBudget::new(config.limits.max_buffered_body_mb),
             config,
             sessions,
@@ -82,19 +86,20 @@ pub async fn run(
     ) {
         (false, _) => None,
         (true, false) => Some(ZenohSide::Up(
-            zenoh_api::start(&state.config, state.sessions.clone()).await?,
+            zenoh_api::start(&state.config, state.cluster.clone()).await?,
         )),
         (true, true) => {
             zenoh_api::check(&state.config, &state.sessions)?;
-            let (config, sessions) = (state.config.clone(), state.sessions.clone());
+            let (config, cluster) = (state.config.clone(), state.cluster.clone());
             Some(ZenohSide::Joining(tokio::spawn(async move {
-                zenoh_api::start(&config, sessions).await
+                zenoh_api::start(&config, cluster).await
             })))
         }
     };
     let janitor = state.sessions.spawn_janitor();
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let router = app(state.clone());
+    state.cluster.set_router(router.clone());
     let limits = state.config.http.clone();
     let mut server = tokio::spawn(async move {
         http::serve::serve(listener, tls, router, &limits, async move {

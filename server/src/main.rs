@@ -39,6 +39,10 @@ struct Args {
     /// The users file the printed router configuration names (see --print-zenoh-users).
     #[arg(long, default_value = "/etc/zenoh/users")]
     zenoh_users_file: String,
+    /// Run only a Zenoh router on ENDPOINT (e.g. tcp/0.0.0.0:7447) with this configuration's
+    /// protection, for the nodes of a cluster to meet when no zenohd runs; serves no sessions.
+    #[arg(long, value_name = "ENDPOINT")]
+    zenoh_router: Option<String>,
     /// Print the router's users file (`name:token` lines, and the node user) and exit.
     #[arg(long)]
     print_zenoh_users: bool,
@@ -105,6 +109,10 @@ async fn main() -> anyhow::Result<()> {
             "{}",
             relfusion_server::zenoh_api::setup::users_text(&config)
         );
+        return Ok(());
+    }
+    if let Some(listen) = &args.zenoh_router {
+        relfusion_server::zenoh_api::setup::run_router(&config, listen, shutdown_signal()).await?;
         return Ok(());
     }
     // A bad certificate or key stops the start, before anything listens.

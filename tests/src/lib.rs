@@ -6,6 +6,7 @@ use std::process::{Command, Output};
 use std::sync::{Mutex, OnceLock};
 
 pub mod attacks;
+pub mod s3;
 pub mod server;
 pub use server::{Relfusiond, synth_sequence};
 

@@ -25,6 +25,25 @@ impl Relfusiond {
         I: IntoIterator<Item = S>,
         S: AsRef<OsStr>,
     {
+        Self::spawn_until(data_dir, args, envs, "listening on ")
+    }
+
+    /// `relfusiond --zenoh-router ENDPOINT`: a cluster's Zenoh router (no HTTP), started and
+    /// up when this returns; `addr()` is the endpoint.
+    pub fn spawn_router(data_dir: &Path, endpoint: &str, envs: &[(&str, &str)]) -> Self {
+        Self::spawn_until(
+            data_dir,
+            ["--zenoh-router", endpoint],
+            envs,
+            "zenoh router on ",
+        )
+    }
+
+    fn spawn_until<I, S>(data_dir: &Path, args: I, envs: &[(&str, &str)], ready: &str) -> Self
+    where
+        I: IntoIterator<Item = S>,
+        S: AsRef<OsStr>,
+    {
         std::fs::create_dir_all(data_dir).expect("create data dir");
         let log_path = data_dir.with_extension("log");
         let log = std::fs::OpenOptions::new()
@@ -48,7 +67,7 @@ impl Relfusiond {
         BufReader::new(stdout)
             .read_line(&mut line)
             .expect("read the listening line");
-        let Some(addr) = line.trim().strip_prefix("listening on ") else {
+        let Some(addr) = line.trim().strip_prefix(ready) else {
             let _ = child.kill();
             let log = std::fs::read_to_string(&log_path).unwrap_or_default();
             panic!("relfusiond did not start: {line:?}\n{log}");

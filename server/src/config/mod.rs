@@ -13,7 +13,10 @@ use serde::{Deserialize, Serialize};
 use crate::ServerError;
 
 mod limits;
+mod storage;
+
 pub use limits::{HttpLimits, Limits, Quotas, Retention};
+pub use storage::{S3Config, StorageBackend, StorageConfig};
 
 /// The whole server configuration. Unknown keys are rejected so that typos are caught.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -41,6 +44,8 @@ pub struct Config {
     pub zenoh: ZenohConfig,
     /// HTTPS/WSS on `listen` instead of plain HTTP, when a certificate is given.
     pub tls: TlsConfig,
+    /// Where sessions and maps are kept: local files or a shared S3-compatible bucket.
+    pub storage: StorageConfig,
 }
 
 /// The optional TLS listener: a certificate chain and its private key, PEM files (what an
@@ -68,6 +73,7 @@ impl Default for Config {
             auth: AuthConfig::default(),
             zenoh: ZenohConfig::default(),
             tls: TlsConfig::default(),
+            storage: StorageConfig::default(),
         }
     }
 }
@@ -179,8 +185,13 @@ pub struct ZenohConfig {
     pub connect: Vec<String>,
     /// Multicast and gossip scouting (off by default: explicit endpoints are predictable).
     pub scouting: bool,
-    /// This node's name in `relfusion/nodes/<node>/status`; defaults to the host name.
+    /// This node's name in `relfusion/nodes/<node>/status` and in the cluster
+    /// (`RELFUSIOND_ZENOH_NODE`); defaults to the host name. Unique per node.
     pub node: String,
+    /// The HTTP address clients may reach this node at (`RELFUSIOND_ADVERTISE`, e.g.
+    /// `https://node-1.example.com`), shown in the node status and in a session's placement;
+    /// empty = not advertised.
+    pub advertise: String,
     /// The Zenoh user this node authenticates as when it connects to a router or peer that
     /// requires it (deploy/zenoh); empty = none. Its password is `password`.
     pub user: String,
@@ -196,6 +207,7 @@ impl Default for ZenohConfig {
             connect: Vec::new(),
             scouting: false,
             node: host_name(),
+            advertise: String::new(),
             user: String::new(),
             password: String::new(),
         }
@@ -235,6 +247,15 @@ pub const ENV_VARS: &[&str] = &[
     "RELFUSIOND_MEMORY_BUDGET_MB",
     "RELFUSIOND_TLS_CERT",
     "RELFUSIOND_TLS_KEY",
+    "RELFUSIOND_ZENOH_NODE",
+    "RELFUSIOND_ADVERTISE",
+    "RELFUSIOND_STORAGE",
+    "RELFUSIOND_S3_ENDPOINT",
+    "RELFUSIOND_S3_BUCKET",
+    "RELFUSIOND_S3_PREFIX",
+    "AWS_ACCESS_KEY_ID",
+    "AWS_SECRET_ACCESS_KEY",
+    "AWS_REGION",
 ];
 
 impl Config {
@@ -329,6 +350,15 @@ impl Config {
                 }
             };
         }
+        if let Some(v) = env("RELFUSIOND_ZENOH_NODE") {
+            self.zenoh.node = v.trim().to_string();
+        }
+        if let Some(v) = env("RELFUSIOND_ADVERTISE") {
+            self.zenoh.advertise = v.trim().to_string();
+        }
+        self.storage
+            .apply_env(&env)
+            .map_err(|message| bad("RELFUSIOND_STORAGE", message))?;
         if let Some(v) = env("RELFUSIOND_ZENOH_USER") {
             self.zenoh.user = v.trim().to_string();
         }
@@ -381,6 +411,14 @@ impl Config {
         limits::validate(&self.limits, &self.http, &self.quotas, &self.retention)?;
         if self.tls.cert.is_some() != self.tls.key.is_some() {
             return Err("tls: give both cert and key (PEM files), or neither".into());
+        }
+        self.storage.validate()?;
+        if !is_owner_name(&self.zenoh.node) {
+            return Err(format!(
+                "zenoh.node {:?} must be 1-64 characters of a-z, A-Z, 0-9, '-', '_' (it is a \
+                 Zenoh key chunk)",
+                self.zenoh.node
+            ));
         }
         if !matches!(self.zenoh.mode.as_str(), "peer" | "client") {
             return Err(format!(

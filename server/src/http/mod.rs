@@ -10,6 +10,7 @@
 
 pub mod auth;
 pub mod body;
+pub mod cluster;
 pub mod docs;
 pub mod downloads;
 pub mod error;
@@ -18,8 +19,10 @@ pub mod frames;
 pub mod map;
 pub mod maps;
 pub mod openapi;
+pub mod routing;
 pub mod serve;
 pub mod sessions;
+pub mod stream_remote;
 pub mod stream_ws;
 pub mod tls;
 pub mod uploads;
@@ -70,6 +73,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/proto/{*path}", get(map::proto_file))
         .route("/v1/uploads", post(uploads::upload))
         .route("/v1/version", get(version))
+        .route("/v1/cluster", get(cluster::cluster))
         .route("/healthz", get(healthz))
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
@@ -85,6 +89,10 @@ pub fn router(state: Arc<AppState>) -> Router {
         .fallback(error::no_route)
         .method_not_allowed_fallback(error::wrong_method)
         .layer(DefaultBodyLimit::max(body_limit))
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            routing::to_owner,
+        ))
         .layer(axum::middleware::from_fn_with_state(
             state.clone(),
             body::buffer_body,

@@ -47,6 +47,7 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         super::readyz,
         super::metrics,
         super::version,
+        super::cluster::cluster,
         super::openapi_json,
     ),
     components(schemas(
@@ -60,6 +61,8 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         ErrorBody,
         ErrorDetail,
         Version,
+        super::cluster::ClusterView,
+        super::cluster::ClusterNode,
         Binary,
         super::events_sse::SseEvent,
         super::map::ProtoFiles,

@@ -17,6 +17,7 @@ use axum::body::Bytes;
 use axum::extract::ws::rejection::WebSocketUpgradeRejection;
 use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade, close_code};
 use axum::extract::{Path, State};
+use axum::http::HeaderMap;
 use axum::response::Response;
 use futures_util::stream::{SplitSink, SplitStream};
 use futures_util::{SinkExt, StreamExt};
@@ -29,6 +30,7 @@ use tokio::sync::mpsc;
 
 use super::auth::Auth;
 use super::error::ErrorBody;
+use crate::cluster::forward::FORWARDED;
 use crate::session::{Session, SessionEvent};
 use crate::{ApiError, AppState};
 
@@ -36,11 +38,11 @@ use crate::{ApiError, AppState};
 const MESSAGE_OVERHEAD: usize = 64 * 1024;
 
 /// How long a closed-by-us socket waits for the client's close reply before it is dropped.
-const CLOSE_GRACE: Duration = Duration::from_secs(5);
+pub(super) const CLOSE_GRACE: Duration = Duration::from_secs(5);
 
 /// Error replies queued between the receiving and the sending task (bounded: a client that
 /// floods bad messages waits for its errors to be written).
-const REPLY_QUEUE: usize = 16;
+pub(super) const REPLY_QUEUE: usize = 16;
 
 /// Opens the session's protobuf WebSocket.
 #[utoipa::path(
@@ -59,27 +61,49 @@ pub async fn stream(
     State(state): State<Arc<AppState>>,
     Auth(owner): Auth,
     Path(id): Path<String>,
+    headers: HeaderMap,
     upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Result<Response, ApiError> {
-    let session = state.sessions.get(&id, &owner)?;
-    let upgrade = upgrade.map_err(|rejection| ApiError {
+    let session = match state.sessions.get(&id, &owner) {
+        Ok(session) => session,
+        // Not here: another node of the cluster may run it (its owner checks the token).
+        Err(e) if e.status == 404 && !headers.contains_key(FORWARDED) => {
+            let Some(node) = state.cluster.owner_of(&id).await else {
+                return Err(e);
+            };
+            let upgrade = checked_upgrade(upgrade, &id)?;
+            return super::stream_remote::open(&state, node, id, &headers, upgrade).await;
+        }
+        Err(e) => return Err(e),
+    };
+    let upgrade = checked_upgrade(upgrade, &id)?;
+    // Subscribe before the 101 goes out: a client that fetches the map snapshot once the socket
+    // is open (a viewer joining late) then sees every later update, with no gap.
+    let events = session.subscribe();
+    Ok(sized(upgrade, &state).on_upgrade(move |socket| serve(socket, session, events)))
+}
+
+/// The upgrade, or the 400 that says this endpoint is a WebSocket.
+fn checked_upgrade(
+    upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
+    id: &str,
+) -> Result<WebSocketUpgrade, ApiError> {
+    upgrade.map_err(|rejection| ApiError {
         status: rejection.status().as_u16(),
         code: "invalid_argument",
         message: format!(
             "{}: this endpoint is a WebSocket (ws://.../v1/sessions/{id}/stream)",
             rejection.body_text()
         ),
-    })?;
+    })
+}
+
+/// The upgrade with the message limits: the largest allowed image and its framing.
+pub(super) fn sized(upgrade: WebSocketUpgrade, state: &AppState) -> WebSocketUpgrade {
     let limit = usize::try_from(state.config.limits.max_frame_bytes)
         .unwrap_or(usize::MAX)
         .saturating_add(MESSAGE_OVERHEAD);
-    // Subscribe before the 101 goes out: a client that fetches the map snapshot once the socket
-    // is open (a viewer joining late) then sees every later update, with no gap.
-    let events = session.subscribe();
-    Ok(upgrade
-        .max_message_size(limit)
-        .max_frame_size(limit)
-        .on_upgrade(move |socket| serve(socket, session, events)))
+    upgrade.max_message_size(limit).max_frame_size(limit)
 }
 
 async fn serve(
@@ -110,7 +134,7 @@ async fn serve(
     tracing::debug!(session = session.id(), "websocket closed");
 }
 
-fn error_message(code: ErrorCode, message: impl Into<String>) -> ServerMessage {
+pub(super) fn error_message(code: ErrorCode, message: impl Into<String>) -> ServerMessage {
     ServerMessage {
         message: Some(server_message::Message::Error(v1::Error {
             code: code as i32,
@@ -119,7 +143,7 @@ fn error_message(code: ErrorCode, message: impl Into<String>) -> ServerMessage {
     }
 }
 
-fn binary(message: &ServerMessage) -> Message {
+pub(super) fn binary(message: &ServerMessage) -> Message {
     Message::Binary(Bytes::from(message.encode_to_vec()))
 }
 
@@ -213,7 +237,8 @@ async fn receive_loop(
     }
 }
 
-async fn handle(session: &Session, data: Bytes) -> Result<(), ApiError> {
+/// One client message for `session` (also what a stream through another node hands over).
+pub(crate) async fn handle(session: &Session, data: Bytes) -> Result<(), ApiError> {
     let message = ClientMessage::decode(data).map_err(|e| {
         ApiError::bad_request(format!(
             "malformed message: not a protobuf relfusion.v1.ClientMessage ({e})"

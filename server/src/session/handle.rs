@@ -87,6 +87,8 @@ pub struct Session {
     pub(crate) dataset: Option<String>,
     /// The saved map it works in (`None`: it maps from nothing).
     pub(crate) map: Option<MapStart>,
+    /// The node it runs on.
+    pub(crate) node: String,
     total_frames: Option<u64>,
     pub(crate) counters: Counters,
     /// Live sessions: frames waiting for the pipeline.
@@ -173,6 +175,7 @@ impl Session {
             config: meta.config,
             dataset: meta.dataset,
             map: meta.map,
+            node: meta.node.unwrap_or_default(),
             total_frames: meta.total_frames,
             counters: Counters::restore(&meta.counters),
             queue,
@@ -251,6 +254,7 @@ impl Session {
             notice: status.notice,
             max_keyframes: Some(self.max_keyframes as u64),
             map: self.map.clone(),
+            node: (!self.node.is_empty()).then(|| self.node.clone()),
         }
     }
 
@@ -376,6 +380,7 @@ impl Session {
             upload_bytes: self.upload_bytes.load(Ordering::Relaxed),
             results_bytes: self.results_bytes.load(Ordering::Relaxed),
             map: self.map.clone(),
+            node: Some(self.node.clone()),
         }
     }
 

@@ -99,6 +99,10 @@ pub struct SessionMeta {
     /// The saved map it started from (`None`: an empty one).
     #[serde(default)]
     pub map: Option<MapStart>,
+    /// The node that runs it (`[zenoh] node`): with a shared store, a node recovers only its
+    /// own sessions at start, and takes over those of a node that left (cluster failover).
+    #[serde(default)]
+    pub node: Option<String>,
 }
 
 impl SessionMeta {
@@ -145,6 +149,7 @@ impl SessionMeta {
             notice: self.notice.clone(),
             max_keyframes: None,
             map: self.map.clone(),
+            node: self.node.clone(),
         }
     }
 }

@@ -244,13 +244,11 @@ impl Runner<'_> {
             .as_deref()
             .ok_or("upload without a dataset")?;
         let key = format!("sessions/{}/{dataset}", self.session.id());
-        let dir = self
-            .session
-            .store
-            .local_path(&key)
-            .ok_or("uploads need a filesystem store")?;
+        // A remote store's dataset is copied to a private folder for the run (removed after).
+        let folder = crate::folders::fetch(self.session.store.as_ref(), &key)
+            .map_err(|e| format!("reading the uploaded dataset: {e}"))?;
         let camera = *self.session.camera();
-        let mut seq = TumSequence::open(&dir, Some(camera))
+        let mut seq = TumSequence::open(folder.path(), Some(camera))
             .map_err(|e| format!("reading the uploaded dataset: {e}"))?;
         seq.camera = camera;
         for i in 0..seq.len() {

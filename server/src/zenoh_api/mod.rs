@@ -96,6 +96,8 @@ pub(crate) struct Shared {
     pub shutdown: watch::Receiver<bool>,
     /// The tasks of each session on Zenoh ([`link`]), pruned as they end.
     pub links: Mutex<HashMap<String, Vec<JoinHandle<()>>>>,
+    /// This node in the cluster (its load in the status).
+    pub cluster: Arc<crate::cluster::Cluster>,
 }
 
 impl Shared {
@@ -225,8 +227,9 @@ fn tenants(config: &Config) -> Vec<String> {
 /// [`ZenohHandle::close`].
 pub async fn start(
     config: &Config,
-    sessions: Arc<SessionManager>,
+    cluster: Arc<crate::cluster::Cluster>,
 ) -> Result<ZenohHandle, ServerError> {
+    let sessions = cluster.sessions.clone();
     // The user/password dictionary lives in the data dir's private tmp folder (emptied at
     // every start) for as long as the Zenoh runtime may re-read it.
     let users_file = sessions.temp_dir().join("zenoh-users");
@@ -239,8 +242,14 @@ pub async fn start(
         stats: Arc::default(),
         shutdown: shutdown_rx,
         links: Mutex::default(),
+        cluster: cluster.clone(),
     });
     let mut tasks = vec![status::serve(shared.clone(), config.zenoh.node.clone()).await?];
+    // The same Zenoh session makes this node a member of the cluster.
+    tasks.extend(
+        crate::cluster::failover::join(cluster, shared.zenoh.clone(), shared.shutdown.clone())
+            .await?,
+    );
     for tenant in tenants(config) {
         tasks.push(create::serve(shared.clone(), &tenant).await?);
         tasks.push(map::serve(shared.clone(), &tenant).await?);

@@ -16,7 +16,9 @@
 //! - nodes (`zenoh.user`) may do everything below `relfusion/**`: they forward sessions.
 //!
 //! The same rules, printed by [`router_config`], protect a `zenohd` router that nodes and
-//! clients join in a cluster (deploy/zenoh).
+//! clients join in a cluster (deploy/zenoh). A node in client mode applies none itself: its
+//! only link is to that router, which enforces them for everyone (the node's own ACL would
+//! deny the router, which is no user).
 
 use std::path::Path;
 
@@ -65,7 +67,7 @@ pub fn zenoh_config(config: &Config, users_file: &Path) -> Result<zenoh::Config,
             Value::from(z.password.as_str()).to_string(),
         )?;
     }
-    if config.auth.enabled() {
+    if config.auth.enabled() && z.mode != "client" {
         write_users_file(config, users_file)?;
         set(
             "transport/auth/usrpwd/dictionary_file",
@@ -198,6 +200,34 @@ pub fn router_config(config: &Config, listen: &str, users_file: &str) -> String 
     serde_json::to_string_pretty(&router).unwrap_or_default()
 }
 
+/// Runs a Zenoh router on `listen` with the protection of [`router_config`] (what `zenohd`
+/// would run with it), until `shutdown`: the meeting point of a cluster's nodes when no
+/// `zenohd` is deployed (`relfusiond --zenoh-router ENDPOINT`). It serves no sessions.
+pub async fn run_router(
+    config: &Config,
+    listen: &str,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<(), ServerError> {
+    let folder = tempfile::tempdir()
+        .map_err(|e| ServerError::Startup(format!("a folder for the router's users: {e}")))?;
+    let users = folder.path().join("users");
+    if config.auth.enabled() {
+        write_users_file(config, &users)?;
+    }
+    let text = router_config(config, listen, &users.to_string_lossy());
+    let zconfig = zenoh::Config::from_json5(&text)
+        .map_err(|e| ServerError::Startup(format!("the router configuration: {e}")))?;
+    let router = zenoh::open(zconfig)
+        .await
+        .map_err(|e| ServerError::Startup(format!("starting the Zenoh router on {listen}: {e}")))?;
+    println!("zenoh router on {listen}");
+    shutdown.await;
+    if let Err(e) = router.close().await {
+        tracing::warn!("closing the Zenoh router: {e}");
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -246,6 +276,19 @@ mod tests {
             "false"
         );
         assert_eq!(z.get_json("access_control/enabled").expect("acl"), "false");
+    }
+
+    #[test]
+    fn a_client_of_a_router_leaves_access_control_to_the_router() {
+        let mut c = config(&[("alice", "a1")]);
+        c.zenoh.mode = "client".into();
+        let z = zenoh_config(&c, &users_file("client")).expect("valid");
+        assert_eq!(z.get_json("access_control/enabled").expect("acl"), "false");
+        let router = router_config(&c, "tcp/127.0.0.1:7447", "/etc/zenoh/users");
+        assert!(
+            router.contains("relfusion/tenants/alice/**"),
+            "the router enforces it"
+        );
     }
 
     #[test]

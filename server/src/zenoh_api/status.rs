@@ -27,6 +27,10 @@ pub struct NodeStatus {
     pub accepting: bool,
     /// Worker threads of the GPU pool.
     pub gpu_workers: usize,
+    /// Real GPUs (0: kernels on the CPU fallback); placement prefers nodes with one.
+    pub gpus: usize,
+    /// The node's HTTP address for clients (`[zenoh] advertise`), empty if not given.
+    pub advertise: String,
     /// Counters of the Zenoh side since start.
     pub zenoh: ZenohCounts,
 }
@@ -34,6 +38,7 @@ pub struct NodeStatus {
 /// The status of this node now.
 pub(crate) fn current(shared: &Shared, node: &str) -> NodeStatus {
     let (sessions_active, max_sessions) = shared.sessions.load();
+    let load = shared.cluster.local_load();
     NodeStatus {
         node: node.to_string(),
         version: env!("CARGO_PKG_VERSION"),
@@ -41,6 +46,8 @@ pub(crate) fn current(shared: &Shared, node: &str) -> NodeStatus {
         max_sessions,
         accepting: shared.sessions.is_accepting(),
         gpu_workers: shared.sessions.gpu_workers(),
+        gpus: load.gpus,
+        advertise: load.advertise,
         zenoh: shared.stats.counts(),
     }
 }

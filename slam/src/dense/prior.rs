@@ -350,7 +350,17 @@ fn build_session(env: &Environment, bytes: &[u8], threads: usize) -> ort::Result
 }
 
 fn session_builder(env: &Environment, bytes: &[u8], threads: usize) -> ort::Result<Session> {
-    Session::builder(env)?
+    let mut builder = Session::builder(env)?;
+    // The GPU build of ONNX Runtime (`onnxruntime-gpu`, the image's `ORT_PACKAGE` build
+    // argument) offers CUDA: inference then runs there. The CPU build does not list it, and
+    // nothing is tried.
+    use ort::ep::ExecutionProvider as _;
+    if ort::ep::CUDA::is_available().unwrap_or(false) {
+        builder = builder
+            .with_execution_providers([ort::ep::CUDA::default().build()])
+            .map_err(ort::Error::<()>::from)?;
+    }
+    builder
         .with_optimization_level(GraphOptimizationLevel::Level3)?
         .with_intra_threads(threads)?
         // Idle pool threads sleep instead of spinning: a spinning thread takes a core from

@@ -330,3 +330,17 @@ pub fn tum_lines(text: &str) -> Vec<Vec<f64>> {
         })
         .collect()
 }
+
+/// The TUM part of a synthetic sequence (no depth) as a tar with one top folder.
+pub fn dataset_tar(dir: &Path) -> Vec<u8> {
+    let mut builder = tar::Builder::new(Vec::new());
+    for file in ["rgb.txt", "calibration.txt", "groundtruth.txt"] {
+        builder
+            .append_path_with_name(dir.join(file), format!("seq/{file}"))
+            .expect("tar file");
+    }
+    builder
+        .append_dir_all("seq/rgb", dir.join("rgb"))
+        .expect("tar rgb");
+    builder.into_inner().expect("tar")
+}

@@ -6,6 +6,7 @@
 mod auth;
 mod bad_input;
 mod client;
+mod cluster;
 mod live;
 mod map;
 mod uploads;

@@ -25,20 +25,6 @@ fn raw_tar(name: &str, data: &[u8]) -> Vec<u8> {
     tar
 }
 
-/// The TUM part of a synthetic sequence (no depth) as a tar with one top folder.
-fn dataset_tar(dir: &Path) -> Vec<u8> {
-    let mut builder = tar::Builder::new(Vec::new());
-    for file in ["rgb.txt", "calibration.txt", "groundtruth.txt"] {
-        builder
-            .append_path_with_name(dir.join(file), format!("seq/{file}"))
-            .expect("tar file");
-    }
-    builder
-        .append_dir_all("seq/rgb", dir.join("rgb"))
-        .expect("tar rgb");
-    builder.into_inner().expect("tar")
-}
-
 #[test]
 fn uploads_are_processed_and_bad_archives_refused() {
     const FRAMES: usize = 8;

@@ -22,7 +22,7 @@ impl SessionManager {
             if stale {
                 let result = self
                     .store
-                    .put("health/probe", b"ok")
+                    .put(&format!("health/{}", self.node()), b"ok")
                     .map_err(|e| format!("the store is not writable: {e}"));
                 *probe = Some((Instant::now(), result));
             }

@@ -42,7 +42,7 @@ use crate::gpu_pool::{GpuPool, device_count};
 use crate::maps::MapStore;
 use crate::memory::{MemoryPlan, SessionCost, resident_bytes};
 use crate::metrics::Metrics;
-use crate::storage::{FsStore, ObjectStore};
+use crate::storage::ObjectStore;
 use crate::{ApiError, ServerError};
 
 mod health;
@@ -100,7 +100,7 @@ impl SessionManager {
     /// Opens the store in `config.data_dir`, loads the depth model, starts the GPU pool and
     /// recovers the sessions of a previous run (see the module docs).
     pub fn open(config: &Config, metrics: Arc<Metrics>) -> Result<Arc<Self>, ServerError> {
-        let store: Arc<dyn ObjectStore> = Arc::new(FsStore::open(&config.data_dir)?);
+        let store = crate::storage::open(config)?;
         let temp_dir = config.data_dir.join("tmp");
         let _ = std::fs::remove_dir_all(&temp_dir);
         std::fs::create_dir_all(&temp_dir)
@@ -155,6 +155,22 @@ impl SessionManager {
         &self.temp_dir
     }
 
+    /// Whether this node runs (or keeps) the session `id`, whoever owns it (cluster routing;
+    /// the owner check comes with the request).
+    pub fn holds(&self, id: &str) -> bool {
+        self.read_sessions().contains_key(id)
+    }
+
+    /// This node's name (`[zenoh] node`).
+    pub fn node(&self) -> &str {
+        &self.config.zenoh.node
+    }
+
+    /// Whether this node's store is shared with the other nodes (S3).
+    pub fn store_is_shared(&self) -> bool {
+        self.store.shared()
+    }
+
     /// The configuration in force.
     pub fn config(&self) -> &Config {
         &self.config
@@ -206,7 +222,8 @@ impl SessionManager {
         !self.is_shutting_down()
     }
 
-    fn build(&self, meta: SessionMeta, max_keyframes: usize) -> Session {
+    fn build(&self, mut meta: SessionMeta, max_keyframes: usize) -> Session {
+        meta.node = Some(self.config.zenoh.node.clone());
         Session::new(
             SessionSpec {
                 meta,
@@ -324,6 +341,7 @@ impl SessionManager {
             upload_bytes: 0,
             results_bytes: 0,
             map,
+            node: None,
         };
         let session = {
             // Quota, slot and registration under one lock: racing creates cannot both pass.
@@ -460,13 +478,12 @@ impl SessionManager {
         self.refuse_if_shutting_down()?;
         let model = self.resolve_model(None)?;
         let id = new_id();
-        let staging_key = format!("sessions/{id}/upload.partial");
-        let (Some(staging), Some(final_dir)) = (
-            self.store.local_path(&staging_key),
-            self.store.local_path(&upload_key(&id)),
-        ) else {
-            return Err(ApiError::internal("uploads need a filesystem store"));
-        };
+        // A filesystem store extracts in place; any other store gets the extracted tree
+        // copied in (`folders::store`), one object per file, before the acknowledgement.
+        let staging = self
+            .store
+            .local_path(&format!("sessions/{id}/upload.partial"))
+            .unwrap_or_else(|| std::env::temp_dir().join(format!("relfusiond-{id}.partial")));
         let limits = ExtractLimits::for_archive(&self.config.limits, archive)?;
         let archive = archive.to_path_buf();
         let manager = self
@@ -474,9 +491,24 @@ impl SessionManager {
             .upgrade()
             .ok_or_else(|| ApiError::unavailable("the server is shutting down"))?;
         let checked_config = slam_config.clone();
+        let key = upload_key(&id);
         let extracted = tokio::task::spawn_blocking(move || {
             let check = |c: &PinholeCamera| manager.map_limit(c, &checked_config).map(|_| ());
-            stage_upload(&archive, kind, &staging, &final_dir, limits, camera, &check)
+            let mut staged = None;
+            let stored = crate::folders::store(manager.store.as_ref(), &key, |final_dir| {
+                let result =
+                    stage_upload(&archive, kind, &staging, final_dir, limits, camera, &check);
+                let failed = result.is_err();
+                staged = Some(result);
+                if failed { Err(String::new()) } else { Ok(()) }
+            });
+            let _ = std::fs::remove_dir_all(&staging);
+            match (staged, stored) {
+                (Some(Err(e)), _) => Err(e),
+                (Some(Ok(staged)), Ok(_)) => Ok(staged),
+                (_, Err(e)) => Err(ApiError::internal(format!("storing the upload: {e}"))),
+                (None, Ok(_)) => Err(ApiError::internal("the upload was not staged")),
+            }
         })
         .await
         .map_err(|e| ApiError::internal(format!("extraction task failed: {e}")));
@@ -518,6 +550,7 @@ impl SessionManager {
             upload_bytes: staged.bytes,
             results_bytes: 0,
             map: None,
+            node: None,
         };
         // The acknowledgement point: once meta.json is durable, the upload exists.
         if let Err(e) = meta.save(self.store.as_ref()) {

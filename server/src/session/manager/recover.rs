@@ -25,17 +25,13 @@ impl SessionManager {
                     .insert(id.to_string(), owner);
             }
         }
-        let keys = self.store.list("sessions/")?;
-        let mut ids: Vec<String> = keys
-            .iter()
-            .filter_map(|k| k.strip_prefix("sessions/")?.split('/').next())
-            .map(String::from)
-            .collect();
-        ids.dedup();
+        let ids = session_ids(&self.store.list("sessions/")?);
         let mut resumed = Vec::new();
         for id in ids {
             let meta = match SessionMeta::load(self.store.as_ref(), &id) {
                 Ok(Some(meta)) => meta,
+                // With a shared store, another node may be storing that upload right now.
+                Ok(None) if self.store.shared() => continue,
                 Ok(None) => {
                     tracing::info!(session = %id, "removing an unacknowledged upload");
                     self.store.delete_prefix(&session_prefix(&id))?;
@@ -46,53 +42,126 @@ impl SessionManager {
                     continue;
                 }
             };
-            let mut meta = meta;
-            let mut resume = false;
-            if !meta.state.is_terminal() {
-                match meta.kind {
-                    SessionKind::Upload => {
-                        // Re-run from scratch: progress restarts at zero.
-                        meta.state = SessionState::Queued;
-                        meta.counters = Default::default();
-                        resume = true;
-                    }
-                    SessionKind::Live => {
-                        meta.state = SessionState::Failed;
-                        meta.error = Some(
-                            "interrupted: the server stopped while this live session ran; \
-                             results up to the last checkpoint are kept"
-                                .into(),
-                        );
-                        meta.save(self.store.as_ref())?;
-                    }
-                }
+            if self.store.shared() && meta.node.as_deref().is_some_and(|n| n != self.node()) {
+                continue; // another node's (it recovers its own, or the cluster takes it over)
             }
-            // A re-run must fit this server's limits, which may have changed since.
-            let max_keyframes = match self.map_limit(&meta.camera, &meta.config) {
-                Ok(n) => n,
-                Err(e) if resume => {
-                    meta.state = SessionState::Failed;
-                    meta.error = Some(format!("cannot re-run: {}", e.message));
-                    meta.save(self.store.as_ref())?;
-                    resume = false;
-                    0
-                }
-                Err(_) => 0,
-            };
-            let session = Arc::new(self.build(meta, max_keyframes));
-            if resume {
+            let interrupted = "interrupted: the server stopped while this live session ran; \
+                               results up to the last checkpoint are kept";
+            if let Some(session) = self.revive(meta, interrupted)? {
                 tracing::info!(session = %id, "re-running an unfinished upload");
-                resumed.push(session.clone());
+                resumed.push(session);
             }
-            self.write_sessions().insert(id, session);
         }
         resumed.sort_by_key(|s| s.info().created_unix);
         for session in resumed {
-            let start = self.queue_or_slot(&mut lock_admission(&self.admission), &session);
-            if start {
-                self.start_or_release(&session, self.model.clone());
-            }
+            self.enqueue(&session);
         }
         Ok(())
     }
+
+    /// Makes a stored session this node's again: an unfinished upload re-runs from scratch
+    /// (returned: the caller queues it), an unfinished live session fails with `interrupted`
+    /// (its stream is gone), a finished one is served as it is.
+    fn revive(
+        &self,
+        mut meta: SessionMeta,
+        interrupted: &str,
+    ) -> Result<Option<Arc<Session>>, ServerError> {
+        let id = meta.id.clone();
+        let changed = !meta.state.is_terminal() || meta.node.as_deref() != Some(self.node());
+        let mut resume = false;
+        if !meta.state.is_terminal() {
+            match meta.kind {
+                SessionKind::Upload => {
+                    // Re-run from scratch: progress restarts at zero.
+                    meta.state = SessionState::Queued;
+                    meta.counters = Default::default();
+                    resume = true;
+                }
+                SessionKind::Live => {
+                    meta.state = SessionState::Failed;
+                    meta.error = Some(interrupted.into());
+                }
+            }
+        }
+        // A re-run must fit this server's limits, which may have changed since.
+        let max_keyframes = match self.map_limit(&meta.camera, &meta.config) {
+            Ok(n) => n,
+            Err(e) if resume => {
+                meta.state = SessionState::Failed;
+                meta.error = Some(format!("cannot re-run: {}", e.message));
+                resume = false;
+                0
+            }
+            Err(_) => 0,
+        };
+        let session = Arc::new(self.build(meta, max_keyframes));
+        if changed {
+            // The store now names this node (and the new state) as the session's.
+            session.meta().save(self.store.as_ref())?;
+        }
+        self.write_sessions().insert(id, session.clone());
+        Ok(resume.then_some(session))
+    }
+
+    /// Queues a revived upload, or starts it when a slot is free.
+    fn enqueue(&self, session: &Arc<Session>) {
+        if self.queue_or_slot(&mut lock_admission(&self.admission), session) {
+            self.start_or_release(session, self.model.clone());
+        }
+    }
+
+    /// Takes over the unfinished sessions a node that left the cluster held (shared store
+    /// only; see `cluster::failover`): `pick` says, per session id, whether this node is the
+    /// one to take it. Returns the ids taken.
+    pub fn adopt_from(&self, left: &str, pick: impl Fn(&str) -> bool) -> Vec<String> {
+        if !self.store.shared() || left == self.node() {
+            return Vec::new();
+        }
+        let mut taken = Vec::new();
+        let ids = match self.store.list("sessions/") {
+            Ok(keys) => session_ids(&keys),
+            Err(e) => {
+                tracing::error!("listing sessions to take over from {left}: {e}");
+                return taken;
+            }
+        };
+        for id in ids {
+            if !pick(&id) || self.read_sessions().contains_key(&id) {
+                continue;
+            }
+            let meta = match SessionMeta::load(self.store.as_ref(), &id) {
+                Ok(Some(meta)) => meta,
+                _ => continue,
+            };
+            if meta.node.as_deref() != Some(left) || meta.state.is_terminal() {
+                continue;
+            }
+            let reason = format!(
+                "interrupted: node {left}, which ran this live session, left the cluster; \
+                 results up to the last checkpoint are kept"
+            );
+            match self.revive(meta, &reason) {
+                Ok(Some(session)) => {
+                    tracing::warn!(session = %id, node = left, "re-running an upload of a node that left");
+                    self.enqueue(&session);
+                    taken.push(id);
+                }
+                Ok(None) => taken.push(id),
+                Err(e) => tracing::error!(session = %id, "taking over from {left}: {e}"),
+            }
+        }
+        taken
+    }
+}
+
+/// The session ids of `sessions/…` keys, each once.
+fn session_ids(keys: &[String]) -> Vec<String> {
+    let mut ids: Vec<String> = keys
+        .iter()
+        .filter_map(|k| k.strip_prefix("sessions/")?.split('/').next())
+        .map(String::from)
+        .collect();
+    ids.dedup();
+    ids
 }

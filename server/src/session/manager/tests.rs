@@ -251,6 +251,7 @@ async fn recovery_drops_unacknowledged_uploads_and_fails_interrupted_live_sessio
         upload_bytes: 0,
         results_bytes: 0,
         map: None,
+        node: None,
     };
     meta.save(&store).expect("save");
     store

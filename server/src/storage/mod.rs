@@ -1,6 +1,6 @@
-//! Durable storage of uploads, session metadata and results behind a small object-store
-//! interface, so that a node could keep them in S3-like storage; the default is the local
-//! filesystem ([`FsStore`]).
+//! Durable storage of uploads, session metadata, results and saved maps behind a small
+//! object-store interface: the local filesystem by default ([`FsStore`]), or an S3-compatible
+//! bucket shared by the nodes of a cluster ([`s3::S3Store`], `[storage] backend = "s3"`).
 //!
 //! Keys are `/`-separated relative paths (`sessions/<id>/meta.json`). Layout:
 //! `sessions/<id>/meta.json`, `sessions/<id>/upload/…` (the extracted dataset),
@@ -8,7 +8,9 @@
 //!
 //! Durability contract: when [`ObjectStore::put`] returns, the object survives a `kill -9` or
 //! a power cut, and a reader never sees a half-written object (write to a temporary file,
-//! fsync it, rename over the key, fsync the folder).
+//! fsync it, rename over the key, fsync the folder; S3 PUTs are atomic and durable).
+
+pub mod s3;
 
 use std::fs::File;
 use std::io::Write;
@@ -20,6 +22,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 pub enum StoreError {
     #[error("invalid storage key {0:?}")]
     BadKey(String),
+    #[error("object storage: {0}")]
+    Remote(String),
     #[error("storage {path}: {source}")]
     Io {
         path: PathBuf,
@@ -48,6 +52,34 @@ pub trait ObjectStore: Send + Sync + std::fmt::Debug {
     /// A local path for `key` when the store is a filesystem (the pipeline reads uploaded
     /// images straight from it); `None` for remote stores.
     fn local_path(&self, key: &str) -> Option<PathBuf>;
+    /// Whether other nodes see the same objects (a cluster's bucket): then a node may take
+    /// over another's sessions.
+    fn shared(&self) -> bool {
+        false
+    }
+}
+
+/// The store `config` names: files below `data_dir`, or the S3 bucket of `[storage.s3]`.
+pub fn open(config: &crate::config::Config) -> Result<std::sync::Arc<dyn ObjectStore>, StoreError> {
+    use crate::config::StorageBackend;
+    Ok(match config.storage.backend {
+        StorageBackend::Fs => std::sync::Arc::new(FsStore::open(&config.data_dir)?),
+        StorageBackend::S3 => std::sync::Arc::new(s3::S3Store::open(&config.storage.s3)?),
+    })
+}
+
+/// Refuses keys that are empty or would leave the store's root (`..`, absolute, `.`).
+pub(crate) fn check_key(key: &str) -> Result<(), StoreError> {
+    let ok = !key.is_empty()
+        && !key.contains('\\')
+        && Path::new(key)
+            .components()
+            .all(|c| matches!(c, Component::Normal(_)));
+    if ok {
+        Ok(())
+    } else {
+        Err(StoreError::BadKey(key.to_string()))
+    }
 }
 
 /// The local-filesystem store rooted at the data directory.
@@ -75,12 +107,8 @@ impl FsStore {
 
     /// The path of `key`, refusing keys that would leave the root.
     fn path(&self, key: &str) -> Result<PathBuf, StoreError> {
-        let rel = Path::new(key);
-        let ok = !key.is_empty() && rel.components().all(|c| matches!(c, Component::Normal(_)));
-        if !ok {
-            return Err(StoreError::BadKey(key.to_string()));
-        }
-        Ok(self.root.join(rel))
+        check_key(key)?;
+        Ok(self.root.join(key))
     }
 }
 

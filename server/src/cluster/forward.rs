@@ -1,0 +1,224 @@
+//! HTTP requests over Zenoh: a node that does not hold a session forwards the request to the
+//! node that does (`relfusion/cluster/nodes/<node>/http`), which runs it through its own HTTP
+//! router and replies with the response.
+//!
+//! The query's attachment is the request head as JSON (method, path and query, the headers
+//! that matter: auth, content type, accept), its payload the body (already read whole and
+//! bounded by the body middleware); the reply's attachment is the response head, its payload
+//! the body (bounded by [`MAX_RESPONSE_BYTES`]). The owner marks the request forwarded
+//! ([`FORWARDED`]) so that it is never forwarded again: a session the owner no longer holds
+//! is its 404, not a loop. Streaming responses (WebSocket, SSE) do not go this way.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::body::Body;
+use axum::extract::Request;
+use axum::http::{HeaderName, HeaderValue, Method, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use tower::ServiceExt as _;
+
+use super::{Cluster, node_key};
+use crate::ApiError;
+
+/// The header a forwarded request carries: the node it came from.
+pub const FORWARDED: &str = "x-relfusion-forwarded-by";
+/// Leaf of the HTTP queryable.
+pub const HTTP: &str = "http";
+/// How long a forwarded request may take (a frame that waits for queue room, a large
+/// download).
+pub const FORWARD_TIMEOUT: Duration = Duration::from_secs(120);
+/// Largest response body sent back (meshes and point clouds of big maps included).
+pub const MAX_RESPONSE_BYTES: usize = 1 << 30;
+
+/// Request headers that travel.
+const REQUEST_HEADERS: [HeaderName; 4] = [
+    header::AUTHORIZATION,
+    header::CONTENT_TYPE,
+    header::ACCEPT,
+    header::IF_NONE_MATCH,
+];
+/// Response headers that travel.
+const RESPONSE_HEADERS: [HeaderName; 5] = [
+    header::CONTENT_TYPE,
+    header::CONTENT_DISPOSITION,
+    header::ETAG,
+    header::RETRY_AFTER,
+    header::LOCATION,
+];
+
+/// The request head on the wire.
+#[derive(Debug, Serialize, Deserialize)]
+struct Head {
+    method: String,
+    uri: String,
+    headers: Vec<(String, String)>,
+    from: String,
+}
+
+/// The response head on the wire.
+#[derive(Debug, Serialize, Deserialize)]
+struct ReplyHead {
+    status: u16,
+    headers: Vec<(String, String)>,
+}
+
+fn kept(headers: &axum::http::HeaderMap, names: &[HeaderName]) -> Vec<(String, String)> {
+    names
+        .iter()
+        .filter_map(|name| {
+            let value = headers.get(name)?.to_str().ok()?;
+            Some((name.as_str().to_string(), value.to_string()))
+        })
+        .collect()
+}
+
+impl Cluster {
+    /// Sends `request` to `node` and returns its response; 502 when the node does not answer.
+    pub async fn forward(&self, node: &str, request: Request) -> Response {
+        match self.try_forward(node, request).await {
+            Ok(response) => response,
+            Err(message) => ApiError {
+                status: 502,
+                code: "unavailable",
+                message,
+            }
+            .into_response(),
+        }
+    }
+
+    async fn try_forward(&self, node: &str, request: Request) -> Result<Response, String> {
+        let zenoh = self.zenoh().ok_or("the cluster is not joined")?;
+        let (parts, body) = request.into_parts();
+        let head = Head {
+            method: parts.method.to_string(),
+            uri: parts
+                .uri
+                .path_and_query()
+                .map_or_else(|| parts.uri.path().to_string(), |pq| pq.to_string()),
+            headers: kept(&parts.headers, &REQUEST_HEADERS),
+            from: self.node.clone(),
+        };
+        // Bodies reach here read whole (the body middleware bounded them).
+        let body = axum::body::to_bytes(body, usize::MAX)
+            .await
+            .map_err(|e| format!("reading the request body: {e}"))?;
+        let head = serde_json::to_vec(&head).map_err(|e| e.to_string())?;
+        let replies = zenoh
+            .get(node_key(node, HTTP))
+            .attachment(head)
+            .payload(body.to_vec())
+            .timeout(FORWARD_TIMEOUT)
+            .await
+            .map_err(|e| format!("forwarding to node {node}: {e}"))?;
+        let reply = replies
+            .recv_async()
+            .await
+            .map_err(|_| format!("node {node}, which holds this session, did not answer"))?;
+        let sample = reply
+            .result()
+            .map_err(|e| format!("node {node} refused the forwarded request: {e:?}"))?;
+        let head: ReplyHead = sample
+            .attachment()
+            .and_then(|a| serde_json::from_slice(&a.to_bytes()).ok())
+            .ok_or_else(|| format!("node {node} answered without a response head"))?;
+        let mut response = Response::new(Body::from(sample.payload().to_bytes().into_owned()));
+        *response.status_mut() =
+            StatusCode::from_u16(head.status).unwrap_or(StatusCode::BAD_GATEWAY);
+        for (name, value) in head.headers {
+            if let (Ok(name), Ok(value)) = (
+                HeaderName::try_from(name.as_str()),
+                HeaderValue::from_str(&value),
+            ) {
+                response.headers_mut().insert(name, value);
+            }
+        }
+        Ok(response)
+    }
+}
+
+/// Answers forwarded requests with this node's router.
+pub(crate) async fn answer(cluster: Arc<Cluster>, query: zenoh::query::Query) {
+    let outcome = async {
+        let router = cluster.router.get().ok_or("this node is starting")?.clone();
+        let head: Head = query
+            .attachment()
+            .and_then(|a| serde_json::from_slice(&a.to_bytes()).ok())
+            .ok_or("no request head")?;
+        let body = query
+            .payload()
+            .map(|p| p.to_bytes().into_owned())
+            .unwrap_or_default();
+        let method = Method::from_bytes(head.method.as_bytes()).map_err(|_| "bad method")?;
+        let mut request = Request::builder()
+            .method(method)
+            .uri(&head.uri)
+            .body(Body::from(body))
+            .map_err(|_| "bad request head")?;
+        for (name, value) in &head.headers {
+            if let (Ok(name), Ok(value)) = (
+                HeaderName::try_from(name.as_str()),
+                HeaderValue::from_str(value),
+            ) && REQUEST_HEADERS.contains(&name)
+            {
+                request.headers_mut().insert(name, value);
+            }
+        }
+        if let Ok(from) = HeaderValue::from_str(&head.from) {
+            request
+                .headers_mut()
+                .insert(HeaderName::from_static(FORWARDED), from);
+        }
+        let response = router
+            .oneshot(request)
+            .await
+            .map_err(|_| "the router failed")?;
+        let (parts, body) = response.into_parts();
+        let bytes = axum::body::to_bytes(body, MAX_RESPONSE_BYTES)
+            .await
+            .map_err(|_| "the response is too large to forward")?;
+        let head = ReplyHead {
+            status: parts.status.as_u16(),
+            headers: kept(&parts.headers, &RESPONSE_HEADERS),
+        };
+        Ok::<_, &'static str>((serde_json::to_vec(&head).unwrap_or_default(), bytes))
+    }
+    .await;
+    let sent = match outcome {
+        Ok((head, bytes)) => {
+            query
+                .reply(query.key_expr().clone(), bytes.to_vec())
+                .attachment(head)
+                .await
+        }
+        Err(message) => query.reply_err(message.as_bytes().to_vec()).await,
+    };
+    if let Err(e) = sent {
+        tracing::debug!("replying to a forwarded request: {e}");
+    }
+}
+
+/// Which session a path names, and the rest of the path (`/v1/sessions/<id>/<rest>`).
+pub fn session_path(path: &str) -> Option<(&str, &str)> {
+    let rest = path.strip_prefix("/v1/sessions/")?;
+    let (id, tail) = rest.split_once('/').unwrap_or((rest, ""));
+    (!id.is_empty()).then_some((id, tail))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn session_paths_are_recognised() {
+        assert_eq!(session_path("/v1/sessions/s-1"), Some(("s-1", "")));
+        assert_eq!(
+            session_path("/v1/sessions/s-1/frames"),
+            Some(("s-1", "frames"))
+        );
+        assert_eq!(session_path("/v1/sessions"), None);
+        assert_eq!(session_path("/v1/sessions/"), None);
+        assert_eq!(session_path("/v1/maps/m-1"), None);
+    }
+}

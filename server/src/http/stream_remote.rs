@@ -1,0 +1,175 @@
+//! The WebSocket stream of a session another node of the cluster runs (see
+//! [`crate::cluster::relay`]): the same protocol as [`super::stream_ws`], with frames handed
+//! to the owner one at a time (the next read only once the owner took the last: the `wait`
+//! policy pushes back through both nodes) and the owner's updates relayed back.
+//!
+//! When the owner leaves the cluster, the client gets an `Error` (UNAVAILABLE-like
+//! `RESOURCE_EXHAUSTED` code, with the reason) and a close with code 1011.
+
+use std::sync::Arc;
+
+use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade, close_code};
+use axum::http::{HeaderMap, header};
+use axum::response::Response;
+use futures_util::stream::{SplitSink, SplitStream};
+use futures_util::{SinkExt, StreamExt};
+use relfusion_proto::v1::{ErrorCode, ServerMessage};
+use tokio::sync::mpsc;
+
+use super::stream_ws::{CLOSE_GRACE, REPLY_QUEUE, binary, error_message, sized};
+use crate::cluster::Cluster;
+use crate::cluster::relay::{Relay, Relayed, relayed};
+use crate::{ApiError, AppState};
+
+/// Starts the owner's relay, then upgrades.
+pub(super) async fn open(
+    state: &Arc<AppState>,
+    node: String,
+    id: String,
+    headers: &HeaderMap,
+    upgrade: WebSocketUpgrade,
+) -> Result<Response, ApiError> {
+    let authorization = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .map(String::from);
+    let cluster = state.cluster.clone();
+    let relay = cluster
+        .watch(
+            &node,
+            &id,
+            authorization.clone(),
+            state.config.limits.event_buffer,
+        )
+        .await?;
+    let stream = Stream {
+        cluster,
+        node,
+        id,
+        authorization,
+    };
+    Ok(sized(upgrade, state).on_upgrade(move |socket| serve(socket, stream, relay)))
+}
+
+/// Where this stream's session runs.
+#[derive(Clone)]
+struct Stream {
+    cluster: Arc<Cluster>,
+    node: String,
+    id: String,
+    authorization: Option<String>,
+}
+
+async fn serve(socket: WebSocket, stream: Stream, relay: Relay) {
+    let (sink, incoming) = socket.split();
+    let (reply_tx, reply_rx) = mpsc::channel(REPLY_QUEUE);
+    let mut send_task = tokio::spawn(send_loop(sink, stream.clone(), relay, reply_rx));
+    let mut receive_task = tokio::spawn(receive_loop(incoming, stream.clone(), reply_tx));
+    tokio::select! {
+        _ = &mut send_task => {
+            if tokio::time::timeout(CLOSE_GRACE, &mut receive_task).await.is_err() {
+                receive_task.abort();
+            }
+        }
+        _ = &mut receive_task => send_task.abort(),
+    }
+    tracing::debug!(session = %stream.id, node = %stream.node, "relayed websocket closed");
+}
+
+fn close(code: u16, reason: String) -> Message {
+    Message::Close(Some(CloseFrame {
+        code,
+        reason: reason.into(),
+    }))
+}
+
+async fn send_loop(
+    mut sink: SplitSink<WebSocket, Message>,
+    stream: Stream,
+    relay: Relay,
+    mut replies: mpsc::Receiver<ServerMessage>,
+) {
+    if relay.ended {
+        let _ = sink
+            .send(close(close_code::NORMAL, "session already finished".into()))
+            .await;
+        return;
+    }
+    let mut departures = stream.cluster.departures();
+    let mut replies_open = true;
+    loop {
+        tokio::select! {
+            reply = replies.recv(), if replies_open => match reply {
+                Some(message) => {
+                    if sink.send(binary(&message)).await.is_err() {
+                        return;
+                    }
+                }
+                None => replies_open = false,
+            },
+            sample = relay.subscriber.recv_async() => match sample.as_ref().map(relayed) {
+                Ok(Relayed::Message(bytes)) => {
+                    if sink.send(Message::Binary(bytes.into())).await.is_err() {
+                        return;
+                    }
+                }
+                Ok(Relayed::End) => {
+                    while let Ok(message) = replies.try_recv() {
+                        let _ = sink.send(binary(&message)).await;
+                    }
+                    let _ = sink.send(close(close_code::NORMAL, "session finished".into())).await;
+                    return;
+                }
+                Err(_) => return,
+            },
+            left = departures.recv() => {
+                if left.as_deref().is_ok_and(|n| *n == stream.node) {
+                    let reason = format!(
+                        "node {} running this session left the cluster: the session ended \
+                         (results up to its last checkpoint are kept)",
+                        stream.node
+                    );
+                    let message = error_message(ErrorCode::ResourceExhausted, reason.clone());
+                    let _ = sink.send(binary(&message)).await;
+                    let _ = sink.send(close(close_code::ERROR, "the session's node left".into())).await;
+                    return;
+                }
+            }
+        }
+    }
+}
+
+async fn receive_loop(
+    mut incoming: SplitStream<WebSocket>,
+    stream: Stream,
+    replies: mpsc::Sender<ServerMessage>,
+) {
+    while let Some(Ok(message)) = incoming.next().await {
+        let outcome = match message {
+            Message::Binary(data) => {
+                stream
+                    .cluster
+                    .push(
+                        &stream.node,
+                        &stream.id,
+                        stream.authorization.clone(),
+                        data.to_vec(),
+                    )
+                    .await
+            }
+            Message::Text(_) => Err(ApiError::bad_request(
+                "text messages are not understood: send binary protobuf relfusion.v1.ClientMessage",
+            )),
+            Message::Close(_) => break,
+            Message::Ping(_) | Message::Pong(_) => Ok(()),
+        };
+        if let Err(error) = outcome
+            && replies
+                .send(error_message(error.proto_code(), error.message))
+                .await
+                .is_err()
+        {
+            break;
+        }
+    }
+}
