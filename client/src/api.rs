@@ -172,6 +172,11 @@ impl Client {
         Self::json(self.request(Method::GET, "v1/version")?).await
     }
 
+    /// `GET /v1/cluster`: the nodes of the server's cluster and their load, as JSON.
+    pub async fn cluster(&self) -> Result<Value, ClientError> {
+        Self::json(self.request(Method::GET, "v1/cluster")?).await
+    }
+
     /// `POST /v1/sessions`: opens a live session.
     pub async fn create_session(&self, req: &CreateSession) -> Result<SessionInfo, ClientError> {
         let created: CreatedSession =

@@ -20,6 +20,9 @@ pub enum BenchCommand {
     Accuracy(super::bench_accuracy::AccuracyArgs),
     /// A running relfusiond: HTTP/Zenoh ingest rate, frame-to-pose latency, sessions at 30 fps.
     Serve(super::bench_serve::ServeArgs),
+    /// relfusiond nodes on this machine as one service (spawned here: a router and 1..N
+    /// nodes): sessions sustained at 30 fps per N, forwarding latency owner vs non-owner.
+    Cluster(super::bench_cluster::ClusterArgs),
     /// Densification (eqs. 10–13, Adam) on saved inputs: GPU kernel vs CPU reference.
     Densify(super::bench_densify::DensifyArgs),
     /// Per keyframe of a saved run: prior, adaptive filter and densification, GPU vs CPU.
@@ -59,6 +62,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Slam(args) => super::bench_slam::slam(&args),
         BenchCommand::Accuracy(args) => super::bench_accuracy::accuracy(&args),
         BenchCommand::Serve(args) => super::bench_serve::serve(&args),
+        BenchCommand::Cluster(args) => super::bench_cluster::cluster(&args),
         BenchCommand::Densify(args) => super::bench_densify::densify(&args),
         BenchCommand::Dense(args) => super::bench_dense::dense(&args),
         BenchCommand::Fusion(args) => super::bench_fusion::fusion(&args),

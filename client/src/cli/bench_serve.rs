@@ -23,8 +23,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 use bytes::Bytes;
-use relfusion_client::link::{end_of_stream, frame_message, open_session};
-use relfusion_client::{Client, CreateSession, FramePolicy, Transport};
+use relfusion_client::link::{end_of_stream, frame_message};
+use relfusion_client::{Client, CreateSession, FramePolicy};
 use relfusion_proto::v1::server_message;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::synth::{SynthConfig, render_sequence};
@@ -76,12 +76,12 @@ pub struct ServeArgs {
 }
 
 /// The frames of a run, encoded, in memory.
-struct Frames {
-    camera: relfusion_client::CameraJson,
-    items: Vec<(f64, Bytes)>,
-    width: u32,
-    height: u32,
-    bytes_mean: f64,
+pub(super) struct Frames {
+    pub camera: relfusion_client::CameraJson,
+    pub items: Vec<(f64, Bytes)>,
+    pub width: u32,
+    pub height: u32,
+    pub bytes_mean: f64,
 }
 
 pub fn serve(args: &ServeArgs) -> anyhow::Result<()> {
@@ -92,7 +92,12 @@ pub fn serve(args: &ServeArgs) -> anyhow::Result<()> {
         "--fps must be positive"
     );
     anyhow::ensure!(args.concurrency > 0, "--concurrency must be positive");
-    let frames = Arc::new(load_frames(args)?);
+    let frames = Arc::new(load_frames(
+        args.dataset.as_deref(),
+        (args.width, args.height),
+        args.frames,
+        args.fps,
+    )?);
     let client = args.connect.client()?;
     let report = runtime()?.block_on(async {
         client
@@ -130,21 +135,25 @@ pub fn serve(args: &ServeArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn load_frames(args: &ServeArgs) -> anyhow::Result<Frames> {
+/// `count` frames of `dataset` (cycled), or of a synthetic sequence of `size`, timed at `fps`.
+pub(super) fn load_frames(
+    dataset: Option<&std::path::Path>,
+    (width, height): (u32, u32),
+    count: usize,
+    fps: f64,
+) -> anyhow::Result<Frames> {
     let mut rendered = None;
-    let dir = match &args.dataset {
-        Some(d) => d.clone(),
+    let dir = match dataset {
+        Some(d) => d.to_path_buf(),
         None => {
             let dir = std::env::temp_dir().join(format!(
-                "relfusion-bench-serve-{}x{}-{}",
-                args.width,
-                args.height,
+                "relfusion-bench-serve-{width}x{height}-{}",
                 std::process::id()
             ));
             let config = SynthConfig {
-                frames: args.frames,
-                width: args.width,
-                height: args.height,
+                frames: count,
+                width,
+                height,
                 seed: 1,
                 ..SynthConfig::default()
             };
@@ -156,12 +165,12 @@ fn load_frames(args: &ServeArgs) -> anyhow::Result<Frames> {
     let seq =
         TumSequence::open(&dir, None).with_context(|| format!("opening {}", dir.display()))?;
     // Longer runs than the sequence cycle through it (timestamps keep increasing).
-    let items = (0..args.frames)
+    let items = (0..count)
         .map(|i| {
             let path = &seq.frames[i % seq.len()].rgb;
             let bytes =
                 std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-            Ok((i as f64 / args.fps, Bytes::from(bytes)))
+            Ok((i as f64 / fps, Bytes::from(bytes)))
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
     if let Some(dir) = rendered {
@@ -279,22 +288,41 @@ async fn zenoh_ingest(
 
 /// One paced live session's outcome.
 #[derive(Debug, Default)]
-struct LiveRun {
-    sent: u64,
-    latencies_ms: Vec<f64>,
-    server_dropped: u64,
-    error: Option<String>,
+pub(super) struct LiveRun {
+    pub sent: u64,
+    pub latencies_ms: Vec<f64>,
+    pub server_dropped: u64,
+    pub error: Option<String>,
 }
 
 /// Streams every frame at `fps` to a new live session and matches poses to frames.
-async fn live_session(
+pub(super) async fn live_session(
     client: Client,
     frames: Arc<Frames>,
     fps: f64,
     req: CreateSession,
 ) -> LiveRun {
+    live_session_via(client, |_| None, frames, fps, req).await
+}
+
+/// [`live_session`], created through `client` and streamed over the WebSocket of the client
+/// `via` picks for the created session (`None`: `client`; another node of a cluster).
+pub(super) async fn live_session_via(
+    client: Client,
+    via: impl FnOnce(&relfusion_client::SessionInfo) -> Option<Client>,
+    frames: Arc<Frames>,
+    fps: f64,
+    req: CreateSession,
+) -> LiveRun {
     let mut run = LiveRun::default();
-    let mut link = match open_session(&client, &Transport::Http, &req).await {
+    let opened = async {
+        let info = client.create_session(&req).await?;
+        let stream = via(&info).unwrap_or_else(|| client.clone());
+        let mut link = relfusion_client::ws::connect(&stream, &info.id).await?;
+        link.info = Some(info);
+        Ok::<_, relfusion_client::ClientError>(link)
+    };
+    let mut link = match opened.await {
         Ok(link) => link,
         Err(e) => {
             run.error = Some(e.report());
@@ -420,7 +448,7 @@ async fn sessions_ramp(client: &Client, frames: &Arc<Frames>, args: &ServeArgs) 
     (latency, sessions)
 }
 
-fn step_json(k: usize, run: &mut LiveRun, fps: f64) -> Value {
+pub(super) fn step_json(k: usize, run: &mut LiveRun, fps: f64) -> Value {
     run.latencies_ms.sort_by(f64::total_cmp);
     let poses = run.latencies_ms.len() as u64;
     let drop_fraction = if run.sent == 0 {
@@ -449,7 +477,7 @@ fn step_json(k: usize, run: &mut LiveRun, fps: f64) -> Value {
 }
 
 /// Nearest-rank percentile of sorted `v`.
-fn percentile(v: &[f64], q: f64) -> Option<f64> {
+pub(super) fn percentile(v: &[f64], q: f64) -> Option<f64> {
     if v.is_empty() {
         return None;
     }

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod bench_accuracy;
+pub mod bench_cluster;
 pub mod bench_dense;
 pub mod bench_densify;
 pub mod bench_fusion;

@@ -29,6 +29,8 @@ pub const HTTP: &str = "http";
 /// How long a forwarded request may take (a frame that waits for queue room, a large
 /// download).
 pub const FORWARD_TIMEOUT: Duration = Duration::from_secs(120);
+/// How long a listing waits for each other node.
+pub const GATHER_TIMEOUT: Duration = Duration::from_secs(5);
 /// Largest response body sent back (meshes and point clouds of big maps included).
 pub const MAX_RESPONSE_BYTES: usize = 1 << 30;
 
@@ -86,6 +88,42 @@ impl Cluster {
             }
             .into_response(),
         }
+    }
+
+    /// `GET path` on every other member, with the caller's `authorization`: the bodies of the
+    /// 200 answers (members that do not answer within [`GATHER_TIMEOUT`] are left out).
+    pub async fn gather(&self, path: &str, authorization: Option<&str>) -> Vec<Vec<u8>> {
+        if self.zenoh().is_none() {
+            return Vec::new();
+        }
+        let others: Vec<String> = self
+            .members()
+            .into_iter()
+            .filter(|n| *n != self.node)
+            .collect();
+        let calls = others.iter().map(|node| async move {
+            let mut request = Request::builder().method(Method::GET).uri(path);
+            if let Some(auth) = authorization {
+                request = request.header(header::AUTHORIZATION, auth);
+            }
+            let request = request.body(Body::empty()).ok()?;
+            let response = tokio::time::timeout(GATHER_TIMEOUT, self.try_forward(node, request))
+                .await
+                .ok()?
+                .ok()?;
+            if response.status() != StatusCode::OK {
+                return None;
+            }
+            axum::body::to_bytes(response.into_body(), MAX_RESPONSE_BYTES)
+                .await
+                .ok()
+                .map(|b| b.to_vec())
+        });
+        futures_util::future::join_all(calls)
+            .await
+            .into_iter()
+            .flatten()
+            .collect()
     }
 
     async fn try_forward(&self, node: &str, request: Request) -> Result<Response, String> {

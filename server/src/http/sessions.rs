@@ -57,7 +57,7 @@ pub async fn create_session(
     Ok(created(session.info()))
 }
 
-/// Lists the caller's sessions (live, uploads, finished).
+/// Lists the caller's sessions (live, uploads, finished) on every node of the cluster.
 #[utoipa::path(
     get, path = "/v1/sessions", tag = "sessions",
     responses(
@@ -69,10 +69,23 @@ pub async fn create_session(
 pub async fn list_sessions(
     State(state): State<Arc<AppState>>,
     Auth(owner): Auth,
+    headers: axum::http::HeaderMap,
 ) -> Json<SessionList> {
-    Json(SessionList {
-        sessions: state.sessions.list(&owner),
-    })
+    let mut sessions = state.sessions.list(&owner);
+    // Asked directly (not by another node): the other nodes' sessions of the caller too.
+    if !headers.contains_key(crate::cluster::forward::FORWARDED) {
+        let authorization = headers
+            .get(axum::http::header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok());
+        for body in state.cluster.gather("/v1/sessions", authorization).await {
+            if let Ok(list) = serde_json::from_slice::<SessionList>(&body) {
+                sessions.extend(list.sessions);
+            }
+        }
+        sessions.sort_by(|a, b| (a.created_unix, &a.id).cmp(&(b.created_unix, &b.id)));
+        sessions.dedup_by(|a, b| a.id == b.id);
+    }
+    Json(SessionList { sessions })
 }
 
 /// State and progress of one session.

@@ -2,8 +2,10 @@
 //! (s3s-fs), as one service: a session created through node A (full) is placed on the node with
 //! free slots, streamed over a WebSocket through another node, and fetched through A with the
 //! same trajectory as a single-node run of the same deterministic config; another tenant cannot
-//! reach it through any node; an upload whose node is killed with SIGKILL mid-processing
-//! completes on another node with every frame, the same trajectory as a single-node run.
+//! reach it through any node; any node lists a caller's sessions of all nodes; an upload whose
+//! node is killed with SIGKILL mid-processing completes on another node with every frame, the
+//! same trajectory as a single-node run, and a live session on that node ends with an error
+//! for its client streaming through another node.
 
 use super::client::*;
 use relfusion_tests::free_port;
@@ -174,6 +176,23 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
         unknown.expect_error(404, "not_found", "an unknown session");
     }
     assert!(s3.objects(&format!("sessions/{id}")) > 0, "results in S3");
+    // Any node lists the caller's sessions of every node; SSE stays with the owner.
+    let listed = get(&c, "/v1/sessions", Some(ALICE)).json();
+    let ids: Vec<&str> = listed["sessions"]
+        .as_array()
+        .expect("sessions")
+        .iter()
+        .filter_map(|s| s["id"].as_str())
+        .collect();
+    assert!(
+        ids.contains(&id.as_str()) && ids.contains(&busy["id"].as_str().expect("id")),
+        "{listed}"
+    );
+    get(&c, &format!("/v1/sessions/{id}/events"), Some(ALICE)).expect_error(
+        409,
+        "conflict",
+        "SSE elsewhere",
+    );
 
     // The same stream on a single node, no cluster, gives the same trajectory.
     let single = Relfusiond::spawn(&work.join("single"), Vec::<String>::new(), &[]);
@@ -198,6 +217,25 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
         b"",
     );
     assert_eq!(deleted.status, 204, "{}", deleted.body);
+    // A live session of Alice's on B (created there: the forwarded mark skips placement; one
+    // slot each for Alice and Bob there), streamed through C: B's death must reach C's client as an error and a close.
+    let doomed = reply(
+        agent()
+            .post(format!("{}/v1/sessions", b.url()))
+            .header("Authorization", format!("Bearer {ALICE}"))
+            .header("x-relfusion-forwarded-by", "test")
+            .content_type("application/json")
+            .send(deterministic(&live).to_string()),
+    );
+    assert_eq!(doomed.status, 201, "{}", doomed.body);
+    let doomed = doomed.json()["id"].as_str().expect("id").to_string();
+    let mut doomed_socket = ws_connect(&c, &doomed, Some(ALICE)).expect("websocket through C");
+    for i in 0..3 {
+        ws_send(
+            &mut doomed_socket,
+            ws_frame(&live, i, frame_bytes(&live, i)),
+        );
+    }
     let archive = dataset_tar(&upload_dir);
     let created = send(
         &b,
@@ -228,6 +266,14 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
         std::thread::sleep(Duration::from_millis(50));
     }
     b.kill9();
+    let mut told = None;
+    while let Some(message) = ws_next(&mut doomed_socket) {
+        if let server_message::Message::Error(e) = message {
+            told = Some(e.message);
+        }
+    }
+    let told = told.expect("an error before the close");
+    assert!(told.contains("node b") && told.contains("left"), "{told}");
     let deadline = Instant::now() + Duration::from_secs(120);
     let info = loop {
         let reply = get(&a, &path, Some(BOB));
@@ -250,6 +296,14 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
         std::thread::sleep(Duration::from_millis(250));
     };
     assert!(info["node"] == "a" || info["node"] == "c", "{info}");
+    let ended = get(&a, &format!("/v1/sessions/{doomed}"), Some(ALICE)).json();
+    assert_eq!(ended["state"], "failed", "{ended}");
+    assert!(
+        ended["error"]
+            .as_str()
+            .is_some_and(|e| e.contains("node b")),
+        "{ended}"
+    );
     assert_eq!(
         info["progress"]["processed"], UPLOAD_FRAMES as u64,
         "nothing lost: {info}"
