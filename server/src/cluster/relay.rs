@@ -52,6 +52,39 @@ struct SessionCall {
     /// For `watch`: where to publish.
     #[serde(default)]
     relay: String,
+    /// For `watch`: what the updates are wanted as.
+    #[serde(default)]
+    format: RelayFormat,
+}
+
+/// What a relay carries: the WebSocket's protobuf `ServerMessage`s, or the server-sent events'
+/// `{"event", "data"}` JSON (the owner's own SSE encoding, so both nodes' streams are alike).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RelayFormat {
+    #[default]
+    Protobuf,
+    Sse,
+}
+
+/// One server-sent event on a relay.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct RelayedSse {
+    pub event: String,
+    pub data: String,
+}
+
+impl RelayedSse {
+    pub fn of(event: &crate::session::SessionEvent) -> Self {
+        Self {
+            event: event.kind().to_string(),
+            data: serde_json::to_string(event).unwrap_or_else(|_| "null".into()),
+        }
+    }
+
+    fn bytes(&self) -> Vec<u8> {
+        serde_json::to_vec(self).unwrap_or_default()
+    }
 }
 
 /// An error reply: the refusal as the owner's API would give it.
@@ -110,6 +143,7 @@ impl Cluster {
         id: &str,
         authorization: Option<String>,
         capacity: usize,
+        format: RelayFormat,
     ) -> Result<Relay, ApiError> {
         let zenoh = self
             .zenoh()
@@ -125,6 +159,7 @@ impl Cluster {
             id: id.to_string(),
             authorization,
             relay,
+            format,
         };
         let reply = self
             .call(node, WATCH, &call, Vec::new(), PUSH_TIMEOUT)
@@ -147,6 +182,7 @@ impl Cluster {
             id: id.to_string(),
             authorization,
             relay: String::new(),
+            format: RelayFormat::Protobuf,
         };
         self.call(node, PUSH, &call, message, PUSH_TIMEOUT)
             .await
@@ -252,21 +288,43 @@ pub(crate) async fn answer_watch(cluster: Arc<Cluster>, query: zenoh::query::Que
                 "a relay key outside relfusion/cluster/relay",
             ));
         }
-        if session.info().state.is_terminal() {
+        // Subscribe before looking at the state (an end between the two is not missed) and
+        // before replying (every update after the client's 101 reaches it).
+        let events = session.subscribe();
+        let ended = session.info().state.is_terminal();
+        if ended && call.format == RelayFormat::Protobuf {
             return Ok(END_MARKER.to_vec());
         }
         let zenoh = cluster
             .zenoh()
             .ok_or_else(|| ApiError::unavailable("the cluster is not joined"))?
             .clone();
-        // Subscribe before replying: every update after the client's 101 reaches it.
-        let events = session.subscribe();
         let publisher = zenoh
             .declare_publisher(call.relay.clone())
             .congestion_control(CongestionControl::Block)
             .await
             .map_err(|e| ApiError::internal(format!("Zenoh relay publisher: {e}")))?;
-        tokio::spawn(relay_updates(cluster.clone(), session, events, publisher));
+        if ended {
+            // The server-sent events of an ended session: its last event, then the end.
+            let last = RelayedSse::of(&crate::session::SessionEvent::last_of(session.info()));
+            tokio::spawn(async move {
+                let _ = publisher.put(last.bytes()).await;
+                let _ = publisher
+                    .put(Vec::<u8>::new())
+                    .attachment(END_MARKER.to_vec())
+                    .await;
+                let _ = publisher.undeclare().await;
+            });
+        } else {
+            let format = call.format;
+            tokio::spawn(relay_updates(
+                cluster.clone(),
+                session,
+                events,
+                publisher,
+                format,
+            ));
+        }
         Ok(Vec::new())
     }
     .await;
@@ -278,6 +336,7 @@ async fn relay_updates(
     session: Arc<crate::session::Session>,
     mut events: tokio::sync::broadcast::Receiver<crate::session::SessionEvent>,
     publisher: zenoh::pubsub::Publisher<'static>,
+    format: RelayFormat,
 ) {
     let id = session.id().to_string();
     let mut tick = tokio::time::interval(RELAY_CHECK);
@@ -301,21 +360,36 @@ async fn relay_updates(
         let event = match received {
             Ok(event) => event,
             Err(RecvError::Lagged(skipped)) => {
-                let message = ServerMessage {
-                    message: Some(server_message::Message::Error(v1::Error {
-                        code: ErrorCode::ResourceExhausted as i32,
-                        message: format!(
-                            "{skipped} updates skipped: this client reads too slowly; the trajectory endpoint has them all"
-                        ),
-                    })),
+                let bytes = match format {
+                    RelayFormat::Protobuf => ServerMessage {
+                        message: Some(server_message::Message::Error(v1::Error {
+                            code: ErrorCode::ResourceExhausted as i32,
+                            message: format!("{skipped} updates skipped: this client reads too slowly; the trajectory endpoint has them all"),
+                        })),
+                    }
+                    .encode_to_vec(),
+                    RelayFormat::Sse => RelayedSse {
+                        event: "lagged".into(),
+                        data: serde_json::json!({ "type": "lagged", "skipped": skipped })
+                            .to_string(),
+                    }
+                    .bytes(),
                 };
-                let _ = publisher.put(message.encode_to_vec()).await;
+                let _ = publisher.put(bytes).await;
                 continue;
             }
             Err(RecvError::Closed) => break,
         };
-        for message in event.to_proto(&id) {
-            if let Err(e) = publisher.put(message.encode_to_vec()).await {
+        let messages: Vec<Vec<u8>> = match format {
+            RelayFormat::Protobuf => event
+                .to_proto(&id)
+                .iter()
+                .map(|m| m.encode_to_vec())
+                .collect(),
+            RelayFormat::Sse => vec![RelayedSse::of(&event).bytes()],
+        };
+        for bytes in messages {
+            if let Err(e) = publisher.put(bytes).await {
                 tracing::debug!(session = %id, "relaying an update: {e}");
             }
         }

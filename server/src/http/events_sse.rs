@@ -9,13 +9,16 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use axum::extract::{Path, State};
-use axum::response::sse::{Event, KeepAlive, Sse};
-use futures_util::Stream;
+use axum::response::sse::{Event, KeepAlive, KeepAliveStream, Sse};
+use futures_util::StreamExt as _;
+use futures_util::stream::BoxStream;
 use tokio::sync::broadcast::{self, error::RecvError};
 
 use super::auth::Auth;
 use super::error::ErrorBody;
-use crate::session::{SessionEvent, SessionState};
+use crate::cluster::forward::FORWARDED;
+use crate::cluster::relay::{Relay, RelayFormat, Relayed, RelayedSse, relayed};
+use crate::session::SessionEvent;
 use crate::{ApiError, AppState};
 
 fn to_sse(event: &SessionEvent) -> Event {
@@ -32,7 +35,9 @@ enum Phase {
     Done,
 }
 
-fn event_stream(phase: Phase) -> impl Stream<Item = Result<Event, Infallible>> {
+fn event_stream(
+    phase: Phase,
+) -> impl futures_util::Stream<Item = Result<Event, Infallible>> + Send + 'static {
     futures_util::stream::unfold(phase, |phase| async move {
         match phase {
             Phase::Done => None,
@@ -86,27 +91,79 @@ pub async fn events(
     State(state): State<Arc<AppState>>,
     Auth(owner): Auth,
     Path(id): Path<String>,
-) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
-    let session = state.sessions.get(&id, &owner)?;
+    headers: axum::http::HeaderMap,
+) -> Result<Sse<KeepAliveStream<Events>>, ApiError> {
+    let session = match state.sessions.get(&id, &owner) {
+        Ok(session) => session,
+        // Not here: another node of the cluster may run it; its owner relays the events (and
+        // checks the token).
+        Err(e) if e.status == 404 && !headers.contains_key(FORWARDED) => {
+            let Some(node) = state.cluster.owner_of(&id).await else {
+                return Err(e);
+            };
+            let authorization = headers
+                .get(axum::http::header::AUTHORIZATION)
+                .and_then(|v| v.to_str().ok())
+                .map(String::from);
+            let limit = state.config.limits.event_buffer;
+            let relay = state
+                .cluster
+                .watch(&node, &id, authorization, limit, RelayFormat::Sse)
+                .await?;
+            let departures = state.cluster.departures();
+            return Ok(sse(remote_stream(relay, departures, node)));
+        }
+        Err(e) => return Err(e),
+    };
     // Subscribe before looking at the state, so an end between the two is not missed.
     let receiver = session.subscribe();
     let info = session.info();
     let phase = if info.state.is_terminal() {
-        let event = if info.state == SessionState::Failed {
-            SessionEvent::Failed {
-                message: info.error.clone().unwrap_or_default(),
-            }
-        } else {
-            SessionEvent::Finished {
-                info: Box::new(info),
-            }
-        };
-        Phase::AlreadyEnded(Some(to_sse(&event)))
+        Phase::AlreadyEnded(Some(to_sse(&SessionEvent::last_of(info))))
     } else {
         Phase::Live(receiver)
     };
-    Ok(
-        Sse::new(event_stream(phase))
-            .keep_alive(KeepAlive::new().interval(Duration::from_secs(15))),
-    )
+    Ok(sse(event_stream(phase).boxed()))
+}
+
+/// The events of a session, from here or relayed from its node.
+pub type Events = BoxStream<'static, Result<Event, Infallible>>;
+
+fn sse(events: Events) -> Sse<KeepAliveStream<Events>> {
+    Sse::new(events).keep_alive(KeepAlive::new().interval(Duration::from_secs(15)))
+}
+
+/// The events another node relays (its own SSE encoding); a `failed` event when that node
+/// leaves the cluster.
+fn remote_stream(relay: Relay, departures: broadcast::Receiver<String>, node: String) -> Events {
+    futures_util::stream::unfold(Some((relay, departures, node)), |state| async move {
+        let (relay, mut departures, node) = state?;
+        loop {
+            tokio::select! {
+                sample = relay.subscriber.recv_async() => match sample.as_ref().map(relayed) {
+                    Ok(Relayed::Message(bytes)) => {
+                        let Ok(sse) = serde_json::from_slice::<RelayedSse>(&bytes) else {
+                            continue;
+                        };
+                        let event = Event::default().event(sse.event).data(sse.data);
+                        return Some((Ok(event), Some((relay, departures, node))));
+                    }
+                    Ok(Relayed::End) | Err(_) => return None,
+                },
+                left = departures.recv() => {
+                    if left.as_deref().is_ok_and(|n| *n == node) {
+                        let failed = RelayedSse::of(&SessionEvent::Failed {
+                            message: format!(
+                                "node {node} running this session left the cluster: the \
+                                 session ended (results up to its last checkpoint are kept)"
+                            ),
+                        });
+                        let event = Event::default().event(failed.event).data(failed.data);
+                        return Some((Ok(event), None));
+                    }
+                }
+            }
+        }
+    })
+    .boxed()
 }

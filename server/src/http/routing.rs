@@ -3,19 +3,18 @@
 //! picks. Everything else, and every request already forwarded once, is served here.
 //!
 //! Runs after [`super::body`], so a forwarded body is already read whole and bounded. The
-//! WebSocket stream is relayed by its handler ([`super::stream_remote`]); the SSE stream of a
-//! session on another node is refused with the node's name (use the WebSocket through any
-//! node, or the events of the node itself).
+//! streams are relayed by their handlers: the WebSocket by [`super::stream_remote`], the
+//! server-sent events by [`super::events_sse`].
 
 use std::sync::Arc;
 
 use axum::extract::{Request, State};
 use axum::http::Method;
 use axum::middleware::Next;
-use axum::response::{IntoResponse, Response};
+use axum::response::Response;
 
+use crate::AppState;
 use crate::cluster::forward::{FORWARDED, session_path};
-use crate::{ApiError, AppState};
 
 /// The middleware (see the module docs).
 pub async fn to_owner(
@@ -29,23 +28,12 @@ pub async fn to_owner(
     }
     let path = request.uri().path();
     if let Some((id, rest)) = session_path(path) {
-        if rest == "stream" || state.sessions.holds(id) {
+        // The streams are relayed by their handlers.
+        if rest == "stream" || rest == "events" || state.sessions.holds(id) {
             return next.run(request).await;
         }
         let id = id.to_string();
-        let events = rest == "events";
         if let Some(node) = cluster.owner_of(&id).await {
-            if events {
-                return ApiError {
-                    status: 409,
-                    code: "conflict",
-                    message: format!(
-                        "session {id} runs on node {node}: its server-sent events are served \
-                         there; through any node, use the WebSocket stream"
-                    ),
-                }
-                .into_response();
-            }
             return cluster.forward(&node, request).await;
         }
     } else if request.method() == Method::POST

@@ -40,6 +40,7 @@ pub(super) async fn open(
             &id,
             authorization.clone(),
             state.config.limits.event_buffer,
+            crate::cluster::relay::RelayFormat::Protobuf,
         )
         .await?;
     let stream = Stream {

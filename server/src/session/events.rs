@@ -10,7 +10,7 @@ use serde::Serialize;
 
 use relfusion_slam::geometry::Sim3;
 
-use super::types::{SessionInfo, pose_as_json};
+use super::types::{SessionInfo, SessionState, pose_as_json};
 use crate::convert::{camera_to_proto, sim3_to_proto, tracking_state_to_proto};
 
 /// A keyframe's pose after a pose-graph optimisation.
@@ -92,6 +92,20 @@ impl SessionEvent {
             SessionEvent::Dropped { .. } => "dropped",
             SessionEvent::Finished { .. } => "finished",
             SessionEvent::Failed { .. } => "failed",
+        }
+    }
+
+    /// The last event of an ended session with this info: `Failed` with its error, else
+    /// `Finished`.
+    pub fn last_of(info: SessionInfo) -> Self {
+        if info.state == SessionState::Failed {
+            SessionEvent::Failed {
+                message: info.error.clone().unwrap_or_default(),
+            }
+        } else {
+            SessionEvent::Finished {
+                info: Box::new(info),
+            }
         }
     }
 

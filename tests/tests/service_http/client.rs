@@ -262,14 +262,28 @@ pub fn follow_events(
     server: &Relfusiond,
     id: &str,
 ) -> std::thread::JoinHandle<Vec<(String, Value)>> {
+    follow_events_as(server, id, None)
+}
+
+/// [`follow_events`] with a bearer token.
+pub fn follow_events_as(
+    server: &Relfusiond,
+    id: &str,
+    token: Option<&str>,
+) -> std::thread::JoinHandle<Vec<(String, Value)>> {
     let url = format!("{}/v1/sessions/{id}/events", server.url());
+    let auth = token.map(|t| format!("Bearer {t}"));
     let (opened, is_open) = mpsc::channel();
     let handle = std::thread::spawn(move || {
         let agent: ureq::Agent = ureq::Agent::config_builder()
             .timeout_global(Some(Duration::from_secs(80)))
             .build()
             .into();
-        let response = agent.get(&url).call().expect("open /events");
+        let mut request = agent.get(&url);
+        if let Some(auth) = &auth {
+            request = request.header("Authorization", auth);
+        }
+        let response = request.call().expect("open /events");
         let content_type = response
             .headers()
             .get("content-type")

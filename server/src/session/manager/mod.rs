@@ -166,11 +166,6 @@ impl SessionManager {
         &self.config.zenoh.node
     }
 
-    /// Whether this node's store is shared with the other nodes (S3).
-    pub fn store_is_shared(&self) -> bool {
-        self.store.shared()
-    }
-
     /// The configuration in force.
     pub fn config(&self) -> &Config {
         &self.config
