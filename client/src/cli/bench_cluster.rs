@@ -56,8 +56,10 @@ pub struct ClusterArgs {
     /// TUM-layout sequence to send (default: a synthetic one at --width×--height).
     #[arg(long)]
     pub dataset: Option<PathBuf>,
+    /// Width of the synthetic sequence.
     #[arg(long, default_value_t = 320)]
     pub width: u32,
+    /// Height of the synthetic sequence.
     #[arg(long, default_value_t = 240)]
     pub height: u32,
 }
