@@ -29,7 +29,7 @@ use relfusion_client::{Client, CreateSession, FramePolicy};
 use serde_json::{Value, json};
 
 use super::bench_serve::{
-    Frames, LiveRun, live_session, live_session_via, load_frames, percentile, step_json,
+    self, Frames, live_session, live_session_via, load_frames, percentile, step_json,
 };
 use super::connect::runtime;
 
@@ -266,38 +266,9 @@ async fn warm_up(clients: &[Client], frames: &Arc<Frames>, args: &ClusterArgs) {
 
 /// k = 1, 2, … concurrent sessions spread over the nodes' APIs.
 async fn ramp(clients: &[Client], frames: &Arc<Frames>, args: &ClusterArgs) -> Value {
-    let mut steps = Vec::new();
-    let mut sustained = 0;
-    for k in 1..=args.sessions_max.max(1) {
-        let runs: Vec<_> = (0..k)
-            .map(|i| {
-                tokio::spawn(live_session(
-                    clients[i % clients.len()].clone(),
-                    frames.clone(),
-                    args.fps,
-                    request(frames, FramePolicy::DropOldest),
-                ))
-            })
-            .collect();
-        let mut all = LiveRun::default();
-        for r in runs {
-            let run = r.await.unwrap_or_else(|e| LiveRun {
-                error: Some(e.to_string()),
-                ..LiveRun::default()
-            });
-            all.sent += run.sent;
-            all.latencies_ms.extend(run.latencies_ms);
-            all.server_dropped += run.server_dropped;
-            all.error = all.error.or(run.error);
-        }
-        let step = step_json(k, &mut all, args.fps);
-        let ok = step["ok"].as_bool().unwrap_or(false);
-        steps.push(step);
-        if !ok {
-            break;
-        }
-        sustained = k;
-    }
+    let req = request(frames, FramePolicy::DropOldest);
+    let (sustained, steps) =
+        bench_serve::ramp(clients, frames, args.fps, args.sessions_max, &req).await;
     json!({ "sustained": sustained, "steps": steps })
 }
 

@@ -403,17 +403,44 @@ pub(super) async fn live_session_via(
 /// Runs k = 1..=sessions_max concurrent live sessions; returns the single-session latency
 /// figures and the ramp.
 async fn sessions_ramp(client: &Client, frames: &Arc<Frames>, args: &ServeArgs) -> (Value, Value) {
+    let req = request(frames, FramePolicy::DropOldest, args);
+    let (sustained, steps) = ramp(
+        std::slice::from_ref(client),
+        frames,
+        args.fps,
+        args.sessions_max,
+        &req,
+    )
+    .await;
+    let latency = steps.first().cloned().unwrap_or(Value::Null);
+    let sessions = json!({
+        "sustained": sustained,
+        "fps": args.fps,
+        "criterion": format!("p99 <= {MAX_P99_MS} ms and drops <= {}%", 100.0 * MAX_DROP_FRACTION),
+        "steps": steps,
+    });
+    (latency, sessions)
+}
+
+/// k = 1, 2, … `sessions_max` concurrent live sessions of `req` at `fps`, the i-th through
+/// `clients[i mod len]`, until a step fails; returns the largest k that passed and every step.
+pub(super) async fn ramp(
+    clients: &[Client],
+    frames: &Arc<Frames>,
+    fps: f64,
+    sessions_max: usize,
+    req: &CreateSession,
+) -> (usize, Vec<Value>) {
     let mut steps = Vec::new();
     let mut sustained = 0;
-    let mut latency = Value::Null;
-    for k in 1..=args.sessions_max.max(1) {
+    for k in 1..=sessions_max.max(1) {
         let runs: Vec<_> = (0..k)
-            .map(|_| {
+            .map(|i| {
                 tokio::spawn(live_session(
-                    client.clone(),
+                    clients[i % clients.len()].clone(),
                     frames.clone(),
-                    args.fps,
-                    request(frames, FramePolicy::DropOldest, args),
+                    fps,
+                    req.clone(),
                 ))
             })
             .collect();
@@ -428,10 +455,7 @@ async fn sessions_ramp(client: &Client, frames: &Arc<Frames>, args: &ServeArgs) 
             all.server_dropped += run.server_dropped;
             all.error = all.error.or(run.error);
         }
-        let step = step_json(k, &mut all, args.fps);
-        if k == 1 {
-            latency = step.clone();
-        }
+        let step = step_json(k, &mut all, fps);
         let ok = step["ok"].as_bool().unwrap_or(false);
         steps.push(step);
         if !ok {
@@ -439,13 +463,7 @@ async fn sessions_ramp(client: &Client, frames: &Arc<Frames>, args: &ServeArgs) 
         }
         sustained = k;
     }
-    let sessions = json!({
-        "sustained": sustained,
-        "fps": args.fps,
-        "criterion": format!("p99 <= {MAX_P99_MS} ms and drops <= {}%", 100.0 * MAX_DROP_FRACTION),
-        "steps": steps,
-    });
-    (latency, sessions)
+    (sustained, steps)
 }
 
 pub(super) fn step_json(k: usize, run: &mut LiveRun, fps: f64) -> Value {

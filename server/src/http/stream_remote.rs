@@ -11,12 +11,12 @@ use std::sync::Arc;
 use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade, close_code};
 use axum::http::{HeaderMap, header};
 use axum::response::Response;
-use futures_util::stream::{SplitSink, SplitStream};
+use futures_util::stream::SplitSink;
 use futures_util::{SinkExt, StreamExt};
 use relfusion_proto::v1::{ErrorCode, ServerMessage};
 use tokio::sync::mpsc;
 
-use super::stream_ws::{CLOSE_GRACE, REPLY_QUEUE, binary, error_message, sized};
+use super::stream_ws::{CLOSE_GRACE, REPLY_QUEUE, binary, error_message, receive_loop, sized};
 use crate::cluster::Cluster;
 use crate::cluster::relay::{Relay, Relayed, relayed};
 use crate::{ApiError, AppState};
@@ -65,7 +65,14 @@ async fn serve(socket: WebSocket, stream: Stream, relay: Relay) {
     let (sink, incoming) = socket.split();
     let (reply_tx, reply_rx) = mpsc::channel(REPLY_QUEUE);
     let mut send_task = tokio::spawn(send_loop(sink, stream.clone(), relay, reply_rx));
-    let mut receive_task = tokio::spawn(receive_loop(incoming, stream.clone(), reply_tx));
+    let to = stream.clone();
+    let mut receive_task = tokio::spawn(receive_loop(incoming, reply_tx, move |data| {
+        let to = to.clone();
+        async move {
+            let auth = to.authorization.clone();
+            to.cluster.push(&to.node, &to.id, auth, data.to_vec()).await
+        }
+    }));
     tokio::select! {
         _ = &mut send_task => {
             if tokio::time::timeout(CLOSE_GRACE, &mut receive_task).await.is_err() {
@@ -136,41 +143,6 @@ async fn send_loop(
                     return;
                 }
             }
-        }
-    }
-}
-
-async fn receive_loop(
-    mut incoming: SplitStream<WebSocket>,
-    stream: Stream,
-    replies: mpsc::Sender<ServerMessage>,
-) {
-    while let Some(Ok(message)) = incoming.next().await {
-        let outcome = match message {
-            Message::Binary(data) => {
-                stream
-                    .cluster
-                    .push(
-                        &stream.node,
-                        &stream.id,
-                        stream.authorization.clone(),
-                        data.to_vec(),
-                    )
-                    .await
-            }
-            Message::Text(_) => Err(ApiError::bad_request(
-                "text messages are not understood: send binary protobuf relfusion.v1.ClientMessage",
-            )),
-            Message::Close(_) => break,
-            Message::Ping(_) | Message::Pong(_) => Ok(()),
-        };
-        if let Err(error) = outcome
-            && replies
-                .send(error_message(error.proto_code(), error.message))
-                .await
-                .is_err()
-        {
-            break;
         }
     }
 }

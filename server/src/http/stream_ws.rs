@@ -121,7 +121,11 @@ async fn serve(
         session.id().to_string(),
         already_ended,
     ));
-    let mut receive_task = tokio::spawn(receive_loop(stream, session.clone(), reply_tx));
+    let receiving = session.clone();
+    let mut receive_task = tokio::spawn(receive_loop(stream, reply_tx, move |data| {
+        let session = receiving.clone();
+        async move { handle(&session, data).await }
+    }));
     tokio::select! {
         _ = &mut send_task => {
             // We closed (session finished): give the client a moment to answer the close.
@@ -210,15 +214,19 @@ async fn send_loop(
     }
 }
 
-/// Reads client messages until the client closes; every failure becomes an `Error` reply.
-async fn receive_loop(
+/// Reads client messages until the client closes, hands each binary one to `handle`; every
+/// failure becomes an `Error` reply. Shared by local and relayed streams.
+pub(super) async fn receive_loop<F, Fut>(
     mut stream: SplitStream<WebSocket>,
-    session: Arc<Session>,
     replies: mpsc::Sender<ServerMessage>,
-) {
+    mut handle: F,
+) where
+    F: FnMut(Bytes) -> Fut,
+    Fut: std::future::Future<Output = Result<(), ApiError>>,
+{
     while let Some(Ok(message)) = stream.next().await {
         let outcome = match message {
-            Message::Binary(data) => handle(&session, data).await,
+            Message::Binary(data) => handle(data).await,
             Message::Text(_) => Err(ApiError::bad_request(
                 "text messages are not understood: send binary protobuf relfusion.v1.ClientMessage",
             )),
