@@ -14,7 +14,7 @@ use tokio::sync::{Semaphore, watch};
 use tokio::task::JoinHandle;
 use zenoh::sample::SampleKind;
 
-use super::{CLUSTER_ROOT, Cluster, NodeLoad, alive_key, forward, lock, node_key, relay};
+use super::{CLUSTER_ROOT, Cluster, NodeLoad, alive_key, forward, handoff, lock, node_key, relay};
 use crate::ServerError;
 
 /// Cluster calls answered at once (each may wait: a frame for queue room, a download).
@@ -96,6 +96,7 @@ pub async fn join(
         (relay::PUSH, Handler::Push),
         (relay::WATCH, Handler::Watch),
         ("sessions/*", Handler::Lookup),
+        (handoff::ADOPT, Handler::Adopt),
     ] {
         tasks.push(
             serve(
@@ -117,6 +118,7 @@ enum Handler {
     Push,
     Watch,
     Lookup,
+    Adopt,
 }
 
 /// One queryable of this node; each query is answered in its own task.
@@ -154,6 +156,7 @@ async fn serve(
                     Handler::Push => relay::answer_push(cluster, query).await,
                     Handler::Watch => relay::answer_watch(cluster, query).await,
                     Handler::Lookup => answer_lookup(&cluster, query).await,
+                    Handler::Adopt => handoff::answer_adopt(cluster, query).await,
                 }
                 drop(permit);
             });

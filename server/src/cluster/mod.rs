@@ -7,6 +7,8 @@
 //!   ([`failover`]). A node that dies (`kill -9`, a lost link) loses its token at once.
 //! - Placement ([`Cluster::place`]): a session created on any node goes to the node with a real
 //!   GPU, then the most free slots (this node on a tie: no hop); the session info names it.
+//!   A live session's creation is forwarded there; an upload is stored by the node that
+//!   received it and handed over ([`handoff`]).
 //! - Routing ([`forward`]): a request for a session this node does not hold is forwarded to
 //!   the node that answers for it (`relfusion/cluster/nodes/*/sessions/<id>`) as one Zenoh
 //!   query, `relfusion/cluster/nodes/<node>/http`, which the owner runs through its own HTTP
@@ -27,6 +29,7 @@
 
 pub mod failover;
 pub mod forward;
+pub mod handoff;
 pub mod relay;
 
 use std::collections::{HashMap, HashSet};

@@ -8,6 +8,8 @@
 //! `http.body_timeout_s`), and handed to the session manager, which extracts it safely,
 //! stores it durably and only then returns: the 201 is the promise that the upload survives a
 //! crash. Processing follows on the worker pool; progress is in `GET /v1/sessions/{id}`.
+//! In a cluster with a shared store, it follows on the node placement chose
+//! ([`crate::cluster::handoff`]).
 
 use std::sync::Arc;
 
@@ -28,9 +30,9 @@ use relfusion_proto::http::CreatedSession;
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 
-use crate::session::ArchiveKind;
 use crate::session::overrides::upload_config;
 use crate::session::types::checked_camera;
+use crate::session::{ArchiveKind, NewUpload};
 use crate::{ApiError, AppState};
 
 /// Query parameters of an upload. Intrinsics are all-or-nothing; without them the camera comes
@@ -211,12 +213,41 @@ pub async fn upload(
             "unknown archive format: pass ?format=tar or ?format=zip (or a tar/zip Content-Type)",
         )
     })?;
-    let session = state
+    let upload = NewUpload {
+        archive: temp.path(),
+        kind,
+        camera,
+        config,
+    };
+    // With a shared store, the upload runs where placement says (stored here either way).
+    let placed = if state.sessions.shares_store() {
+        state.cluster.place()
+    } else {
+        None
+    };
+    let Some(node) = placed else {
+        let session = state.sessions.create_upload(ticket, upload).await?;
+        tracing::info!(session = session.id(), bytes = received, "upload stored");
+        return Ok(created(session.info()));
+    };
+    let mut info = state
         .sessions
-        .create_upload(ticket, temp.path(), kind, camera, config)
+        .create_upload_for(&node, ticket, upload)
         .await?;
-    tracing::info!(session = session.id(), bytes = received, "upload stored");
-    Ok(created(session.info()))
+    tracing::info!(session = %info.id, bytes = received, node = %node, "upload stored");
+    if let Err(e) = state.cluster.hand_off(&node, &info.id).await {
+        // Acknowledged already: run it here instead. Should this fail too, the metadata still
+        // names `node`, which runs it at its next start, or its heir when it leaves.
+        tracing::warn!(session = %info.id, "handing the upload to {node}: {e}; running it here");
+        let (sessions, id) = (state.sessions.clone(), info.id.clone());
+        let taken = tokio::task::spawn_blocking(move || sessions.take_over(&id, &node)).await;
+        match taken {
+            Ok(Ok(())) => info.node = Some(state.sessions.node().to_string()),
+            Ok(Err(e)) => tracing::error!(session = %info.id, "taking the upload back: {e}"),
+            Err(e) => tracing::error!(session = %info.id, "taking the upload back: {e}"),
+        }
+    }
+    Ok(created(info))
 }
 
 #[cfg(test)]

@@ -35,7 +35,7 @@ mod worker;
 
 pub use events::{KeyframePose, SessionEvent, mesh_block};
 pub use handle::Session;
-pub use manager::SessionManager;
+pub use manager::{NewUpload, SessionManager};
 pub use overrides::merge_config;
 pub use prior::{PooledPrior, SharedModel};
 pub use types::{

@@ -13,8 +13,18 @@ pub use relfusion_proto::http::{
 
 use crate::ApiError;
 
-/// A session id: `s-` and 12 random hex digits.
+/// A session id: `s-` and 24 random hex digits.
 pub type SessionId = String;
+
+/// Whether `id` has the form of a session id (checked before one from another node names a
+/// store key).
+pub fn valid_session_id(id: &str) -> bool {
+    id.len() == 26
+        && id.starts_with("s-")
+        && id[2..]
+            .bytes()
+            .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+}
 
 /// Who owns a session: the name of the bearer token that created it (`None` when auth is off).
 /// A token sees only its own sessions.

@@ -1,12 +1,15 @@
 //! Three relfusiond nodes and one Zenoh router on loopback, sharing a real S3-compatible store
-//! (s3s-fs), as one service: a session created through node A (full) is placed on the node with
-//! free slots, streamed over a WebSocket through another node while its server-sent events are
-//! followed through A, and fetched through A with the
-//! same trajectory as a single-node run of the same deterministic config; another tenant cannot
-//! reach it through any node; any node lists a caller's sessions of all nodes; an upload whose
-//! node is killed with SIGKILL mid-processing completes on another node with every frame, the
-//! same trajectory as a single-node run, and a live session on that node ends with an error
-//! for its client streaming through another node.
+//! (s3s-fs), as one service:
+//! - a session created through node A (full) is placed on the node with free slots, streamed
+//!   over a WebSocket through another node while its server-sent events are followed through
+//!   A, and fetched through A with the same trajectory as a single-node run of the same
+//!   deterministic config;
+//! - another tenant cannot reach it through any node; any node lists a caller's sessions of
+//!   all nodes;
+//! - an upload sent to A (full) is placed on another node; when that node is killed with
+//!   SIGKILL mid-processing, the upload completes on a node left with every frame and the
+//!   same trajectory as a single-node run, and a live session on the killed node ends with an
+//!   error for its client streaming through another node.
 
 use super::client::*;
 use relfusion_tests::free_port;
@@ -213,16 +216,8 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
         "cluster and single-node runs differ"
     );
 
-    // An upload to B; B is killed mid-processing; another node finishes it from the store.
-    let deleted = send(
-        &a,
-        "DELETE",
-        &format!("/v1/sessions/{}", busy["id"].as_str().expect("id")),
-        Some(ALICE),
-        "",
-        b"",
-    );
-    assert_eq!(deleted.status, 204, "{}", deleted.body);
+    // An upload through A (still full) is placed on B; B is killed mid-processing; another
+    // node finishes it from the store.
     // A live session of Alice's on B (created there: the forwarded mark skips placement; one
     // slot each for Alice and Bob there), streamed through C: B's death must reach C's client as an error and a close.
     let doomed = reply(
@@ -244,7 +239,7 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
     }
     let archive = dataset_tar(&upload_dir);
     let created = send(
-        &b,
+        &a,
         "POST",
         "/v1/uploads?format=tar",
         Some(BOB),
@@ -252,11 +247,24 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
         &archive,
     );
     assert_eq!(created.status, 201, "{}", created.body);
-    let upload = created.json()["id"].as_str().expect("id").to_string();
+    let created = created.json();
+    assert_eq!(created["session"]["node"], "b", "placed on B: {created}");
+    let upload = created["id"].as_str().expect("id").to_string();
     let path = format!("/v1/sessions/{upload}");
+    // A's slot freed, for the take-over.
+    let deleted = send(
+        &a,
+        "DELETE",
+        &format!("/v1/sessions/{}", busy["id"].as_str().expect("id")),
+        Some(ALICE),
+        "",
+        b"",
+    );
+    assert_eq!(deleted.status, 204, "{}", deleted.body);
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
-        let info = get(&b, &path, Some(BOB)).json();
+        let info = get(&a, &path, Some(BOB)).json();
+        assert_eq!(info["node"], "b", "B runs it: {info}");
         let done = info["progress"]["processed"].as_u64().unwrap_or(0);
         assert!(
             info["state"] != "finished",

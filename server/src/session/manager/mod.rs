@@ -50,6 +50,9 @@ mod recover;
 mod retention;
 #[cfg(test)]
 mod tests;
+mod uploads;
+
+pub use uploads::NewUpload;
 
 /// Every session of this node.
 pub struct SessionManager {
@@ -217,8 +220,10 @@ impl SessionManager {
         !self.is_shutting_down()
     }
 
+    /// The session of `meta`, run by the node it names (this one when it names none).
     fn build(&self, mut meta: SessionMeta, max_keyframes: usize) -> Session {
-        meta.node = Some(self.config.zenoh.node.clone());
+        meta.node
+            .get_or_insert_with(|| self.config.zenoh.node.clone());
         Session::new(
             SessionSpec {
                 meta,
@@ -454,113 +459,6 @@ impl SessionManager {
                 adding,
             )
         })
-    }
-
-    /// Accepts an uploaded dataset: extracts `archive` safely (400 for traversal, links,
-    /// a broken archive or no TUM layout; 413 for more than the limits allow, zip bombs
-    /// included), resolves the camera (the given one, else `calibration.txt`, else a TUM
-    /// preset from the folder name; 400 without any, or one too large for this server),
-    /// stores it durably, and only then returns (the acknowledgement). Processing starts on
-    /// the pool when a slot is free.
-    pub async fn create_upload(
-        &self,
-        ticket: UploadTicket,
-        archive: &Path,
-        kind: ArchiveKind,
-        camera: Option<PinholeCamera>,
-        slam_config: SlamConfig,
-    ) -> Result<Arc<Session>, ApiError> {
-        self.refuse_if_shutting_down()?;
-        let model = self.resolve_model(None)?;
-        let id = new_id();
-        // A filesystem store extracts in place; any other store gets the extracted tree
-        // copied in (`folders::store`), one object per file, before the acknowledgement.
-        let staging = self
-            .store
-            .local_path(&format!("sessions/{id}/upload.partial"))
-            .unwrap_or_else(|| std::env::temp_dir().join(format!("relfusiond-{id}.partial")));
-        let limits = ExtractLimits::for_archive(&self.config.limits, archive)?;
-        let archive = archive.to_path_buf();
-        let manager = self
-            .me
-            .upgrade()
-            .ok_or_else(|| ApiError::unavailable("the server is shutting down"))?;
-        let checked_config = slam_config.clone();
-        let key = upload_key(&id);
-        let extracted = tokio::task::spawn_blocking(move || {
-            let check = |c: &PinholeCamera| manager.map_limit(c, &checked_config).map(|_| ());
-            let mut staged = None;
-            let stored = crate::folders::store(manager.store.as_ref(), &key, |final_dir| {
-                let result =
-                    stage_upload(&archive, kind, &staging, final_dir, limits, camera, &check);
-                let failed = result.is_err();
-                staged = Some(result);
-                if failed { Err(String::new()) } else { Ok(()) }
-            });
-            let _ = std::fs::remove_dir_all(&staging);
-            match (staged, stored) {
-                (Some(Err(e)), _) => Err(e),
-                (Some(Ok(staged)), Ok(_)) => Ok(staged),
-                (_, Err(e)) => Err(ApiError::internal(format!("storing the upload: {e}"))),
-                (None, Ok(_)) => Err(ApiError::internal("the upload was not staged")),
-            }
-        })
-        .await
-        .map_err(|e| ApiError::internal(format!("extraction task failed: {e}")));
-        let staged = extracted.and_then(|r| r).and_then(|staged| {
-            let max_keyframes = self.map_limit(&staged.camera, &slam_config)?;
-            Ok((staged, max_keyframes))
-        });
-        let (staged, max_keyframes) = match staged {
-            Ok(v) => v,
-            Err(e) => {
-                let _ = self.store.delete_prefix(&session_prefix(&id));
-                return Err(e);
-            }
-        };
-        let mut dataset = String::from("upload");
-        for part in staged.dataset_rel.components() {
-            dataset.push('/');
-            dataset.push_str(&part.as_os_str().to_string_lossy());
-        }
-        let meta = SessionMeta {
-            version: META_VERSION,
-            id: id.clone(),
-            owner: ticket.owner().clone(),
-            kind: SessionKind::Upload,
-            state: SessionState::Queued,
-            camera: staged.camera,
-            config: slam_config,
-            model: model
-                .as_ref()
-                .map_or("none".into(), |m| m.name().to_string()),
-            policy: FramePolicy::Wait,
-            created_unix: now_unix(),
-            error: None,
-            dataset: Some(dataset),
-            total_frames: Some(staged.frames as u64),
-            counters: Default::default(),
-            ended_unix: None,
-            notice: None,
-            upload_bytes: staged.bytes,
-            results_bytes: 0,
-            map: None,
-            node: None,
-        };
-        // The acknowledgement point: once meta.json is durable, the upload exists.
-        if let Err(e) = meta.save(self.store.as_ref()) {
-            let _ = self.store.delete_prefix(&session_prefix(&id));
-            return Err(ApiError::internal(format!("storing the upload: {e}")));
-        }
-        let session = Arc::new(self.build(meta, max_keyframes));
-        let start = ticket.redeem(|admission| {
-            self.write_sessions().insert(id, session.clone());
-            self.queue_or_slot(admission, &session)
-        });
-        if start {
-            self.start_or_release(&session, self.model.clone());
-        }
-        Ok(session)
     }
 
     /// Gives an upload a slot now (`true`: the caller starts it) if one is free, else queues

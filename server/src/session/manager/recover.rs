@@ -69,6 +69,7 @@ impl SessionManager {
     ) -> Result<Option<Arc<Session>>, ServerError> {
         let id = meta.id.clone();
         let changed = !meta.state.is_terminal() || meta.node.as_deref() != Some(self.node());
+        meta.node = Some(self.node().to_string());
         let mut resume = false;
         if !meta.state.is_terminal() {
             match meta.kind {
@@ -152,6 +153,38 @@ impl SessionManager {
             }
         }
         taken
+    }
+
+    /// Runs here the stored, unfinished upload `id` whose metadata names node `from`: on the
+    /// node placement chose, when the node that received the upload hands it over (`from` is
+    /// this node; [`crate::cluster::Cluster::hand_off`]), or on the receiving node, when the
+    /// chosen one did not answer (`from` is the chosen one).
+    pub fn take_over(&self, id: &str, from: &str) -> Result<(), String> {
+        if !self.store.shared() {
+            return Err("this node's store is not shared".into());
+        }
+        if self.read_sessions().contains_key(id) {
+            return Ok(()); // taken already (a repeated call)
+        }
+        let meta = SessionMeta::load(self.store.as_ref(), id)?
+            .ok_or_else(|| format!("no stored session {id}"))?;
+        if meta.kind != SessionKind::Upload || meta.state.is_terminal() {
+            return Err(format!("session {id} is not an unfinished upload"));
+        }
+        if meta.node.as_deref() != Some(from) {
+            return Err(format!(
+                "session {id} is node {}'s, not {from}'s",
+                meta.node.as_deref().unwrap_or("?")
+            ));
+        }
+        match self.revive(meta, "") {
+            Ok(Some(session)) => {
+                self.enqueue(&session);
+                Ok(())
+            }
+            Ok(None) => Ok(()), // failed at once (it no longer fits): its error says why
+            Err(e) => Err(format!("taking session {id}: {e}")),
+        }
     }
 }
 

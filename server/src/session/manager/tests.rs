@@ -308,10 +308,12 @@ async fn uploads_wait_for_a_slot_and_then_run() {
     let up = m
         .create_upload(
             m.reserve_upload(&me, None).expect("ticket"),
-            &archive,
-            ArchiveKind::Tar,
-            None,
-            upload_config(&json!({})).expect("config"),
+            NewUpload {
+                archive: &archive,
+                kind: ArchiveKind::Tar,
+                camera: None,
+                config: upload_config(&json!({})).expect("config"),
+            },
         )
         .await
         .expect("upload acknowledged");
@@ -341,10 +343,12 @@ async fn uploads_wait_for_a_slot_and_then_run() {
     let e = m
         .create_upload(
             m.reserve_upload(&me, None).expect("ticket"),
-            &archive,
-            ArchiveKind::Tar,
-            None,
-            upload_config(&json!({})).expect("config"),
+            NewUpload {
+                archive: &archive,
+                kind: ArchiveKind::Tar,
+                camera: None,
+                config: upload_config(&json!({})).expect("config"),
+            },
         )
         .await
         .expect_err("garbage archive");
@@ -396,4 +400,66 @@ async fn shutdown_finishes_live_sessions_and_persists_their_results() {
         "header + a pose per tracked frame"
     );
     m2.shutdown().await;
+}
+
+/// Two nodes' managers on one S3 bucket (s3s-fs): an upload stored by `a` for `b` is neither
+/// held nor run by `a`; `b` takes it (a repeat is harmless) and runs it to the end; one that
+/// `b` never took is taken back by `a`, after which `b` may no longer take it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_upload_stored_for_another_node_runs_once_there_or_back_here() {
+    let s3 = relfusion_tests::s3::S3Server::start("handoff");
+    let node = |name: &str| {
+        let mut config: Config = toml::from_str(&s3.storage_toml()).expect("storage config");
+        let local = temp_config(&format!("handoff-{name}"), 2);
+        config.data_dir = local.data_dir;
+        config.pool = local.pool;
+        config.zenoh.node = name.into();
+        SessionManager::open(&config, Arc::new(Metrics::new())).expect("open")
+    };
+    let (a, b) = (node("a"), node("b"));
+    assert!(a.shares_store());
+    let me = Owner(None);
+    let archive = a.temp_dir().join("a.tar");
+    std::fs::write(&archive, tiny_dataset_tar(4)).expect("write archive");
+    let upload = || NewUpload {
+        archive: &archive,
+        kind: ArchiveKind::Tar,
+        camera: None,
+        config: upload_config(&json!({})).expect("config"),
+    };
+    let ticket = || a.reserve_upload(&me, None).expect("ticket");
+
+    let info = a
+        .create_upload_for("b", ticket(), upload())
+        .await
+        .expect("stored for b");
+    assert_eq!(info.node.as_deref(), Some("b"));
+    assert!(!a.holds(&info.id), "a does not run it");
+    assert!(a.take_over(&info.id, "a").is_err(), "the store names b");
+    b.take_over(&info.id, "b").expect("b takes it");
+    b.take_over(&info.id, "b").expect("a repeat is harmless");
+    let ran = b.get(&info.id, &me).expect("b holds it");
+    let done = tokio::time::timeout(std::time::Duration::from_secs(60), ran.wait_finished())
+        .await
+        .expect("b ran it");
+    assert_eq!(done.state, SessionState::Finished, "{done:?}");
+    assert_eq!(done.frames_processed, 4);
+    assert_eq!(done.node.as_deref(), Some("b"));
+
+    let info = a
+        .create_upload_for("b", ticket(), upload())
+        .await
+        .expect("stored for b");
+    a.take_over(&info.id, "b")
+        .expect("b did not answer: a takes it back");
+    let err = b.take_over(&info.id, "b").expect_err("a has it now");
+    assert!(err.contains("node a's"), "{err}");
+    let ran = a.get(&info.id, &me).expect("a holds it");
+    let done = tokio::time::timeout(std::time::Duration::from_secs(60), ran.wait_finished())
+        .await
+        .expect("a ran it");
+    assert_eq!(done.state, SessionState::Finished, "{done:?}");
+    assert!(!b.holds(&info.id));
+    a.shutdown().await;
+    b.shutdown().await;
 }
