@@ -3,10 +3,11 @@
 //! [`join`] declares this node's liveliness token and queryables and follows the other nodes'
 //! tokens (with history: the nodes already up count at once) and statuses. When a token goes,
 //! its node is gone: its cached sessions are forgotten, WebSocket relays from it end with an
-//! error ([`Cluster::departures`]), and — with a shared store — each unfinished session it ran
-//! is taken over by exactly one of the nodes left, the one that ranks first for the session id
-//! by rendezvous hashing over the members (every node computes the same choice from the same
-//! membership, with no election).
+//! error ([`Cluster::departures`]), and — with a shared store — each session it ran is taken
+//! over by exactly one of the nodes left, the one that ranks first for the session id by
+//! rendezvous hashing over the members (every node computes the same choice from the same
+//! membership, with no election): unfinished uploads re-run, unfinished live sessions fail,
+//! finished sessions are served from the store again.
 
 use std::sync::Arc;
 

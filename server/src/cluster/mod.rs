@@ -19,9 +19,10 @@
 //!   a time, the next read only when the owner took the last), updates come back on a
 //!   per-stream key the owner publishes.
 //! - Failover ([`failover`]): with a shared store (S3), when a node's token goes, the nodes
-//!   left take over its unfinished sessions (each by rendezvous hashing of the session id over
-//!   the nodes alive): uploads re-run from the store, live sessions end with an error, and
-//!   WebSocket clients streaming through another node get the error and a close.
+//!   left take over its sessions (each by rendezvous hashing of the session id over the nodes
+//!   alive): unfinished uploads re-run from the store, unfinished live sessions end with an
+//!   error (WebSocket clients streaming through another node get it and a close), finished
+//!   sessions' results are served again.
 //!
 //! Zenoh access control confines tenants to `relfusion/tenants/<tenant>/**` (and reading node
 //! status), so the `relfusion/cluster/**` keys, which carry bearer tokens between nodes, are

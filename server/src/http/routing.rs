@@ -1,6 +1,7 @@
 //! Cluster routing of HTTP requests (see [`crate::cluster`]): a request for a session this node
-//! does not hold goes to the node that does; a new live session goes to the node placement
-//! picks. Everything else, and every request already forwarded once, is served here.
+//! does not hold goes to the node that does (also `POST /v1/maps`, which names its session in
+//! the body); a new live session goes to the node placement picks. Everything else, and every
+//! request already forwarded once, is served here.
 //!
 //! Runs after [`super::body`], so a forwarded body is already read whole and bounded. The
 //! streams are relayed by their handlers: the WebSocket by [`super::stream_remote`], the
@@ -8,13 +9,16 @@
 
 use std::sync::Arc;
 
+use axum::body::Body;
 use axum::extract::{Request, State};
 use axum::http::Method;
 use axum::middleware::Next;
-use axum::response::Response;
+use axum::response::{IntoResponse, Response};
+use relfusion_proto::http::SaveMap;
 
-use crate::AppState;
 use crate::cluster::forward::{FORWARDED, session_path};
+use crate::session::types::valid_session_id;
+use crate::{ApiError, AppState};
 
 /// The middleware (see the module docs).
 pub async fn to_owner(
@@ -42,6 +46,30 @@ pub async fn to_owner(
     {
         tracing::debug!(node = %node, "placing a new session on another node");
         return cluster.forward(&node, request).await;
+    } else if request.method() == Method::POST && path == "/v1/maps" {
+        return save_map_where_it_ran(&state, request, next).await;
+    }
+    next.run(request).await
+}
+
+/// `POST /v1/maps` names its session in the body: the map is saved by the node that holds the
+/// session (into the shared store, where every node finds it).
+async fn save_map_where_it_ran(state: &AppState, request: Request, next: Next) -> Response {
+    let (parts, body) = request.into_parts();
+    // Read whole and bounded by `super::body` already: this only takes the buffered bytes.
+    let bytes = match axum::body::to_bytes(body, usize::MAX).await {
+        Ok(bytes) => bytes,
+        Err(e) => return ApiError::bad_request(format!("reading the body: {e}")).into_response(),
+    };
+    let session = serde_json::from_slice::<SaveMap>(&bytes)
+        .ok()
+        .map(|save| save.session)
+        .filter(|id| valid_session_id(id) && !state.sessions.holds(id));
+    let request = Request::from_parts(parts, Body::from(bytes));
+    if let Some(id) = session
+        && let Some(node) = state.cluster.owner_of(&id).await
+    {
+        return state.cluster.forward(&node, request).await;
     }
     next.run(request).await
 }

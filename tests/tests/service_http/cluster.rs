@@ -5,11 +5,12 @@
 //!   A, and fetched through A with the same trajectory as a single-node run of the same
 //!   deterministic config;
 //! - another tenant cannot reach it through any node; any node lists a caller's sessions of
-//!   all nodes;
+//!   all nodes; its map is saved through a node that does not run it;
 //! - an upload sent to A (full) is placed on another node; when that node is killed with
 //!   SIGKILL mid-processing, the upload completes on a node left with every frame and the
-//!   same trajectory as a single-node run, and a live session on the killed node ends with an
-//!   error for its client streaming through another node.
+//!   same trajectory as a single-node run, a live session on the killed node ends with an
+//!   error for its client streaming through another node, and the killed node's finished
+//!   session is served again.
 
 use super::client::*;
 use relfusion_tests::free_port;
@@ -203,6 +204,13 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
         "{listed}"
     );
 
+    // Its map saved through A (B reads the session's results), listed through C.
+    let saved = post_json(&a, "/v1/maps", Some(ALICE), &json!({ "session": id }));
+    assert_eq!(saved.status, 201, "{}", saved.body);
+    let map_id = saved.json()["id"].as_str().expect("map id").to_string();
+    let maps = get(&c, "/v1/maps", Some(ALICE)).json();
+    assert!(maps.to_string().contains(&map_id), "{maps}");
+
     // The same stream on a single node, no cluster, gives the same trajectory.
     let single = Relfusiond::spawn(&work.join("single"), Vec::<String>::new(), &[]);
     let solo = post_json(&single, "/v1/sessions", None, &deterministic(&live)).json();
@@ -321,6 +329,12 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
     assert_eq!(
         info["progress"]["processed"], UPLOAD_FRAMES as u64,
         "nothing lost: {info}"
+    );
+    // B's finished session outlives B: served from the bucket by the node that took it.
+    assert_eq!(
+        text(&a, &format!("/v1/sessions/{id}/trajectory"), ALICE),
+        trajectory,
+        "B's finished session after B"
     );
     let taken_over = text(&c, &format!("/v1/sessions/{upload}/trajectory"), BOB);
     assert_eq!(tum_lines(&taken_over).len(), UPLOAD_FRAMES);

@@ -112,9 +112,10 @@ impl SessionManager {
         }
     }
 
-    /// Takes over the unfinished sessions a node that left the cluster held (shared store
-    /// only; see `cluster::failover`): `pick` says, per session id, whether this node is the
-    /// one to take it. Returns the ids taken.
+    /// Takes over the sessions a node that left the cluster held (shared store only; see
+    /// `cluster::failover`): unfinished ones as at a restart, finished ones to serve their
+    /// results from the store. `pick` says, per session id, whether this node is the one to
+    /// take it. Returns the ids taken.
     pub fn adopt_from(&self, left: &str, pick: impl Fn(&str) -> bool) -> Vec<String> {
         if !self.store.shared() || left == self.node() {
             return Vec::new();
@@ -135,7 +136,7 @@ impl SessionManager {
                 Ok(Some(meta)) => meta,
                 _ => continue,
             };
-            if meta.node.as_deref() != Some(left) || meta.state.is_terminal() {
+            if meta.node.as_deref() != Some(left) {
                 continue;
             }
             let reason = format!(
