@@ -6,10 +6,13 @@
 //! The reply is a protobuf `CreateSessionReply`: a normal reply with `session_id` on success,
 //! an error reply with `error` set otherwise (invalid camera or config: INVALID_ARGUMENT,
 //! missing or unknown token: UNAUTHENTICATED, at capacity: RESOURCE_EXHAUSTED). The queryable
-//! is declared complete, so a client's default query target asks exactly one node.
+//! is declared complete, so a client's default query target asks exactly one node. That node
+//! places the session like an HTTP create: when another member has more room, the query is
+//! relayed to that member's own create queryable and its reply comes back as it is.
 //! Queries on wildcard keys (`relfusion/**`) are ignored: creating needs the exact key.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use relfusion_proto::Message as _;
 use relfusion_proto::v1::{self, CreateSessionReply, SessionConfig};
@@ -18,30 +21,56 @@ use tokio::task::JoinHandle;
 use zenoh::query::Query;
 
 use super::{Shared, bump, proto_error, serve_queryable};
+use crate::cluster::node_key;
 use crate::convert::camera_from_proto;
 use crate::session::types::{FramePolicy, SessionRequest};
 use crate::{ApiError, ServerError};
 use relfusion_proto::http::{MapMode, MapStart};
 
-/// Declares `tenant`'s queryable and serves it until shutdown.
+/// How long a create relayed to the node placement chose may take before this node creates
+/// the session itself.
+const PLACED_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Declares `tenant`'s queryables and serves them until shutdown: the public one, whose
+/// sessions are placed ([`crate::cluster::Cluster::place`]), and this node's own,
+/// `relfusion/cluster/nodes/<node>/create/<tenant>`, which creates here what another node
+/// placed on this one.
 pub(crate) async fn serve(
     shared: Arc<Shared>,
     tenant: &str,
-) -> Result<JoinHandle<()>, ServerError> {
-    let key = create_key(tenant);
-    let tenant = tenant.to_string();
-    serve_queryable(shared, key.clone(), true, move |shared, query| {
-        let (key, tenant) = (key.clone(), tenant.clone());
-        async move {
-            if query.key_expr().as_str() == key {
-                answer(&shared, &query, &key, &tenant).await;
-            }
-        }
-    })
-    .await
+) -> Result<Vec<JoinHandle<()>>, ServerError> {
+    let public = create_key(tenant);
+    let own = node_key(shared.cluster.node(), &format!("create/{tenant}"));
+    let mut tasks = Vec::new();
+    for (key, place) in [(public, true), (own, false)] {
+        let tenant = tenant.to_string();
+        tasks.push(
+            serve_queryable(shared.clone(), key.clone(), true, move |shared, query| {
+                let (key, tenant) = (key.clone(), tenant.clone());
+                async move {
+                    if query.key_expr().as_str() == key {
+                        answer(&shared, &query, &key, &tenant, place).await;
+                    }
+                }
+            })
+            .await?,
+        );
+    }
+    Ok(tasks)
 }
 
-async fn answer(shared: &Arc<Shared>, query: &Query, key: &str, tenant: &str) {
+async fn answer(shared: &Arc<Shared>, query: &Query, key: &str, tenant: &str, place: bool) {
+    if place && let Some(relayed) = create_where_placed(shared, query, tenant).await {
+        // The chosen node's reply, as it is.
+        let sent = match relayed {
+            Ok(reply) => query.reply(key, reply).await,
+            Err(refusal) => query.reply_err(refusal).await,
+        };
+        if let Err(e) = sent {
+            tracing::warn!("replying to {key}: {e}");
+        }
+        return;
+    }
     match create(shared, query, tenant).await {
         Ok(session_id) => {
             let reply = CreateSessionReply {
@@ -68,6 +97,43 @@ async fn answer(shared: &Arc<Shared>, query: &Query, key: &str, tenant: &str) {
             }
         }
     }
+}
+
+/// Relays a create with a valid token to the node placement chose and returns its reply (or
+/// refusal); `None`: this node creates the session (no better node, or it did not answer in
+/// [`PLACED_TIMEOUT`]).
+async fn create_where_placed(
+    shared: &Shared,
+    query: &Query,
+    tenant: &str,
+) -> Option<Result<Vec<u8>, Vec<u8>>> {
+    shared.owner(query.attachment(), tenant).ok()?;
+    let node = shared.cluster.place()?;
+    let payload = query
+        .payload()
+        .map(|p| p.to_bytes().into_owned())
+        .unwrap_or_default();
+    let mut get = shared
+        .zenoh
+        .get(node_key(&node, &format!("create/{tenant}")))
+        .payload(payload)
+        .timeout(PLACED_TIMEOUT);
+    if let Some(token) = query.attachment() {
+        get = get.attachment(token.clone());
+    }
+    let reply = match get.await {
+        Ok(replies) => replies.recv_async().await.ok(),
+        Err(_) => None,
+    };
+    let Some(reply) = reply else {
+        tracing::warn!(node = %node, "a Zenoh create placed on {node} got no answer; creating it here");
+        return None;
+    };
+    tracing::info!(node = %node, "Zenoh create placed on another node");
+    Some(match reply.result() {
+        Ok(sample) => Ok(sample.payload().to_bytes().into_owned()),
+        Err(error) => Err(error.payload().to_bytes().into_owned()),
+    })
 }
 
 async fn create(shared: &Arc<Shared>, query: &Query, tenant: &str) -> Result<String, ApiError> {

@@ -244,16 +244,18 @@ pub async fn start(
         links: Mutex::default(),
         cluster: cluster.clone(),
     });
-    let mut tasks = vec![status::serve(shared.clone(), config.zenoh.node.clone()).await?];
+    let mut tasks = Vec::new();
     // The same Zenoh session makes this node a member of the cluster.
     tasks.extend(
         crate::cluster::failover::join(cluster, shared.zenoh.clone(), shared.shutdown.clone())
             .await?,
     );
     for tenant in tenants(config) {
-        tasks.push(create::serve(shared.clone(), &tenant).await?);
+        tasks.extend(create::serve(shared.clone(), &tenant).await?);
         tasks.push(map::serve(shared.clone(), &tenant).await?);
     }
+    // Last: a node's first status tells clients that its queryables are there.
+    tasks.push(status::serve(shared.clone(), config.zenoh.node.clone()).await?);
     let z = &config.zenoh;
     tracing::info!(
         mode = %z.mode,

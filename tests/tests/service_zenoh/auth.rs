@@ -7,6 +7,7 @@ use super::client::*;
 
 #[test]
 fn tokens_scope_sessions_and_bad_messages_get_errors() {
+    let _machine = ENDPOINTS.read().unwrap_or_else(|e| e.into_inner());
     let seq_dir = synth_sequence("zenoh", FRAMES_N, SEED);
     let seq = TumSequence::open(&seq_dir, None).expect("open sequence");
     let work = temp_dir("zenoh-auth");

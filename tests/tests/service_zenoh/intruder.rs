@@ -40,6 +40,7 @@ fn answers(z: &zenoh::Session, key: &str, token: &str) -> usize {
 
 #[test]
 fn a_zenoh_intruder_reads_and_writes_nothing_of_another_tenant() {
+    let _machine = ENDPOINTS.read().unwrap_or_else(|e| e.into_inner());
     let seq_dir = synth_sequence("zenoh", FRAMES_N, SEED);
     let seq = TumSequence::open(&seq_dir, None).expect("open sequence");
     let work = temp_dir("zenoh-intruder");

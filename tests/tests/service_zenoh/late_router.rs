@@ -4,10 +4,11 @@
 
 use relfusion_tests::{Relfusiond, free_port, temp_dir};
 
-use super::client::{node_status, zenoh_client};
+use super::client::{ENDPOINTS, node_status, zenoh_client};
 
 #[test]
 fn a_node_started_before_its_router_joins_it_when_it_comes_up() {
+    let _machine = ENDPOINTS.write().unwrap_or_else(|e| e.into_inner());
     let work = temp_dir("zenoh-late-router");
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     // The deploy files' setting: a client of a router that is not there yet.

@@ -5,4 +5,5 @@ mod auth;
 mod client;
 mod intruder;
 mod late_router;
+mod placement;
 mod stream;

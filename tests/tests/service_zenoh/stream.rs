@@ -14,6 +14,7 @@ use super::client::*;
 
 #[test]
 fn stream_over_zenoh_gives_every_pose_and_the_same_trajectory_as_run() {
+    let _machine = ENDPOINTS.read().unwrap_or_else(|e| e.into_inner());
     let seq_dir = synth_sequence("zenoh", FRAMES_N, SEED);
     let seq = TumSequence::open(&seq_dir, None).expect("open sequence");
     let work = temp_dir("zenoh-stream");
