@@ -28,6 +28,34 @@ impl Relfusiond {
         Self::spawn_until(data_dir, args, envs, "listening on ")
     }
 
+    /// A cluster node named `name`, data in `work/<name>`: a Zenoh client of the router at
+    /// `endpoint` with `max_sessions` slots; `extra` is appended to its config after that line
+    /// (more `[limits]` keys, then other sections).
+    pub fn spawn_node(
+        work: &Path,
+        name: &str,
+        endpoint: &str,
+        max_sessions: usize,
+        extra: &str,
+        envs: &[(&str, &str)],
+    ) -> Self {
+        let config = work.join(format!("{name}.toml"));
+        std::fs::create_dir_all(work).expect("create work dir");
+        std::fs::write(
+            &config,
+            format!(
+                "[zenoh]\nenabled = true\nmode = \"client\"\nnode = \"{name}\"\n\
+                 connect = [\"{endpoint}\"]\n[limits]\nmax_sessions = {max_sessions}\n{extra}"
+            ),
+        )
+        .expect("node config");
+        Self::spawn(
+            &work.join(name),
+            ["--config", config.to_str().expect("path")],
+            envs,
+        )
+    }
+
     /// `relfusiond --zenoh-router ENDPOINT`: a cluster's Zenoh router (no HTTP), started and
     /// up when this returns; `addr()` is the endpoint.
     pub fn spawn_router(data_dir: &Path, endpoint: &str, envs: &[(&str, &str)]) -> Self {

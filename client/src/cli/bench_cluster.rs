@@ -29,7 +29,7 @@ use relfusion_client::{Client, CreateSession, FramePolicy};
 use serde_json::{Value, json};
 
 use super::bench_serve::{
-    self, Frames, live_session, live_session_via, load_frames, percentile, step_json,
+    self, BenchSequence, Frames, live_session, live_session_via, load_frames, percentile, step_json,
 };
 use super::connect::runtime;
 
@@ -53,15 +53,8 @@ pub struct ClusterArgs {
     /// Camera rate.
     #[arg(long, default_value_t = 30.0)]
     pub fps: f64,
-    /// TUM-layout sequence to send (default: a synthetic one at --width×--height).
-    #[arg(long)]
-    pub dataset: Option<PathBuf>,
-    /// Width of the synthetic sequence.
-    #[arg(long, default_value_t = 320)]
-    pub width: u32,
-    /// Height of the synthetic sequence.
-    #[arg(long, default_value_t = 240)]
-    pub height: u32,
+    #[command(flatten)]
+    pub sequence: BenchSequence,
 }
 
 /// A spawned process, killed when dropped.
@@ -197,12 +190,7 @@ pub fn cluster(args: &ClusterArgs) -> anyhow::Result<()> {
             .context("the folder of relfusion")?
             .join("relfusiond"),
     };
-    let frames = Arc::new(load_frames(
-        args.dataset.as_deref(),
-        (args.width, args.height),
-        args.frames,
-        args.fps,
-    )?);
+    let frames = Arc::new(load_frames(&args.sequence, args.frames, args.fps)?);
     let mut per_n = Vec::new();
     for n in 1..=args.nodes_max {
         let cluster = start_cluster(args, &binary, n)?;

@@ -46,15 +46,8 @@ pub struct ServeArgs {
     /// Also measure ingest over Zenoh through this endpoint (e.g. tcp/127.0.0.1:7447).
     #[arg(long)]
     pub zenoh: Option<String>,
-    /// TUM-layout sequence to send (default: a synthetic one rendered at --width×--height).
-    #[arg(long)]
-    pub dataset: Option<PathBuf>,
-    /// Width of the synthetic sequence.
-    #[arg(long, default_value_t = 320)]
-    pub width: u32,
-    /// Height of the synthetic sequence.
-    #[arg(long, default_value_t = 240)]
-    pub height: u32,
+    #[command(flatten)]
+    pub sequence: BenchSequence,
     /// Frames per live run (latency, each step of the sessions ramp).
     #[arg(long, default_value_t = 150)]
     pub frames: usize,
@@ -92,12 +85,7 @@ pub fn serve(args: &ServeArgs) -> anyhow::Result<()> {
         "--fps must be positive"
     );
     anyhow::ensure!(args.concurrency > 0, "--concurrency must be positive");
-    let frames = Arc::new(load_frames(
-        args.dataset.as_deref(),
-        (args.width, args.height),
-        args.frames,
-        args.fps,
-    )?);
+    let frames = Arc::new(load_frames(&args.sequence, args.frames, args.fps)?);
     let client = args.connect.client()?;
     let report = runtime()?.block_on(async {
         client
@@ -135,15 +123,30 @@ pub fn serve(args: &ServeArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `count` frames of `dataset` (cycled), or of a synthetic sequence of `size`, timed at `fps`.
+/// The frames a service benchmark sends.
+#[derive(Debug, clap::Args)]
+pub struct BenchSequence {
+    /// TUM-layout sequence to send (default: a synthetic one rendered at --width×--height).
+    #[arg(long)]
+    pub dataset: Option<PathBuf>,
+    /// Width of the synthetic sequence.
+    #[arg(long, default_value_t = 320)]
+    pub width: u32,
+    /// Height of the synthetic sequence.
+    #[arg(long, default_value_t = 240)]
+    pub height: u32,
+}
+
+/// `count` frames of the `--dataset` (cycled), or of a synthetic sequence of its size, timed
+/// at `fps`.
 pub(super) fn load_frames(
-    dataset: Option<&std::path::Path>,
-    (width, height): (u32, u32),
+    sequence: &BenchSequence,
     count: usize,
     fps: f64,
 ) -> anyhow::Result<Frames> {
+    let (width, height) = (sequence.width, sequence.height);
     let mut rendered = None;
-    let dir = match dataset {
+    let dir = match sequence.dataset.as_deref() {
         Some(d) => d.to_path_buf(),
         None => {
             let dir = std::env::temp_dir().join(format!(

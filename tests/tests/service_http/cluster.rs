@@ -117,23 +117,9 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
     let s3 = S3Server::start("cluster");
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let _router = Relfusiond::spawn_router(&work.join("router"), &endpoint, &NODE_ENV);
+    let extra = format!("idle_timeout_s = 600\n{}", s3.storage_toml());
     let node = |name: &str, max_sessions: usize| {
-        let config = work.join(format!("{name}.toml"));
-        std::fs::write(
-            &config,
-            format!(
-                "[zenoh]\nenabled = true\nmode = \"client\"\nnode = \"{name}\"\n\
-                 connect = [\"{endpoint}\"]\n[limits]\nmax_sessions = {max_sessions}\n\
-                 idle_timeout_s = 600\n{}",
-                s3.storage_toml()
-            ),
-        )
-        .expect("config");
-        Relfusiond::spawn(
-            &work.join(name),
-            ["--config", config.to_str().expect("path")],
-            &NODE_ENV,
-        )
+        Relfusiond::spawn_node(&work, name, &endpoint, max_sessions, &extra, &NODE_ENV)
     };
 
     // A, alone first: its one slot goes to a session that stays open, so A is full.

@@ -35,21 +35,8 @@ fn zenoh_creates_go_to_the_node_with_room() {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let router = Relfusiond::spawn_router(&work.join("router"), &endpoint, &NODE_ENV);
     let node = |name: &str, max_sessions: usize| {
-        let config = work.join(format!("{name}.toml"));
-        std::fs::write(
-            &config,
-            format!(
-                "[zenoh]\nenabled = true\nmode = \"client\"\nnode = \"{name}\"\n\
-                 connect = [\"{endpoint}\"]\n[limits]\nmax_sessions = {max_sessions}\n\
-                 [quotas]\nmax_active_sessions = 4\n"
-            ),
-        )
-        .expect("config");
-        Relfusiond::spawn(
-            &work.join(name),
-            ["--config", config.to_str().expect("path")],
-            &NODE_ENV,
-        )
+        let extra = "[quotas]\nmax_active_sessions = 4\n";
+        Relfusiond::spawn_node(&work, name, &endpoint, max_sessions, extra, &NODE_ENV)
     };
     let z = zenoh_client(&endpoint, &router, Some(("alice", "tok-a")));
     let config = session_config(
