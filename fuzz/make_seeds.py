@@ -67,4 +67,8 @@ write("corpus/archive_extract/tar_dir", b"\0" + tar_bytes([("a/b/c.txt", b"x")])
 # tum_text: each file kind.
 write("corpus/tum_text/rgb", b"# color images\n0.000000 rgb/0.png\n0.033333 rgb/1.png\n")
 write("corpus/tum_text/calibration", b"# fx fy cx cy k1 k2 p1 p2 k3\n517.3 516.5 318.6 255.3 0.2624 -0.9531 -0.0054 0.0026 1.1633\n")
+# tum_list: an rgb.txt, a NUL, a depth.txt (interleaved 30 Hz streams; repeated stamps).
+write("corpus/tum_list/interleaved", b"0.000 rgb/0.png\n0.033 rgb/1.png\n0.066 rgb/2.png\n\x00"
+      b"0.004 depth/0.png\n0.037 depth/1.png\n0.070 depth/2.png\n")
+write("corpus/tum_list/repeated", b"0 rgb/0.png\n0 rgb/0.png\n0 rgb/0.png\n\x000 rgb/0.png\n0 rgb/0.png\n")
 write("corpus/tum_text/groundtruth", b"# t tx ty tz qx qy qz qw\n1.0 0.1 0.2 0.3 0 0 0 1\n1.01,0.1,0.2,0.3,0,0,0.7071068,0.7071068\n")

@@ -116,6 +116,9 @@ impl Driver {
             "goog:chromeOptions".into(),
             json!({ "binary": chromium(), "args": args }),
         );
+        // A page's dialog stays open for the test to read and answer (WebDriver would
+        // otherwise dismiss it on the next command).
+        caps.insert("unhandledPromptBehavior".into(), json!("ignore"));
         Ok(
             ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
                 .capabilities(caps)

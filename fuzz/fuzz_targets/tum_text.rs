@@ -11,7 +11,7 @@ fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else {
         return;
     };
-    if let Ok(list) = parse_file_list(text, "rgb.txt") {
+    if let Ok(list) = parse_file_list(text, "rgb.txt", 1 << 16) {
         for (t, name) in list {
             assert!(t.is_finite() && !name.is_empty());
         }

@@ -7,6 +7,7 @@
 //! gracefully.
 
 pub mod api_error;
+pub mod auth;
 pub mod cluster;
 pub mod config;
 pub mod convert;
@@ -38,6 +39,8 @@ pub struct AppState {
     pub body_budget: http::body::BodyBudget,
     /// This node in the cluster (placement, routing to other nodes; inert without Zenoh).
     pub cluster: Arc<cluster::Cluster>,
+    /// WebSocket and SSE streams open, per owner and per session ([`http::streams`]).
+    pub streams: Arc<http::streams::StreamCounts>,
 }
 
 impl AppState {
@@ -47,10 +50,16 @@ impl AppState {
         let sessions = session::SessionManager::open(&config, metrics.clone())?;
         Ok(Self {
             cluster: cluster::Cluster::new(sessions.clone()),
-            body_budget: http::body::BodyBudget::new(config.limits.max_buffered_body_mb),
+            body_budget: http::body::BodyBudget::new(
+                config.limits.max_buffered_body_mb,
+                config
+                    .quotas
+                    .buffered_body_mb(config.limits.max_buffered_body_mb, config.auth.enabled()),
+            ),
             config,
             sessions,
             metrics,
+            streams: Arc::default(),
         })
     }
 }

@@ -8,7 +8,8 @@
 //! removed first, so a map without metadata is never listed and a crash in between leaves at
 //! worst an unlisted folder.
 
-use std::sync::Arc;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
 
 use relfusion_proto::http::{MapInfo, MapStart};
 use relfusion_slam::geometry::PinholeCamera;
@@ -71,6 +72,28 @@ pub struct MapStore {
     store: Arc<dyn ObjectStore>,
     /// Maps one owner may keep (`quotas.max_maps`).
     max_per_owner: usize,
+    /// Saves in progress per owner: counted with the stored maps under one lock, so that
+    /// concurrent saves cannot all pass the quota check (issue 34, item 8).
+    saving: Mutex<HashMap<Owner, usize>>,
+}
+
+/// One save's place under its owner's quota, given back when dropped (the saved map, if any,
+/// is listed by then).
+struct QuotaPlace<'a> {
+    maps: &'a MapStore,
+    owner: Owner,
+}
+
+impl Drop for QuotaPlace<'_> {
+    fn drop(&mut self) {
+        let mut saving = self.maps.saving.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(n) = saving.get_mut(&self.owner) {
+            *n -= 1;
+            if *n == 0 {
+                saving.remove(&self.owner);
+            }
+        }
+    }
 }
 
 fn meta_key(id: &str) -> String {
@@ -99,7 +122,26 @@ impl MapStore {
         Self {
             store,
             max_per_owner,
+            saving: Mutex::new(HashMap::new()),
         }
+    }
+
+    /// Checks and reserves one map of `owner`'s quota at once (429 when it is used up).
+    fn reserve(&self, owner: &Owner) -> Result<QuotaPlace<'_>, ApiError> {
+        let mut saving = self.saving.lock().unwrap_or_else(|e| e.into_inner());
+        let in_progress = saving.get(owner).copied().unwrap_or(0);
+        let held = self.list(owner)?.len() + in_progress;
+        if held >= self.max_per_owner {
+            return Err(ApiError::quota(format!(
+                "this token keeps {held} maps (saved or being saved), the most quotas.max_maps \
+                 allows: delete one first"
+            )));
+        }
+        *saving.entry(owner.clone()).or_default() += 1;
+        Ok(QuotaPlace {
+            maps: self,
+            owner: owner.clone(),
+        })
     }
 
     fn read_meta(&self, id: &str) -> Result<Option<MapMeta>, ApiError> {
@@ -171,12 +213,7 @@ impl MapStore {
                 "name: at most {MAX_NAME_CHARS} characters, no control characters"
             )));
         }
-        let held = self.list(owner)?.len();
-        if held >= self.max_per_owner {
-            return Err(ApiError::quota(format!(
-                "this token keeps {held} maps, the most quotas.max_maps allows: delete one first"
-            )));
-        }
+        let _place = self.reserve(owner)?;
         let source = crate::folders::fetch(
             self.store.as_ref(),
             &crate::session::persist::result_key(session, "map"),

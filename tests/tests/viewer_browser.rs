@@ -2,7 +2,8 @@
 //! real relfusiond: a synthetic sequence is streamed live by `relfusion stream`; one page
 //! watches from the start, a second joins after half of the frames; both must end with one
 //! trajectory point per frame of the service's trajectory and the triangles of its mesh.ply,
-//! and no page error. The mesh must cover a clear share of a saved screenshot.
+//! and no page error. The mesh must cover a clear share of a saved screenshot. A token in a
+//! link leaves the address bar at once and never replaces a stored one without asking.
 
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
@@ -272,6 +273,41 @@ async fn the_viewer_follows_a_live_session_and_a_late_joiner_catches_up() {
         .await
         .expect("a link to the session's viewer");
     assert_eq!(link.text().await.expect("text"), id);
+
+    // A link's token is taken once: gone from the address bar (and history) at once.
+    let search = eval(&late, "location.search").await;
+    assert_eq!(
+        search,
+        Value::String(String::new()),
+        "the token stays in the URL"
+    );
+    // A link with another token does not sign this browser in as someone else without
+    // asking: the page asks, the answer is no, the stored token stays.
+    early
+        .goto(&format!(
+            "{}/view/{id}?access_token=attacker-token",
+            server.url()
+        ))
+        .await
+        .expect("goto");
+    let question = early
+        .get_alert_text()
+        .await
+        .expect("the page asks before replacing the token");
+    assert!(question.contains("token"), "{question}");
+    early.dismiss_alert().await.expect("dismiss");
+    let stored = eval(&early, "localStorage.getItem('relfusion.token')").await;
+    assert_eq!(
+        stored,
+        Value::String(TOKEN.into()),
+        "the stored token was replaced"
+    );
+    let search = eval(&early, "location.search").await;
+    assert_eq!(
+        search,
+        Value::String(String::new()),
+        "the other token stays in the URL"
+    );
 
     early.close().await.expect("close");
     late.close().await.expect("close");

@@ -5,7 +5,7 @@
 //! The query's attachment is the request head as JSON (method, path and query, the headers
 //! that matter: auth, content type, accept), its payload the body (already read whole and
 //! bounded by the body middleware); the reply's attachment is the response head, its payload
-//! the body (bounded by [`MAX_RESPONSE_BYTES`]). The owner marks the request forwarded
+//! the body (bounded by one Zenoh message, `zenoh.max_message_mb`). The owner marks the request forwarded
 //! ([`FORWARDED`]) so that it is never forwarded again: a session the owner no longer holds
 //! is its 404, not a loop. Streaming responses (WebSocket, SSE) do not go this way.
 
@@ -31,8 +31,8 @@ pub const HTTP: &str = "http";
 pub const FORWARD_TIMEOUT: Duration = Duration::from_secs(120);
 /// How long a listing waits for each other node.
 pub const GATHER_TIMEOUT: Duration = Duration::from_secs(5);
-/// Largest response body sent back (meshes and point clouds of big maps included).
-pub const MAX_RESPONSE_BYTES: usize = 1 << 30;
+/// Room for a reply's head and Zenoh's framing within one Zenoh message.
+const REPLY_OVERHEAD: usize = 64 << 10;
 
 /// Request headers that travel.
 const REQUEST_HEADERS: [HeaderName; 4] = [
@@ -77,6 +77,14 @@ fn kept(headers: &axum::http::HeaderMap, names: &[HeaderName]) -> Vec<(String, S
 }
 
 impl Cluster {
+    /// The largest response body one Zenoh message carries back.
+    fn max_reply_bytes(&self) -> usize {
+        self.sessions
+            .config()
+            .zenoh_max_message_bytes()
+            .saturating_sub(REPLY_OVERHEAD)
+    }
+
     /// Sends `request` to `node` and returns its response; 502 when the node does not answer.
     pub async fn forward(&self, node: &str, request: Request) -> Response {
         match self.try_forward(node, request).await {
@@ -114,7 +122,7 @@ impl Cluster {
             if response.status() != StatusCode::OK {
                 return None;
             }
-            axum::body::to_bytes(response.into_body(), MAX_RESPONSE_BYTES)
+            axum::body::to_bytes(response.into_body(), self.max_reply_bytes())
                 .await
                 .ok()
                 .map(|b| b.to_vec())
@@ -213,9 +221,11 @@ pub(crate) async fn answer(cluster: Arc<Cluster>, query: zenoh::query::Query) {
             .await
             .map_err(|_| "the router failed")?;
         let (parts, body) = response.into_parts();
-        let bytes = axum::body::to_bytes(body, MAX_RESPONSE_BYTES)
-            .await
-            .map_err(|_| "the response is too large to forward")?;
+        let limit = cluster.max_reply_bytes();
+        let bytes = axum::body::to_bytes(body, limit).await.map_err(|_| {
+            "the response is larger than one cluster message (zenoh.max_message_mb): fetch it \
+             from the node that runs the session"
+        })?;
         let head = ReplyHead {
             status: parts.status.as_u16(),
             headers: kept(&parts.headers, &RESPONSE_HEADERS),

@@ -232,8 +232,8 @@ fn session_of(
     let token = call
         .authorization
         .as_deref()
-        .map(|h| h.trim().strip_prefix("Bearer ").unwrap_or(h).trim());
-    let owner: Owner = crate::http::auth::authenticate(&cluster.sessions.config().auth, token)?;
+        .and_then(crate::auth::bearer_or_bare);
+    let owner: Owner = crate::auth::authenticate(&cluster.sessions.config().auth, token)?;
     let session = cluster.sessions.get(&call.id, &owner)?;
     Ok((session, call))
 }

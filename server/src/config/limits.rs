@@ -65,6 +65,22 @@ pub struct Limits {
     /// On shutdown, how long (seconds) live sessions get to finish their queued frames and
     /// persist their results before the process exits anyway.
     pub shutdown_grace_s: u64,
+    /// WebSocket and server-sent-event streams open on one session at once (a producer, a
+    /// viewer or two, a recorder; 429 beyond).
+    pub max_streams_per_session: usize,
+}
+
+impl Limits {
+    /// What reading an uploaded dataset may cost: no list longer than an archive may have
+    /// entries (a longer one names files again and again), no image file larger than a frame,
+    /// no text file over 64 MiB (a 20 000-frame list with 100 Hz ground truth is ~30 MB).
+    pub fn sequence_limits(&self) -> relfusion_slam::dataset::SequenceLimits {
+        relfusion_slam::dataset::SequenceLimits {
+            max_frames: self.max_upload_entries,
+            max_text_bytes: 64 << 20,
+            max_image_bytes: self.max_frame_bytes,
+        }
+    }
 }
 
 impl Default for Limits {
@@ -89,6 +105,7 @@ impl Default for Limits {
             max_timestamp_step_s: 3600.0,
             checkpoint_keyframes: 10,
             shutdown_grace_s: 30,
+            max_streams_per_session: 8,
         }
     }
 }
@@ -107,6 +124,17 @@ pub struct HttpLimits {
     /// A buffered request body (a frame, JSON) must arrive whole within this many seconds;
     /// an upload is aborted when no byte arrives for this long.
     pub body_timeout_s: u64,
+    /// An upload must arrive at this average rate at least (KiB/s), after a first
+    /// `body_timeout_s`: its whole deadline grows with its size, so a trickle cannot hold an
+    /// upload place for ever.
+    pub min_upload_kib_per_s: u64,
+    /// A write to a client (a response, a stream's message) that makes no progress for this
+    /// many seconds ends the connection: a client that stops reading cannot hold its
+    /// connection, its task and its send queue.
+    pub write_timeout_s: u64,
+    /// A WebSocket is pinged every third of this and closed when its peer said nothing (not
+    /// even a pong) for this many seconds.
+    pub stream_idle_timeout_s: u64,
 }
 
 impl Default for HttpLimits {
@@ -115,6 +143,9 @@ impl Default for HttpLimits {
             max_connections: 1024,
             header_timeout_s: 10,
             body_timeout_s: 30,
+            min_upload_kib_per_s: 16,
+            write_timeout_s: 30,
+            stream_idle_timeout_s: 60,
         }
     }
 }
@@ -137,6 +168,11 @@ pub struct Quotas {
     pub max_stored_gb: f64,
     /// Saved maps (`POST /v1/maps`) one token keeps; more are refused until some are deleted.
     pub max_maps: usize,
+    /// MiB of request bodies one token may have buffered at once (its share of
+    /// `limits.max_buffered_body_mb`; 0 = a quarter of it with auth on, all of it when off).
+    pub max_buffered_body_mb: u64,
+    /// WebSocket and server-sent-event streams one token may hold open at once.
+    pub max_streams: usize,
 }
 
 impl Default for Quotas {
@@ -147,11 +183,23 @@ impl Default for Quotas {
             max_stored_sessions: 200,
             max_stored_gb: 20.0,
             max_maps: 20,
+            max_buffered_body_mb: 0,
+            max_streams: 16,
         }
     }
 }
 
 impl Quotas {
+    /// The effective `max_buffered_body_mb` (see its doc) under a server budget of
+    /// `server_mb`.
+    pub fn buffered_body_mb(&self, server_mb: u64, auth_on: bool) -> u64 {
+        match (self.max_buffered_body_mb, auth_on) {
+            (0, true) => (server_mb / 4).max(1),
+            (0, false) => server_mb,
+            (n, _) => n.min(server_mb),
+        }
+    }
+
     /// The effective `max_active_sessions` (see its doc).
     pub fn active_sessions(&self, max_sessions: usize, auth_on: bool) -> usize {
         match (self.max_active_sessions, auth_on) {
@@ -205,11 +253,19 @@ pub(super) fn validate(
         ("http.max_connections", h.max_connections as u64),
         ("http.header_timeout_s", h.header_timeout_s),
         ("http.body_timeout_s", h.body_timeout_s),
+        ("http.min_upload_kib_per_s", h.min_upload_kib_per_s),
+        ("http.write_timeout_s", h.write_timeout_s),
+        ("http.stream_idle_timeout_s", h.stream_idle_timeout_s),
+        (
+            "limits.max_streams_per_session",
+            l.max_streams_per_session as u64,
+        ),
         (
             "quotas.max_uploads_in_flight",
             q.max_uploads_in_flight as u64,
         ),
         ("quotas.max_stored_sessions", q.max_stored_sessions as u64),
+        ("quotas.max_streams", q.max_streams as u64),
         ("retention.sweep_interval_s", r.sweep_interval_s),
     ] {
         if v == 0 {

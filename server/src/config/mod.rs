@@ -196,6 +196,12 @@ pub struct ZenohConfig {
     /// requires it (deploy/zenoh); empty = none. Its password is `password`.
     pub user: String,
     pub password: String,
+    /// Largest Zenoh message this node (and the router config it prints) reassembles, in MiB;
+    /// 0 = twice `limits.max_frame_bytes`, at least 16 MiB. Zenoh's own default is 1 GiB, and
+    /// access rules are checked only after reassembly: without this bound any peer could make
+    /// a node hold a gigabyte per message. Cluster replies (forwarded downloads) are bounded
+    /// by it too.
+    pub max_message_mb: u64,
 }
 
 impl Default for ZenohConfig {
@@ -210,7 +216,19 @@ impl Default for ZenohConfig {
             advertise: String::new(),
             user: String::new(),
             password: String::new(),
+            max_message_mb: 0,
         }
+    }
+}
+
+impl Config {
+    /// The effective `zenoh.max_message_mb` in bytes (see its doc).
+    pub fn zenoh_max_message_bytes(&self) -> usize {
+        let mb = match self.zenoh.max_message_mb {
+            0 => (2 * self.limits.max_frame_bytes).div_ceil(1 << 20).max(16),
+            n => n,
+        };
+        usize::try_from(mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX)
     }
 }
 

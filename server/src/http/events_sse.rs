@@ -16,6 +16,7 @@ use tokio::sync::broadcast::{self, error::RecvError};
 
 use super::auth::Auth;
 use super::error::ErrorBody;
+use super::streams::StreamSlot;
 use crate::cluster::forward::FORWARDED;
 use crate::cluster::relay::{Relay, RelayFormat, Relayed, RelayedSse, relayed};
 use crate::session::SessionEvent;
@@ -84,6 +85,7 @@ pub struct SseEvent {
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
         (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
+        (status = 429, description = "The session has limits.max_streams_per_session streams open, or the token quotas.max_streams", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]
@@ -92,7 +94,11 @@ pub async fn events(
     Auth(owner): Auth,
     Path(id): Path<String>,
     headers: axum::http::HeaderMap,
+    uri: axum::http::Uri,
 ) -> Result<Sse<KeepAliveStream<Events>>, ApiError> {
+    // Counted against the owner's and the session's stream caps while it is open (once the
+    // session is found: a cap must not tell whether another tenant's session exists).
+    let open = || super::stream_ws::open_stream(&state, &owner, &id);
     let session = match state.sessions.get(&id, &owner) {
         Ok(session) => session,
         // Not here: another node of the cluster may run it; its owner relays the events (and
@@ -101,20 +107,19 @@ pub async fn events(
             let Some(node) = state.cluster.owner_of(&id).await else {
                 return Err(e);
             };
-            let authorization = headers
-                .get(axum::http::header::AUTHORIZATION)
-                .and_then(|v| v.to_str().ok())
-                .map(String::from);
+            let authorization = super::auth::relayed_authorization(&headers, &uri);
+            let slot = open()?;
             let limit = state.config.limits.event_buffer;
             let relay = state
                 .cluster
                 .watch(&node, &id, authorization, limit, RelayFormat::Sse)
                 .await?;
             let departures = state.cluster.departures();
-            return Ok(sse(remote_stream(relay, departures, node)));
+            return Ok(sse(remote_stream(relay, departures, node), slot));
         }
         Err(e) => return Err(e),
     };
+    let slot = open()?;
     // Subscribe before looking at the state, so an end between the two is not missed.
     let receiver = session.subscribe();
     let info = session.info();
@@ -123,13 +128,21 @@ pub async fn events(
     } else {
         Phase::Live(receiver)
     };
-    Ok(sse(event_stream(phase).boxed()))
+    Ok(sse(event_stream(phase).boxed(), slot))
 }
 
 /// The events of a session, from here or relayed from its node.
 pub type Events = BoxStream<'static, Result<Event, Infallible>>;
 
-fn sse(events: Events) -> Sse<KeepAliveStream<Events>> {
+/// The response: `events` with keep-alive comments, holding `slot` until the stream ends
+/// or the client goes.
+fn sse(events: Events, slot: StreamSlot) -> Sse<KeepAliveStream<Events>> {
+    let events = events
+        .map(move |event| {
+            let _held = &slot;
+            event
+        })
+        .boxed();
     Sse::new(events).keep_alive(KeepAlive::new().interval(Duration::from_secs(15)))
 }
 

@@ -49,6 +49,7 @@ const IMAGE_TYPES: [&str; 3] = ["image/jpeg", "image/png", "application/octet-st
         (status = 408, description = "The image did not arrive within http.body_timeout_s", body = ErrorBody),
         (status = 413, description = "Larger than limits.max_frame_bytes", body = ErrorBody),
         (status = 415, description = "Not an image content type", body = ErrorBody),
+        (status = 429, description = "This token has its share of the request-body budget in flight (quotas.max_buffered_body_mb); retry", body = ErrorBody),
         (status = 503, description = "Too many request bodies arriving at once (limits.max_buffered_body_mb); retry", body = ErrorBody),
     ),
     security(("bearer" = []))

@@ -20,10 +20,12 @@ pub mod map;
 pub mod maps;
 pub mod openapi;
 pub mod routing;
+pub mod security;
 pub mod serve;
 pub mod sessions;
 pub mod stream_remote;
 pub mod stream_ws;
+pub mod streams;
 pub mod tls;
 pub mod uploads;
 pub mod viewer;
@@ -81,6 +83,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/docs", get(docs::page))
         .route("/docs/swagger-ui-bundle.js", get(docs::bundle))
         .route("/docs/swagger-ui.css", get(docs::css))
+        .route("/docs/init.js", get(docs::init))
         .route("/", get(viewer::page))
         .route("/view/{id}", get(viewer::page))
         .route("/viewer/viewer.js", get(viewer::script))
@@ -97,6 +100,7 @@ pub fn router(state: Arc<AppState>) -> Router {
             state.clone(),
             body::buffer_body,
         ))
+        .layer(axum::middleware::from_fn(security::headers))
         .with_state(state)
 }
 

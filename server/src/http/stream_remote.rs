@@ -9,14 +9,16 @@
 use std::sync::Arc;
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade, close_code};
-use axum::http::{HeaderMap, header};
 use axum::response::Response;
 use futures_util::stream::SplitSink;
 use futures_util::{SinkExt, StreamExt};
 use relfusion_proto::v1::{ErrorCode, ServerMessage};
 use tokio::sync::mpsc;
 
-use super::stream_ws::{CLOSE_GRACE, REPLY_QUEUE, binary, error_message, receive_loop, sized};
+use super::stream_ws::{
+    CLOSE_GRACE, Held, REPLY_QUEUE, binary, error_message, keep_alive, receive_loop, sized,
+};
+use super::streams::{KeepAliveClock, LastHeard};
 use crate::cluster::Cluster;
 use crate::cluster::relay::{Relay, Relayed, relayed};
 use crate::{ApiError, AppState};
@@ -26,13 +28,10 @@ pub(super) async fn open(
     state: &Arc<AppState>,
     node: String,
     id: String,
-    headers: &HeaderMap,
+    authorization: Option<String>,
     upgrade: WebSocketUpgrade,
+    held: Held,
 ) -> Result<Response, ApiError> {
-    let authorization = headers
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .map(String::from);
     let cluster = state.cluster.clone();
     let relay = cluster
         .watch(
@@ -49,7 +48,7 @@ pub(super) async fn open(
         id,
         authorization,
     };
-    Ok(sized(upgrade, state).on_upgrade(move |socket| serve(socket, stream, relay)))
+    Ok(sized(upgrade, state).on_upgrade(move |socket| serve(socket, stream, relay, held)))
 }
 
 /// Where this stream's session runs.
@@ -61,12 +60,14 @@ struct Stream {
     authorization: Option<String>,
 }
 
-async fn serve(socket: WebSocket, stream: Stream, relay: Relay) {
+async fn serve(socket: WebSocket, stream: Stream, relay: Relay, held: Held) {
     let (sink, incoming) = socket.split();
     let (reply_tx, reply_rx) = mpsc::channel(REPLY_QUEUE);
-    let mut send_task = tokio::spawn(send_loop(sink, stream.clone(), relay, reply_rx));
+    let heard = LastHeard::now();
+    let keepalive = KeepAliveClock::new(heard.clone(), held.idle);
+    let mut send_task = tokio::spawn(send_loop(sink, stream.clone(), relay, reply_rx, keepalive));
     let to = stream.clone();
-    let mut receive_task = tokio::spawn(receive_loop(incoming, reply_tx, move |data| {
+    let mut receive_task = tokio::spawn(receive_loop(incoming, reply_tx, heard, move |data| {
         let to = to.clone();
         async move {
             let auth = to.authorization.clone();
@@ -81,6 +82,7 @@ async fn serve(socket: WebSocket, stream: Stream, relay: Relay) {
         }
         _ = &mut receive_task => send_task.abort(),
     }
+    drop(held);
     tracing::debug!(session = %stream.id, node = %stream.node, "relayed websocket closed");
 }
 
@@ -96,6 +98,7 @@ async fn send_loop(
     stream: Stream,
     relay: Relay,
     mut replies: mpsc::Receiver<ServerMessage>,
+    mut keepalive: KeepAliveClock,
 ) {
     if relay.ended {
         let _ = sink
@@ -107,6 +110,11 @@ async fn send_loop(
     let mut replies_open = true;
     loop {
         tokio::select! {
+            tick = keepalive.tick() => {
+                if !keep_alive(&mut sink, tick, &keepalive).await {
+                    return;
+                }
+            }
             reply = replies.recv(), if replies_open => match reply {
                 Some(message) => {
                     if sink.send(binary(&message)).await.is_err() {

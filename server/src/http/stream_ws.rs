@@ -8,7 +8,9 @@
 //! has finished its map, then closes the socket normally.
 //!
 //! Receiving and sending run as two tasks so that a frame waiting for queue room (the `wait`
-//! policy) never holds back the updates of earlier frames.
+//! policy) never holds back the updates of earlier frames. The socket counts against its
+//! owner's and its session's stream caps and keeps its connection slot until it closes; it
+//! is pinged and closed when its peer falls silent ([`super::streams`]).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -16,8 +18,8 @@ use std::time::Duration;
 use axum::body::Bytes;
 use axum::extract::ws::rejection::WebSocketUpgradeRejection;
 use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade, close_code};
-use axum::extract::{Path, State};
-use axum::http::HeaderMap;
+use axum::extract::{Extension, Path, State};
+use axum::http::{HeaderMap, Uri};
 use axum::response::Response;
 use futures_util::stream::{SplitSink, SplitStream};
 use futures_util::{SinkExt, StreamExt};
@@ -30,7 +32,10 @@ use tokio::sync::mpsc;
 
 use super::auth::Auth;
 use super::error::ErrorBody;
+use super::serve::ConnectionSlot;
+use super::streams::{KeepAlive, KeepAliveClock, LastHeard, StreamSlot};
 use crate::cluster::forward::FORWARDED;
+use crate::session::Owner;
 use crate::session::{Session, SessionEvent};
 use crate::{ApiError, AppState};
 
@@ -54,6 +59,7 @@ pub(super) const REPLY_QUEUE: usize = 16;
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
         (status = 404, description = "No such session", body = ErrorBody),
         (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
+        (status = 429, description = "The session has limits.max_streams_per_session streams open, or the token quotas.max_streams", body = ErrorBody),
     ),
     security(("bearer" = []))
 )]
@@ -62,8 +68,19 @@ pub async fn stream(
     Auth(owner): Auth,
     Path(id): Path<String>,
     headers: HeaderMap,
+    uri: Uri,
+    connection: Option<Extension<ConnectionSlot>>,
     upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Result<Response, ApiError> {
+    // Counted only once the session is found: a cap must not tell whether another tenant's
+    // session exists.
+    let hold = |state: &Arc<AppState>| -> Result<Held, ApiError> {
+        Ok(Held {
+            _connection: connection.map(|Extension(slot)| slot),
+            _stream: open_stream(state, &owner, &id)?,
+            idle: Duration::from_secs(state.config.http.stream_idle_timeout_s),
+        })
+    };
     let session = match state.sessions.get(&id, &owner) {
         Ok(session) => session,
         // Not here: another node of the cluster may run it (its owner checks the token).
@@ -72,15 +89,42 @@ pub async fn stream(
                 return Err(e);
             };
             let upgrade = checked_upgrade(upgrade, &id)?;
-            return super::stream_remote::open(&state, node, id, &headers, upgrade).await;
+            let held = hold(&state)?;
+            let authorization = super::auth::relayed_authorization(&headers, &uri);
+            return super::stream_remote::open(&state, node, id, authorization, upgrade, held)
+                .await;
         }
         Err(e) => return Err(e),
     };
     let upgrade = checked_upgrade(upgrade, &id)?;
+    let held = hold(&state)?;
     // Subscribe before the 101 goes out: a client that fetches the map snapshot once the socket
     // is open (a viewer joining late) then sees every later update, with no gap.
     let events = session.subscribe();
-    Ok(sized(upgrade, &state).on_upgrade(move |socket| serve(socket, session, events)))
+    Ok(sized(upgrade, &state).on_upgrade(move |socket| serve(socket, session, events, held)))
+}
+
+/// What an open stream holds until it closes: its connection slot, its place under the
+/// stream caps, and its idle timeout.
+#[derive(Debug)]
+pub(super) struct Held {
+    _connection: Option<ConnectionSlot>,
+    _stream: StreamSlot,
+    pub idle: Duration,
+}
+
+/// A place for one more stream of `owner` on session `id` (429 at a cap).
+pub(super) fn open_stream(
+    state: &Arc<AppState>,
+    owner: &Owner,
+    id: &str,
+) -> Result<StreamSlot, ApiError> {
+    state.streams.open(
+        owner,
+        id,
+        state.config.quotas.max_streams,
+        state.config.limits.max_streams_per_session,
+    )
 }
 
 /// The upgrade, or the 400 that says this endpoint is a WebSocket.
@@ -110,19 +154,22 @@ async fn serve(
     socket: WebSocket,
     session: Arc<Session>,
     events: broadcast::Receiver<SessionEvent>,
+    held: Held,
 ) {
     let already_ended = session.info().state.is_terminal();
     let (sink, stream) = socket.split();
     let (reply_tx, reply_rx) = mpsc::channel(REPLY_QUEUE);
+    let heard = LastHeard::now();
     let mut send_task = tokio::spawn(send_loop(
         sink,
         events,
         reply_rx,
         session.id().to_string(),
         already_ended,
+        KeepAliveClock::new(heard.clone(), held.idle),
     ));
     let receiving = session.clone();
-    let mut receive_task = tokio::spawn(receive_loop(stream, reply_tx, move |data| {
+    let mut receive_task = tokio::spawn(receive_loop(stream, reply_tx, heard, move |data| {
         let session = receiving.clone();
         async move { handle(&session, data).await }
     }));
@@ -135,6 +182,7 @@ async fn serve(
         }
         _ = &mut receive_task => send_task.abort(),
     }
+    drop(held);
     tracing::debug!(session = session.id(), "websocket closed");
 }
 
@@ -158,6 +206,7 @@ async fn send_loop(
     mut replies: mpsc::Receiver<ServerMessage>,
     session_id: String,
     already_ended: bool,
+    mut keepalive: KeepAliveClock,
 ) {
     let close = |reason: &'static str| {
         Message::Close(Some(CloseFrame {
@@ -172,6 +221,11 @@ async fn send_loop(
     let mut replies_open = true;
     loop {
         tokio::select! {
+            tick = keepalive.tick() => {
+                if !keep_alive(&mut sink, tick, &keepalive).await {
+                    return;
+                }
+            }
             reply = replies.recv(), if replies_open => match reply {
                 Some(message) => {
                     if sink.send(binary(&message)).await.is_err() {
@@ -214,17 +268,45 @@ async fn send_loop(
     }
 }
 
+/// Acts on a keep-alive tick: a ping, or the close of a silent peer. Whether the socket
+/// stays open.
+pub(super) async fn keep_alive(
+    sink: &mut SplitSink<WebSocket, Message>,
+    tick: KeepAlive,
+    clock: &KeepAliveClock,
+) -> bool {
+    match tick {
+        KeepAlive::Ping => sink.send(Message::Ping(Bytes::new())).await.is_ok(),
+        KeepAlive::Expired => {
+            let reason = format!(
+                "no message or pong for {} s (http.stream_idle_timeout_s)",
+                clock.idle().as_secs()
+            );
+            let _ = sink
+                .send(Message::Close(Some(CloseFrame {
+                    code: close_code::POLICY,
+                    reason: reason.into(),
+                })))
+                .await;
+            false
+        }
+    }
+}
+
 /// Reads client messages until the client closes, hands each binary one to `handle`; every
-/// failure becomes an `Error` reply. Shared by local and relayed streams.
+/// failure becomes an `Error` reply; every message (pongs too) counts as `heard`. Shared by
+/// local and relayed streams.
 pub(super) async fn receive_loop<F, Fut>(
     mut stream: SplitStream<WebSocket>,
     replies: mpsc::Sender<ServerMessage>,
+    heard: LastHeard,
     mut handle: F,
 ) where
     F: FnMut(Bytes) -> Fut,
     Fut: std::future::Future<Output = Result<(), ApiError>>,
 {
     while let Some(Ok(message)) = stream.next().await {
+        heard.heard();
         let outcome = match message {
             Message::Binary(data) => handle(data).await,
             Message::Text(_) => Err(ApiError::bad_request(

@@ -5,7 +5,9 @@
 //! uploads racing for the last place cannot both be written. The body is then streamed to a
 //! temporary file inside the data directory (never held in memory, counted against
 //! `limits.max_upload_bytes` as it arrives, aborted when no byte arrives for
-//! `http.body_timeout_s`), and handed to the session manager, which extracts it safely,
+//! `http.body_timeout_s` or when it falls behind `http.min_upload_kib_per_s` on average after
+//! its first `body_timeout_s` — so its whole deadline grows with its size, and a trickle
+//! cannot hold an upload place for ever), and handed to the session manager, which extracts it safely,
 //! stores it durably and only then returns: the 201 is the promise that the upload survives a
 //! crash. Processing follows on the worker pool; progress is in `GET /v1/sessions/{id}`.
 //! In a cluster with a shared store, it follows on the node placement chose
@@ -100,6 +102,41 @@ fn sniff(head: &[u8]) -> Option<ArchiveKind> {
     }
 }
 
+/// When an upload must have arrived: no gap over `http.body_timeout_s`, and on average at
+/// least `http.min_upload_kib_per_s` after a first `body_timeout_s`.
+struct UploadDeadline {
+    start: std::time::Instant,
+    idle: std::time::Duration,
+    min_bytes_per_s: f64,
+}
+
+impl UploadDeadline {
+    fn new(http: &crate::config::HttpLimits) -> Self {
+        Self {
+            start: std::time::Instant::now(),
+            idle: std::time::Duration::from_secs(http.body_timeout_s),
+            min_bytes_per_s: http.min_upload_kib_per_s as f64 * 1024.0,
+        }
+    }
+
+    /// How long the next chunk may take after `received` bytes; 408 when the upload is
+    /// already behind its minimum rate.
+    fn wait(&self, received: u64) -> Result<std::time::Duration, ApiError> {
+        let allowed =
+            self.idle + std::time::Duration::from_secs_f64(received as f64 / self.min_bytes_per_s);
+        let elapsed = self.start.elapsed();
+        if elapsed >= allowed {
+            return Err(ApiError::request_timeout(format!(
+                "the upload arrived too slowly: {received} bytes in {} s, below \
+                 http.min_upload_kib_per_s = {} after the first http.body_timeout_s",
+                elapsed.as_secs(),
+                self.min_bytes_per_s / 1024.0
+            )));
+        }
+        Ok(self.idle.min(allowed - elapsed))
+    }
+}
+
 fn disk_error(e: std::io::Error) -> ApiError {
     ApiError::internal(format!("storing the upload failed: {e}"))
 }
@@ -115,7 +152,7 @@ fn disk_error(e: std::io::Error) -> ApiError {
         (status = 201, description = "Stored durably; processing is queued", body = CreatedSession),
         (status = 400, description = "Unknown format, truncated or invalid archive, unsafe paths (../, absolute, links), not a TUM layout, no camera", body = ErrorBody),
         (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
-        (status = 408, description = "No byte arrived for http.body_timeout_s", body = ErrorBody),
+        (status = 408, description = "No byte arrived for http.body_timeout_s, or the upload fell below http.min_upload_kib_per_s on average", body = ErrorBody),
         (status = 413, description = "Larger than limits.max_upload_bytes, more entries than limits.max_upload_entries, or extracting to more than the limits allow", body = ErrorBody),
         (status = 429, description = "The token's quotas (uploads in flight, sessions, bytes stored) are used up", body = ErrorBody),
         (status = 503, description = "The upload queue is full (limits.max_queued_uploads)", body = ErrorBody),
@@ -171,13 +208,15 @@ pub async fn upload(
     let mut head = Vec::with_capacity(512);
     let mut received: u64 = 0;
     let mut chunks = body.into_data_stream();
-    let idle = std::time::Duration::from_secs(state.config.http.body_timeout_s);
+    let deadline = UploadDeadline::new(&state.config.http);
     loop {
-        let Ok(next) = tokio::time::timeout(idle, chunks.next()).await else {
+        let wait = deadline.wait(received)?;
+        let Ok(next) = tokio::time::timeout(wait, chunks.next()).await else {
+            deadline.wait(received)?;
             return Err(ApiError::request_timeout(format!(
                 "no byte of the upload arrived for {} s (http.body_timeout_s) after {received} \
                  bytes",
-                idle.as_secs()
+                wait.as_secs()
             )));
         };
         let Some(chunk) = next else {

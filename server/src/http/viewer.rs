@@ -5,9 +5,9 @@
 //! stylesheet is served from the source, `server/viewer/viewer.css`),
 //! embedded here: it works with no internet and no CDN. The pages are public; everything they
 //! show comes from the token-checked API (the token is entered once in the page, or passed as
-//! `?access_token=` in a link).
+//! `?access_token=` in a link, which the page takes once and removes from the address bar).
 
-use axum::response::{Html, Response};
+use axum::response::Response;
 
 use super::docs::asset;
 
@@ -32,8 +32,8 @@ const PAGE: &str = r#"<!DOCTYPE html>
 "#;
 
 /// `GET /` and `GET /view/{id}`.
-pub async fn page() -> Html<&'static str> {
-    Html(PAGE)
+pub async fn page() -> Response {
+    super::security::html(PAGE, super::security::VIEWER_CSP)
 }
 
 /// `GET /viewer/viewer.js`: the bundle (three.js, protobufjs and the viewer's code).

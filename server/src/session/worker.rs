@@ -44,6 +44,8 @@ pub(crate) struct WorkerEnv {
     pub checkpoint_keyframes: usize,
     pub idle_timeout: Duration,
     pub min_frame_rate: f64,
+    /// What reading an uploaded dataset may cost (`limits`).
+    pub sequence_limits: relfusion_slam::dataset::SequenceLimits,
 }
 
 /// How a worker ended.
@@ -248,8 +250,9 @@ impl Runner<'_> {
         let folder = crate::folders::fetch(self.session.store.as_ref(), &key)
             .map_err(|e| format!("reading the uploaded dataset: {e}"))?;
         let camera = *self.session.camera();
-        let mut seq = TumSequence::open(folder.path(), Some(camera))
-            .map_err(|e| format!("reading the uploaded dataset: {e}"))?;
+        let mut seq =
+            TumSequence::open_bounded(folder.path(), Some(camera), self.env.sequence_limits)
+                .map_err(|e| format!("reading the uploaded dataset: {e}"))?;
         seq.camera = camera;
         for i in 0..seq.len() {
             if self.session.cancelled.load(Ordering::SeqCst) {

@@ -114,17 +114,10 @@ impl Shared {
                 let text = bytes.try_to_string().map_err(|_| {
                     ApiError::unauthorized("the query attachment (bearer token) is not UTF-8")
                 })?;
-                let text = text.trim();
-                let token = text
-                    .strip_prefix("Bearer ")
-                    .or_else(|| text.strip_prefix("bearer "))
-                    .unwrap_or(text)
-                    .trim();
-                (!token.is_empty()).then(|| token.to_string())
+                crate::auth::bearer_or_bare(&text).map(String::from)
             }
         };
-        let owner =
-            crate::http::auth::authenticate(&self.sessions.config().auth, token.as_deref())?;
+        let owner = crate::auth::authenticate(&self.sessions.config().auth, token.as_deref())?;
         if owner.tenant() != tenant {
             return Err(ApiError::unauthorized(format!(
                 "this token does not belong to tenant {tenant:?}"

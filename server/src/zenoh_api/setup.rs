@@ -55,6 +55,10 @@ pub fn zenoh_config(config: &Config, users_file: &Path) -> Result<zenoh::Config,
     if !z.connect.is_empty() {
         set("connect/endpoints", json!(z.connect).to_string())?;
     }
+    set(
+        "transport/link/rx/max_message_size",
+        config.zenoh_max_message_bytes().to_string(),
+    )?;
     set("scouting/multicast/enabled", z.scouting.to_string())?;
     set("scouting/gossip/enabled", z.scouting.to_string())?;
     if !z.user.is_empty() {
@@ -192,9 +196,10 @@ pub fn router_config(config: &Config, listen: &str, users_file: &str) -> String 
         "mode": "router",
         "listen": { "endpoints": [listen] },
         "scouting": { "multicast": { "enabled": false }, "gossip": { "enabled": true } },
+        "transport": { "link": { "rx": { "max_message_size": config.zenoh_max_message_bytes() } } },
     });
     if config.auth.enabled() {
-        router["transport"] = json!({ "auth": { "usrpwd": { "dictionary_file": users_file } } });
+        router["transport"]["auth"] = json!({ "usrpwd": { "dictionary_file": users_file } });
         router["access_control"] = access_control(config);
     }
     serde_json::to_string_pretty(&router).unwrap_or_default()
@@ -276,6 +281,12 @@ mod tests {
             "false"
         );
         assert_eq!(z.get_json("access_control/enabled").expect("acl"), "false");
+        assert_eq!(
+            z.get_json("transport/link/rx/max_message_size")
+                .expect("size"),
+            (16 << 20).to_string(),
+            "8 MiB frames: 16 MiB messages, not Zenoh's 1 GiB"
+        );
     }
 
     #[test]
@@ -314,6 +325,14 @@ mod tests {
         let router = router_config(&config(&[("alice", "a1")]), "tcp/0.0.0.0:7447", "/etc/u");
         let parsed: Value = serde_json::from_str(&router).expect("JSON");
         assert_eq!(parsed["access_control"]["default_permission"], "deny");
+        assert_eq!(
+            parsed["transport"]["link"]["rx"]["max_message_size"],
+            16 << 20
+        );
+        assert_eq!(
+            parsed["transport"]["auth"]["usrpwd"]["dictionary_file"],
+            "/etc/u"
+        );
         let mut zc = zenoh::Config::default();
         zc.insert_json5("access_control", &parsed["access_control"].to_string())
             .expect("zenoh accepts the rules");

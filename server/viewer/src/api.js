@@ -1,15 +1,35 @@
 // The service's HTTP API as the pages use it: the bearer token (entered once, kept in
-// localStorage; `?access_token=` in a link sets it) and JSON / binary fetches that carry it.
+// localStorage; `?access_token=` in a link offers one) and JSON / binary fetches that carry it.
 
 const TOKEN_KEY = "relfusion.token";
 
-/** The token: `?access_token=` wins (and is remembered), else the remembered one. */
-export function token() {
-  const fromLink = new URLSearchParams(location.search).get("access_token");
-  if (fromLink) {
+/**
+ * Takes `?access_token=` from the address once: it is removed from the address bar (and so
+ * from history and from what the page could leak), kept when the browser has no token yet,
+ * and replaces a different stored token only when the user agrees (a link must not sign a
+ * victim in as someone else).
+ */
+function takeTokenFromLink() {
+  const params = new URLSearchParams(location.search);
+  const fromLink = params.get("access_token");
+  if (fromLink === null) return;
+  params.delete("access_token");
+  const rest = params.toString();
+  history.replaceState(history.state, "", location.pathname + (rest ? `?${rest}` : "") + location.hash);
+  const stored = localStorage.getItem(TOKEN_KEY);
+  if (!fromLink || stored === fromLink) return;
+  if (
+    !stored ||
+    window.confirm("This link carries another token than the one this browser uses. Sign in with the link's token?")
+  ) {
     localStorage.setItem(TOKEN_KEY, fromLink);
-    return fromLink;
   }
+}
+
+takeTokenFromLink();
+
+/** The token this browser uses (entered in the page, or taken from a link). */
+export function token() {
   return localStorage.getItem(TOKEN_KEY) || "";
 }
 

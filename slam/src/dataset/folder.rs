@@ -73,14 +73,16 @@ impl SequenceFolder {
     }
 
     /// The text of one of the folder's own files (`rgb.txt`, `calibration.txt`, ...), or
-    /// `None` when it has none.
-    pub fn read_own(&self, name: &str) -> Result<Option<String>> {
-        match self.confined(name, &|| name.to_string())? {
-            Some(path) => std::fs::read_to_string(path)
-                .map(Some)
-                .map_err(|e| Error::io(name, e)),
-            None => Ok(None),
-        }
+    /// `None` when it has none; a file of more than `max_bytes` is refused before reading.
+    pub fn read_own(&self, name: &str, max_bytes: u64) -> Result<Option<String>> {
+        let Some(path) = self.confined(name, &|| name.to_string())? else {
+            return Ok(None);
+        };
+        let bytes = super::tum::read_at_most(&path, max_bytes)
+            .map_err(|e| e.named(Path::new(name), "max_text_bytes"))?;
+        String::from_utf8(bytes)
+            .map(Some)
+            .map_err(|_| Error::Dataset(format!("{name} is not UTF-8 text")))
     }
 
     /// The file a list names in its `line`-th entry; it must exist.
@@ -138,7 +140,10 @@ mod tests {
             .listed("rgb/b.png", "rgb.txt", 2)
             .expect_err("missing");
         assert!(missing.to_string().contains("does not exist"), "{missing}");
-        assert_eq!(folder.read_own("calibration.txt").expect("absent"), None);
+        assert_eq!(
+            folder.read_own("calibration.txt", 1 << 20).expect("absent"),
+            None
+        );
         let _ = std::fs::remove_dir_all(root);
     }
 }

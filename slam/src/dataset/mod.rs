@@ -15,7 +15,7 @@ pub mod tum;
 
 pub use folder::SequenceFolder;
 pub use synth::{Motion, Scene, SynthConfig, SynthSummary, render_frame, render_sequence};
-pub use tum::{TumFrame, TumSequence, preset};
+pub use tum::{SequenceLimits, TumFrame, TumSequence, preset};
 
 /// The shared real-data folder (sequences, models): `$RELFUSION_DATA`, else `../shared/data`
 /// beside the checkout. Data are never copied into the repository.

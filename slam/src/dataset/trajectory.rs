@@ -71,6 +71,16 @@ pub fn read_tum_trajectory(path: &Path) -> Result<Vec<StampedPose>> {
 
 /// Parses the text of a TUM trajectory file; `source` names it in error messages.
 pub fn parse_tum_trajectory(text: &str, source: &str) -> Result<Vec<StampedPose>> {
+    parse_tum_trajectory_bounded(text, source, usize::MAX)
+}
+
+/// [`parse_tum_trajectory`] of at most `max_poses` poses (refused at the first line beyond,
+/// before it is stored: an untrusted file's cost stays bounded).
+pub fn parse_tum_trajectory_bounded(
+    text: &str,
+    source: &str,
+    max_poses: usize,
+) -> Result<Vec<StampedPose>> {
     let mut poses = Vec::new();
     for (index, raw) in text.lines().enumerate() {
         let lineno = index + 1;
@@ -79,6 +89,9 @@ pub fn parse_tum_trajectory(text: &str, source: &str) -> Result<Vec<StampedPose>
             continue;
         }
         let bad = |why: String| Error::Dataset(format!("{source}:{lineno}: {why}"));
+        if poses.len() == max_poses {
+            return Err(bad(format!("more than {max_poses} poses")));
+        }
         let fields: Vec<&str> = line
             .split(|c: char| c == ',' || c.is_whitespace())
             .filter(|f| !f.is_empty())

@@ -17,12 +17,17 @@
 //! - **Untrusted folders** (uploads): every file a sequence names must resolve inside its
 //!   folder ([`SequenceFolder`]), images are size-checked from their headers before decoding,
 //!   and errors name files relative to the folder, so they reveal nothing of the machine.
+//!   [`SequenceLimits`] bound what opening and reading may cost: entries per list (checked
+//!   while parsing), bytes per file (checked from the file's size before reading), and the
+//!   association considers a bounded number of partners per stamp, so no cost grows faster
+//!   than the lists themselves (a list that names one file 30 000 times costs 30 000 entries,
+//!   not 30 000² candidate pairs).
 
 use std::path::{Path, PathBuf};
 
 use super::DEPTH_SCALE;
 use super::folder::SequenceFolder;
-use super::trajectory::parse_tum_trajectory;
+use super::trajectory::parse_tum_trajectory_bounded;
 use crate::geometry::{Distortion, PinholeCamera, SE3, SO3};
 use crate::image::ImageF32;
 use crate::{Error, Result};
@@ -33,6 +38,40 @@ pub const MAX_ASSOCIATION_DT: f64 = 0.02;
 
 /// Two stamps closer than this (seconds) are the same instant (files print 6 decimals).
 pub const SAME_STAMP_DT: f64 = 1e-6;
+
+/// Partners an RGB stamp considers on each side in the association. `associate.py` considers
+/// every depth stamp within [`MAX_ASSOCIATION_DT`]; with fewer than this many per side (any
+/// depth stream under 200 Hz) the result is the same, and the cost stays linear whatever the
+/// stamps are.
+pub const ASSOCIATION_NEIGHBOURS: usize = 4;
+
+/// `groundtruth.txt` may hold this many poses per listed frame (motion capture runs at 100 Hz
+/// or more beside a 30 Hz camera; 7-Scenes has one pose per frame).
+pub const GROUNDTRUTH_PER_FRAME: usize = 16;
+
+/// What opening and reading a sequence may cost. The defaults fit any real sequence on local
+/// disk; a server opens uploads with its own, tighter `[limits]`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SequenceLimits {
+    /// Most entries in `rgb.txt` and in `depth.txt` each (checked while parsing);
+    /// `groundtruth.txt` may hold [`GROUNDTRUTH_PER_FRAME`] times as many.
+    pub max_frames: usize,
+    /// Largest text file (lists, calibration) read, in bytes, checked before reading it.
+    pub max_text_bytes: u64,
+    /// Largest image file read, in bytes, checked from its size before a byte is read.
+    pub max_image_bytes: u64,
+}
+
+impl Default for SequenceLimits {
+    fn default() -> Self {
+        Self {
+            // Nine hours at 30 Hz.
+            max_frames: 1_000_000,
+            max_text_bytes: 1 << 30,
+            max_image_bytes: 256 << 20,
+        }
+    }
+}
 
 /// One RGB frame of a sequence with its associated depth map and ground-truth pose.
 #[derive(Clone, Debug)]
@@ -57,29 +96,42 @@ pub struct TumSequence {
     /// RGB frames in file order.
     pub frames: Vec<TumFrame>,
     groundtruth: Vec<(f64, SE3)>,
+    limits: SequenceLimits,
 }
 
 impl TumSequence {
     /// Parses the sequence in `dir`. `camera` is used when the folder has no `calibration.txt`;
     /// without either, a Freiburg preset must be recognisable (see the module docs).
     pub fn open(dir: &Path, camera: Option<PinholeCamera>) -> Result<Self> {
+        Self::open_bounded(dir, camera, SequenceLimits::default())
+    }
+
+    /// [`Self::open`] within `limits` (an untrusted folder: an upload); images read later are
+    /// held to the same limits.
+    pub fn open_bounded(
+        dir: &Path,
+        camera: Option<PinholeCamera>,
+        limits: SequenceLimits,
+    ) -> Result<Self> {
         if !dir.is_dir() {
             return Err(Error::Dataset(format!("{} is not a folder", dir.display())));
         }
         let folder = SequenceFolder::new(dir)?;
-        let rgb_list = match folder.read_own("rgb.txt")? {
-            Some(text) => parse_file_list(&text, "rgb.txt")?,
+        let read = |name: &str| folder.read_own(name, limits.max_text_bytes);
+        let rgb_list = match read("rgb.txt")? {
+            Some(text) => parse_file_list(&text, "rgb.txt", limits.max_frames)?,
             None => return Err(Error::Dataset("rgb.txt is missing".into())),
         };
         if rgb_list.is_empty() {
             return Err(Error::Dataset("rgb.txt lists no images".into()));
         }
-        let depth_list = match folder.read_own("depth.txt")? {
-            Some(text) => parse_file_list(&text, "depth.txt")?,
+        let depth_list = match read("depth.txt")? {
+            Some(text) => parse_file_list(&text, "depth.txt", limits.max_frames)?,
             None => Vec::new(),
         };
-        let mut groundtruth: Vec<(f64, SE3)> = match folder.read_own("groundtruth.txt")? {
-            Some(text) => parse_tum_trajectory(&text, "groundtruth.txt")?
+        let max_poses = limits.max_frames.saturating_mul(GROUNDTRUTH_PER_FRAME);
+        let mut groundtruth: Vec<(f64, SE3)> = match read("groundtruth.txt")? {
+            Some(text) => parse_tum_trajectory_bounded(&text, "groundtruth.txt", max_poses)?
                 .into_iter()
                 .map(|p| (p.timestamp, p.world_from_camera))
                 .collect(),
@@ -111,12 +163,13 @@ impl TumSequence {
             })
             .collect::<Vec<_>>();
 
-        let camera = resolve_camera(&folder, camera, &frames[0].rgb)?;
+        let camera = resolve_camera(&folder, camera, &frames[0].rgb, limits.max_text_bytes)?;
         Ok(Self {
             root: dir.to_path_buf(),
             camera,
             frames,
             groundtruth,
+            limits,
         })
     }
 
@@ -180,12 +233,14 @@ impl TumSequence {
         path.strip_prefix(&self.root).unwrap_or(path)
     }
 
-    /// Reads and decodes one image; an image whose header gives another size than the
-    /// camera's is refused before any pixel is decoded (a small file can claim gigapixels).
-    /// The format is guessed from the content, so extensions do not matter.
+    /// Reads and decodes one image; a file larger than the limits is refused from its size
+    /// before a byte is read, an image whose header gives another size than the camera's
+    /// before any pixel is decoded (a small file can claim gigapixels). The format is guessed
+    /// from the content, so extensions do not matter.
     fn decode(&self, path: &Path) -> Result<::image::DynamicImage> {
         let name = self.name(path);
-        let bytes = std::fs::read(path).map_err(|e| Error::io(name, e))?;
+        let bytes = read_at_most(path, self.limits.max_image_bytes)
+            .map_err(|e| e.named(name, "max_image_bytes"))?;
         let (w, h) = (self.camera.width, self.camera.height);
         decode_sized(&bytes, w, h).map_err(|e| match e {
             SizedDecodeError::Size(iw, ih) => Error::Dataset(format!(
@@ -259,8 +314,9 @@ fn resolve_camera(
     folder: &SequenceFolder,
     camera: Option<PinholeCamera>,
     first_rgb: &Path,
+    max_text_bytes: u64,
 ) -> Result<PinholeCamera> {
-    if let Some(text) = folder.read_own("calibration.txt")? {
+    if let Some(text) = folder.read_own("calibration.txt", max_text_bytes)? {
         let (w, h) = ::image::image_dimensions(first_rgb).map_err(|source| Error::Image {
             path: folder.name(first_rgb).to_path_buf(),
             source,
@@ -272,7 +328,7 @@ fn resolve_camera(
     }
     let mut hints = vec![folder.folder_name()];
     for name in ["rgb.txt", "depth.txt", "groundtruth.txt"] {
-        if let Some(text) = folder.read_own(name)? {
+        if let Some(text) = folder.read_own(name, max_text_bytes)? {
             hints.extend(
                 text.lines()
                     .filter(|l| l.trim_start().starts_with('#'))
@@ -332,39 +388,51 @@ fn parse_numbers(line: &str, source: &str, lineno: usize) -> Result<Vec<f64>> {
 }
 
 /// Parses the text of an `rgb.txt` / `depth.txt` list (`source` names it in errors):
-/// `timestamp relative/path` per line.
-pub fn parse_file_list(text: &str, source: &str) -> Result<Vec<(f64, String)>> {
-    data_lines(text)
-        .map(|(lineno, line)| {
-            let mut it = line.split_whitespace();
-            let stamp = it
-                .next()
-                .and_then(|s| s.parse::<f64>().ok())
-                .filter(|t| t.is_finite());
-            match (stamp, it.next(), it.next()) {
-                (Some(t), Some(file), None) => Ok((t, file.to_string())),
-                _ => Err(Error::Dataset(format!(
+/// `timestamp relative/path` per line, at most `max_entries` of them (refused at the first
+/// line beyond, before it is stored).
+pub fn parse_file_list(text: &str, source: &str, max_entries: usize) -> Result<Vec<(f64, String)>> {
+    let mut list = Vec::new();
+    for (lineno, line) in data_lines(text) {
+        if list.len() == max_entries {
+            return Err(Error::Dataset(format!(
+                "{source}:{lineno}: more than {max_entries} entries"
+            )));
+        }
+        let mut it = line.split_whitespace();
+        let stamp = it
+            .next()
+            .and_then(|s| s.parse::<f64>().ok())
+            .filter(|t| t.is_finite());
+        match (stamp, it.next(), it.next()) {
+            (Some(t), Some(file), None) => list.push((t, file.to_string())),
+            _ => {
+                return Err(Error::Dataset(format!(
                     "{source}:{lineno}: expected `timestamp filename`, got `{line}`"
-                ))),
+                )));
             }
-        })
-        .collect()
+        }
+    }
+    Ok(list)
 }
 
 /// TUM `associate.py`: greedy one-to-one matching of `a` to `b` stamps by increasing time
-/// difference, below `max_dt`. Returns, for every `a`, the index of its partner in `b`.
-fn associate(a: &[f64], b: &[f64], max_dt: f64) -> Vec<Option<usize>> {
+/// difference, below `max_dt`. Returns, for every `a`, the index of its partner in `b`. Each
+/// `a` considers its [`ASSOCIATION_NEIGHBOURS`] nearest `b` on either side (all of them for
+/// any real camera), so the candidates are linear in the input: O(n log n) in all.
+pub fn associate(a: &[f64], b: &[f64], max_dt: f64) -> Vec<Option<usize>> {
     let mut order: Vec<usize> = (0..b.len()).collect();
     order.sort_by(|&i, &j| b[i].total_cmp(&b[j]));
     let sorted: Vec<f64> = order.iter().map(|&i| b[i]).collect();
     let mut candidates = Vec::new();
     for (ia, &ta) in a.iter().enumerate() {
-        let start = sorted.partition_point(|&tb| tb <= ta - max_dt);
-        for (k, &tb) in sorted.iter().enumerate().skip(start) {
-            if tb >= ta + max_dt {
-                break;
+        let at = sorted.partition_point(|&tb| tb < ta);
+        let before = at.saturating_sub(ASSOCIATION_NEIGHBOURS)..at;
+        let after = at..(at + ASSOCIATION_NEIGHBOURS).min(sorted.len());
+        for k in before.chain(after) {
+            let dt = (ta - sorted[k]).abs();
+            if dt < max_dt {
+                candidates.push((dt, ia, order[k]));
             }
-            candidates.push(((ta - tb).abs(), ia, order[k]));
         }
     }
     candidates.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)).then(x.2.cmp(&y.2)));
@@ -377,6 +445,55 @@ fn associate(a: &[f64], b: &[f64], max_dt: f64) -> Vec<Option<usize>> {
         }
     }
     partner
+}
+
+/// Why [`read_at_most`] failed.
+#[derive(Debug)]
+pub(crate) enum BoundedReadError {
+    /// The file holds more than the limit (its size, or what was read).
+    TooLarge {
+        size: u64,
+        limit: u64,
+    },
+    Io(std::io::Error),
+}
+
+impl BoundedReadError {
+    /// The dataset error, naming the file as the dataset does and the limit that refused it.
+    pub(crate) fn named(self, name: &Path, limit_name: &str) -> Error {
+        match self {
+            BoundedReadError::TooLarge { size, limit } => Error::Dataset(format!(
+                "{} holds {size} bytes, more than {limit} ({limit_name})",
+                name.display()
+            )),
+            BoundedReadError::Io(e) => Error::io(name, e),
+        }
+    }
+}
+
+/// The bytes of `path`, refused from its size before reading when it holds more than `limit`
+/// (and while reading, should it grow meanwhile).
+pub(crate) fn read_at_most(
+    path: &Path,
+    limit: u64,
+) -> std::result::Result<Vec<u8>, BoundedReadError> {
+    use std::io::Read as _;
+    let file = std::fs::File::open(path).map_err(BoundedReadError::Io)?;
+    let size = file.metadata().map_err(BoundedReadError::Io)?.len();
+    if size > limit {
+        return Err(BoundedReadError::TooLarge { size, limit });
+    }
+    let mut bytes = Vec::with_capacity(usize::try_from(size).unwrap_or(0));
+    file.take(limit.saturating_add(1))
+        .read_to_end(&mut bytes)
+        .map_err(BoundedReadError::Io)?;
+    if bytes.len() as u64 > limit {
+        return Err(BoundedReadError::TooLarge {
+            size: bytes.len() as u64,
+            limit,
+        });
+    }
+    Ok(bytes)
 }
 
 /// The pose at time `t` from time-sorted `poses` (rule in the module docs).

@@ -161,6 +161,80 @@ fn dataset_tum_association_is_greedy_one_to_one() {
 }
 
 #[test]
+fn dataset_tum_association_stays_linear_on_repeated_stamps() {
+    // 20 000 identical stamps on both sides: associate.py would weigh 4·10⁸ pairs; each
+    // stamp considers a bounded number of neighbours instead.
+    let n = 20_000;
+    let stamps = vec![0.0; n];
+    let t = std::time::Instant::now();
+    let m = associate(&stamps, &stamps, MAX_ASSOCIATION_DT);
+    let matched = m.iter().flatten().count();
+    assert!(matched <= ASSOCIATION_NEIGHBOURS, "{matched} pairs");
+    assert!(t.elapsed().as_secs() < 5, "{:?}", t.elapsed());
+    // A 30 Hz pair of streams, interleaved: every frame still finds its partner.
+    let rgb: Vec<f64> = (0..300).map(|i| f64::from(i) / 30.0).collect();
+    let depth: Vec<f64> = rgb.iter().map(|t| t + 0.004).collect();
+    let m = associate(&rgb, &depth, MAX_ASSOCIATION_DT);
+    assert!(m.iter().enumerate().all(|(i, p)| *p == Some(i)));
+}
+
+#[test]
+fn dataset_tum_limits_bound_lists_and_files() {
+    let dir = temp_dir("limits");
+    let png = {
+        let img = ::image::RgbImage::from_pixel(8, 6, ::image::Rgb([9, 9, 9]));
+        let mut bytes = Vec::new();
+        img.write_to(
+            &mut std::io::Cursor::new(&mut bytes),
+            ::image::ImageFormat::Png,
+        )
+        .expect("png");
+        bytes
+    };
+    std::fs::write(dir.join("rgb/a.png"), &png).expect("write");
+    write(dir.join("calibration.txt"), "5 5 4 3\n");
+    let list: String = (0..10).map(|i| format!("{i}.0 rgb/a.png\n")).collect();
+    write(dir.join("rgb.txt"), &list);
+    let limits = SequenceLimits {
+        max_frames: 9,
+        max_text_bytes: 1 << 20,
+        max_image_bytes: 1 << 20,
+    };
+    let err = TumSequence::open_bounded(&dir, None, limits).expect_err("10 entries > 9");
+    assert!(err.to_string().contains("more than 9 entries"), "{err}");
+    let ten = SequenceLimits {
+        max_frames: 10,
+        ..limits
+    };
+    let seq = TumSequence::open_bounded(&dir, None, ten).expect("10 entries");
+    assert_eq!(seq.load_rgb(3).expect("read").width(), 8);
+    // A valid image padded past the image limit: refused from its size, before reading.
+    let mut padded = png.clone();
+    padded.resize(4096, 0);
+    std::fs::write(dir.join("rgb/a.png"), &padded).expect("write");
+    let small = SequenceLimits {
+        max_image_bytes: 2048,
+        ..ten
+    };
+    let seq = TumSequence::open_bounded(&dir, None, small).expect("open");
+    let err = seq.load_rgb(0).expect_err("image over the limit");
+    let text = err.to_string();
+    assert!(
+        text.contains("rgb/a.png holds 4096 bytes") && text.contains("max_image_bytes"),
+        "{text}"
+    );
+    assert!(!text.contains(&*dir.to_string_lossy()), "{text}");
+    // A list file over the text limit is refused before it is read.
+    let tiny = SequenceLimits {
+        max_text_bytes: 32,
+        ..ten
+    };
+    let err = TumSequence::open_bounded(&dir, None, tiny).expect_err("rgb.txt too large");
+    assert!(err.to_string().contains("max_text_bytes"), "{err}");
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
 fn dataset_tum_groundtruth_interpolation() {
     let a = SE3::identity();
     let b = SE3::new(

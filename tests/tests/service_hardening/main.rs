@@ -12,6 +12,7 @@ mod client;
 mod failures;
 mod memory;
 mod paths;
+mod round_two;
 mod timeouts;
 mod uploads;
 

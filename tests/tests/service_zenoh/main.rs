@@ -2,6 +2,7 @@
 //! endpoint and real Zenoh sessions as its clients (and, with tokens, as intruders).
 
 mod auth;
+mod big_messages;
 mod client;
 mod intruder;
 mod late_router;

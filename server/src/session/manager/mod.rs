@@ -531,6 +531,7 @@ impl SessionManager {
             checkpoint_keyframes: self.config.limits.checkpoint_keyframes,
             idle_timeout: Duration::from_secs(self.config.limits.idle_timeout_s),
             min_frame_rate: self.config.limits.min_frame_rate,
+            sequence_limits: self.config.limits.sequence_limits(),
         };
         let s = session.clone();
         let handle = std::thread::Builder::new()
