@@ -219,7 +219,7 @@ fn attacks_together_leave_honest_tenants_their_poses_and_memory_bounded() {
 
     let stop = Arc::new(AtomicBool::new(false));
     let mut attackers = Vec::new();
-    let rounds: Vec<Arc<AtomicU64>> = (0..11).map(|_| Arc::default()).collect();
+    let rounds: Vec<Arc<AtomicU64>> = (0..9).map(|_| Arc::default()).collect();
     let bearer_m = "Bearer tok-m";
     // Round one, memory: huge cameras, oversized frames, a PNG header claiming 12000² pixels.
     {

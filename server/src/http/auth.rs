@@ -29,10 +29,10 @@ impl FromRequestParts<Arc<AppState>> for Auth {
 /// The caller's token as an `Authorization` value, for a call relayed to another node (which
 /// checks it again): from the header or from `?access_token=`.
 pub fn relayed_authorization(
-    parts_headers: &axum::http::HeaderMap,
+    headers: &axum::http::HeaderMap,
     uri: &axum::http::Uri,
 ) -> Option<String> {
-    crate::auth::presented_token(parts_headers, uri)
+    crate::auth::presented_token(headers, uri)
         .ok()
         .flatten()
         .map(|token| format!("Bearer {token}"))

@@ -98,7 +98,7 @@ pub async fn events(
 ) -> Result<Sse<KeepAliveStream<Events>>, ApiError> {
     // Counted against the owner's and the session's stream caps while it is open (once the
     // session is found: a cap must not tell whether another tenant's session exists).
-    let open = || super::stream_ws::open_stream(&state, &owner, &id);
+    let open = || super::streams::open_stream(&state, &owner, &id);
     let session = match state.sessions.get(&id, &owner) {
         Ok(session) => session,
         // Not here: another node of the cluster may run it; its owner relays the events (and

@@ -33,9 +33,8 @@ use tokio::sync::mpsc;
 use super::auth::Auth;
 use super::error::ErrorBody;
 use super::serve::ConnectionSlot;
-use super::streams::{KeepAlive, KeepAliveClock, LastHeard, StreamSlot};
+use super::streams::{KeepAlive, KeepAliveClock, LastHeard, StreamSlot, open_stream};
 use crate::cluster::forward::FORWARDED;
-use crate::session::Owner;
 use crate::session::{Session, SessionEvent};
 use crate::{ApiError, AppState};
 
@@ -111,20 +110,6 @@ pub(super) struct Held {
     _connection: Option<ConnectionSlot>,
     _stream: StreamSlot,
     pub idle: Duration,
-}
-
-/// A place for one more stream of `owner` on session `id` (429 at a cap).
-pub(super) fn open_stream(
-    state: &Arc<AppState>,
-    owner: &Owner,
-    id: &str,
-) -> Result<StreamSlot, ApiError> {
-    state.streams.open(
-        owner,
-        id,
-        state.config.quotas.max_streams,
-        state.config.limits.max_streams_per_session,
-    )
 }
 
 /// The upgrade, or the 400 that says this endpoint is a WebSocket.

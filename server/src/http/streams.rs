@@ -15,8 +15,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use crate::ApiError;
 use crate::session::Owner;
+use crate::{ApiError, AppState};
 
 #[derive(Debug, Default)]
 struct Counts {
@@ -92,6 +92,18 @@ fn decrement<K: std::hash::Hash + Eq>(map: &mut HashMap<K, usize>, key: &K) {
             map.remove(key);
         }
     }
+}
+
+/// A place for one more stream of `owner` on session `id` under this server's caps (429 at
+/// a cap). Call it once the session is found: a cap must not tell whether another tenant's
+/// session exists.
+pub fn open_stream(state: &AppState, owner: &Owner, id: &str) -> Result<StreamSlot, ApiError> {
+    state.streams.open(
+        owner,
+        id,
+        state.config.quotas.max_streams,
+        state.config.limits.max_streams_per_session,
+    )
 }
 
 /// When the peer of a WebSocket was last heard from (shared by its receiving and sending

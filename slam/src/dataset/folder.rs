@@ -79,7 +79,7 @@ impl SequenceFolder {
             return Ok(None);
         };
         let bytes = super::tum::read_at_most(&path, max_bytes)
-            .map_err(|e| e.named(Path::new(name), "max_text_bytes"))?;
+            .map_err(|e| e.named(Path::new(name), "a text file"))?;
         String::from_utf8(bytes)
             .map(Some)
             .map_err(|_| Error::Dataset(format!("{name} is not UTF-8 text")))

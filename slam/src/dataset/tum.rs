@@ -240,7 +240,7 @@ impl TumSequence {
     fn decode(&self, path: &Path) -> Result<::image::DynamicImage> {
         let name = self.name(path);
         let bytes = read_at_most(path, self.limits.max_image_bytes)
-            .map_err(|e| e.named(name, "max_image_bytes"))?;
+            .map_err(|e| e.named(name, "an image"))?;
         let (w, h) = (self.camera.width, self.camera.height);
         decode_sized(&bytes, w, h).map_err(|e| match e {
             SizedDecodeError::Size(iw, ih) => Error::Dataset(format!(
@@ -459,11 +459,12 @@ pub(crate) enum BoundedReadError {
 }
 
 impl BoundedReadError {
-    /// The dataset error, naming the file as the dataset does and the limit that refused it.
-    pub(crate) fn named(self, name: &Path, limit_name: &str) -> Error {
+    /// The dataset error, naming the file as the dataset does and what kind of file (`an
+    /// image`, `a text file`) the limit is for.
+    pub(crate) fn named(self, name: &Path, kind: &str) -> Error {
         match self {
             BoundedReadError::TooLarge { size, limit } => Error::Dataset(format!(
-                "{} holds {size} bytes, more than {limit} ({limit_name})",
+                "{} holds {size} bytes, more than the {limit} allowed for {kind}",
                 name.display()
             )),
             BoundedReadError::Io(e) => Error::io(name, e),
