@@ -31,7 +31,15 @@ fuzz_target!(|data: &[u8]| {
     let dest = root.join(format!("out-{n}"));
     std::fs::create_dir_all(&root).expect("scratch");
     std::fs::write(&input, archive).expect("write input");
-    let limits = ExtractLimits { max_bytes: 1 << 20, max_entries: 64 };
+    let limits = ExtractLimits {
+        max_bytes: 1 << 20,
+        max_entries: 64,
+        sequence: relfusion_slam::dataset::SequenceLimits {
+            max_frames: 64,
+            max_text_bytes: 1 << 20,
+            max_image_bytes: 1 << 20,
+        },
+    };
     if let Ok(bytes) = extract(&input, kind, &dest, limits) {
         assert!(bytes <= limits.max_bytes);
     }
