@@ -139,13 +139,16 @@ fn a_late_client_gets_the_whole_map_and_the_schema() {
         get(&server, &format!("/v1/proto/{bad}"), None).expect_error(404, "not_found", bad);
     }
 
-    // The API docs page: Swagger UI from the binary itself, over /openapi.json.
+    // The API docs page: Swagger UI from the binary itself, over /openapi.json, started by a
+    // script of its own (the page's Content-Security-Policy allows no inline script).
     let page = get(&server, "/docs", None);
     assert_eq!(page.status, 200);
+    assert!(page.body.contains("/docs/init.js"), "{}", page.body);
+    let init = get(&server, "/docs/init.js", None);
     assert!(
-        page.body.contains("url: \"/openapi.json\""),
+        init.status == 200 && init.body.contains("url: \"/openapi.json\""),
         "{}",
-        page.body
+        init.body
     );
     let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../server/assets/swagger-ui");
     for (file, content_type) in [
