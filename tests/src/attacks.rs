@@ -77,28 +77,39 @@ pub fn tar_of(entries: &[(&str, &[u8])]) -> Vec<u8> {
     builder.into_inner().expect("tar")
 }
 
-/// Resident memory of process `pid` in bytes (Linux; 0 when it cannot be read).
-pub fn rss(pid: u32) -> u64 {
+/// A TUM tar: `seq/rgb.txt` with `rgb_txt`, `seq/depth.txt` with `depth_txt` when given, a
+/// 320×240 `seq/calibration.txt`, and `files` (names as given).
+pub fn tum_tar(rgb_txt: &str, depth_txt: Option<&str>, files: &[(&str, &[u8])]) -> Vec<u8> {
+    let mut entries: Vec<(&str, &[u8])> = vec![
+        ("seq/rgb.txt", rgb_txt.as_bytes()),
+        ("seq/calibration.txt", b"320 320 160 120\n"),
+    ];
+    if let Some(depth) = depth_txt {
+        entries.push(("seq/depth.txt", depth.as_bytes()));
+    }
+    entries.extend_from_slice(files);
+    tar_of(&entries)
+}
+
+/// A size field of `/proc/<pid>/status` (kB) in bytes (Linux; 0 when it cannot be read).
+fn status_bytes(pid: u32, field: &str) -> u64 {
     std::fs::read_to_string(format!("/proc/{pid}/status"))
         .ok()
         .and_then(|s| {
             s.lines()
-                .find(|l| l.starts_with("VmRSS:"))
+                .find(|l| l.starts_with(field))
                 .and_then(|l| l.split_whitespace().nth(1))
                 .and_then(|kb| kb.parse::<u64>().ok())
         })
         .map_or(0, |kb| kb * 1024)
 }
 
-/// Peak resident memory of process `pid` so far in bytes (`VmHWM`; 0 when unreadable).
+/// Resident memory of process `pid` in bytes.
+pub fn rss(pid: u32) -> u64 {
+    status_bytes(pid, "VmRSS:")
+}
+
+/// Peak resident memory of process `pid` so far in bytes.
 pub fn peak_rss(pid: u32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|kb| kb.parse::<u64>().ok())
-        })
-        .map_or(0, |kb| kb * 1024)
+    status_bytes(pid, "VmHWM:")
 }

@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 use relfusion_proto::Message as _;
 use relfusion_proto::v1::{ClientMessage, Frame, ImageEncoding, ServerMessage, client_message};
 use relfusion_slam::dataset::TumSequence;
-use relfusion_tests::attacks::{peak_rss, png_claiming, tar_of, zip_archive};
+use relfusion_tests::attacks::{peak_rss, png_claiming, tar_of, tum_tar, zip_archive};
 use relfusion_tests::{Relfusiond, free_port, synth_sequence, temp_dir};
 use serde_json::{Value, json};
 use tungstenite::client::IntoClientRequest as _;
@@ -104,19 +104,6 @@ fn create(url: &str, token: &str, seq: &TumSequence) -> String {
     );
     assert_eq!(code, 201, "{body}");
     body["id"].as_str().expect("id").to_string()
-}
-
-/// A tar of a TUM dataset listing `rgb_txt` (and `depth_txt`) over `files`.
-fn tar_listing(rgb_txt: &str, depth_txt: Option<&str>, files: &[(&str, &[u8])]) -> Vec<u8> {
-    let mut entries: Vec<(&str, &[u8])> = vec![
-        ("seq/rgb.txt", rgb_txt.as_bytes()),
-        ("seq/calibration.txt", b"320 320 160 120\n"),
-    ];
-    if let Some(depth) = depth_txt {
-        entries.push(("seq/depth.txt", depth.as_bytes()));
-    }
-    entries.extend_from_slice(files);
-    tar_of(&entries)
 }
 
 /// One honest tenant: frames over the WebSocket at 8 fps for the soak's length; poses
@@ -307,15 +294,15 @@ fn attacks_together_leave_honest_tenants_their_poses_and_memory_bounded() {
     {
         let url = url.clone();
         let repeated = "0 rgb/0.png\n".repeat(20_000);
-        let quadratic = tar_listing(&repeated, Some(&repeated), &[("seq/rgb/0.png", &png)]);
-        let long = tar_listing(
+        let quadratic = tum_tar(&repeated, Some(&repeated), &[("seq/rgb/0.png", &png)]);
+        let long = tum_tar(
             &"0 rgb/0.png\n".repeat(1_000_000),
             None,
             &[("seq/rgb/0.png", &png)],
         );
         let mut padded = png.clone();
         padded.resize(64 << 20, 0);
-        let padded = tar_listing("0 rgb/p.png\n", None, &[("seq/rgb/p.png", &padded)]);
+        let padded = tum_tar("0 rgb/p.png\n", None, &[("seq/rgb/p.png", &padded)]);
         attackers.push(attacker(stop.clone(), rounds[6].clone(), move || {
             let a = agent(Duration::from_secs(30));
             for (body, what) in [

@@ -5,7 +5,7 @@
 use std::io::{BufRead as _, BufReader, Read as _, Write as _};
 use std::net::TcpStream;
 
-use relfusion_tests::attacks::peak_rss;
+use relfusion_tests::attacks::{peak_rss, tum_tar};
 
 use super::*;
 
@@ -31,19 +31,6 @@ fn first_png(dir: &Path) -> Vec<u8> {
     std::fs::read(&seq.frames[0].rgb).expect("png")
 }
 
-/// A TUM tar with `rgb_txt`, `depth_txt` and the files given.
-fn tar_listing(rgb_txt: &str, depth_txt: Option<&str>, files: &[(&str, &[u8])]) -> Vec<u8> {
-    let mut entries: Vec<(&str, &[u8])> = vec![
-        ("seq/rgb.txt", rgb_txt.as_bytes()),
-        ("seq/calibration.txt", b"320 320 160 120\n"),
-    ];
-    if let Some(depth) = depth_txt {
-        entries.push(("seq/depth.txt", depth.as_bytes()));
-    }
-    entries.extend_from_slice(files);
-    tar_of(&entries)
-}
-
 /// Item 1: rgb.txt and depth.txt each naming one image 20 000 times at one instant. The
 /// association weighed every pair (4·10⁸ candidates, gigabytes); now each stamp considers a
 /// bounded number of partners.
@@ -54,7 +41,7 @@ fn repeated_list_entries_are_associated_in_linear_time_and_memory() {
     let server = spawn("assoc", None, &[]);
     let list = "0 rgb/0.png\n".repeat(20_000);
     let depth = "0 rgb/0.png\n".repeat(20_000);
-    let body = tar_listing(&list, Some(&depth), &[("seq/rgb/0.png", &png)]);
+    let body = tum_tar(&list, Some(&depth), &[("seq/rgb/0.png", &png)]);
     let before = peak_rss(server.pid());
     let t0 = Instant::now();
     let created = upload(&server, None, &body);
@@ -88,7 +75,7 @@ fn lists_longer_than_an_archive_may_be_are_refused_while_parsing() {
     let png = first_png(&dir);
     let server = spawn("lists", None, &[]);
     let list = "0 rgb/0.png\n".repeat(1_000_000);
-    let body = tar_listing(&list, None, &[("seq/rgb/0.png", &png)]);
+    let body = tum_tar(&list, None, &[("seq/rgb/0.png", &png)]);
     let before = peak_rss(server.pid());
     let t0 = Instant::now();
     let refused = upload(&server, None, &body);
@@ -113,7 +100,7 @@ fn image_files_over_the_frame_limit_are_refused_before_they_are_read() {
     padded.resize(256 << 20, 0);
     let server = spawn("padded", Some("[limits]\nmax_frame_bytes = 1048576\n"), &[]);
     let before = peak_rss(server.pid());
-    let first = tar_listing("0 rgb/big.png\n", None, &[("seq/rgb/big.png", &padded)]);
+    let first = tum_tar("0 rgb/big.png\n", None, &[("seq/rgb/big.png", &padded)]);
     let message = upload(&server, None, &first).expect_error(400, "invalid_argument", "padded");
     assert!(
         message.contains("rgb/big.png holds 268435456 bytes"),
@@ -125,7 +112,7 @@ fn image_files_over_the_frame_limit_are_refused_before_they_are_read() {
     );
     drop(first);
 
-    let later = tar_listing(
+    let later = tum_tar(
         "0 rgb/0.png\n1 rgb/big.png\n2 rgb/big.png\n3 rgb/big.png\n4 rgb/big.png\n",
         None,
         &[("seq/rgb/0.png", &png), ("seq/rgb/big.png", &padded)],
