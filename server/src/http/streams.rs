@@ -71,7 +71,8 @@ impl StreamCounts {
     }
 
     /// Streams open now.
-    pub fn open_now(&self) -> usize {
+    #[cfg(test)]
+    fn open_now(&self) -> usize {
         let counts = self.counts.lock().unwrap_or_else(|e| e.into_inner());
         counts.owners.values().sum()
     }

@@ -78,8 +78,8 @@ impl SequenceFolder {
         let Some(path) = self.confined(name, &|| name.to_string())? else {
             return Ok(None);
         };
-        let bytes = super::tum::read_at_most(&path, max_bytes)
-            .map_err(|e| e.named(Path::new(name), "a text file"))?;
+        let bytes =
+            read_at_most(&path, max_bytes).map_err(|e| e.named(Path::new(name), "a text file"))?;
         String::from_utf8(bytes)
             .map(Some)
             .map_err(|_| Error::Dataset(format!("{name} is not UTF-8 text")))
@@ -91,6 +91,56 @@ impl SequenceFolder {
         self.confined(rel, &what)?
             .ok_or_else(|| Error::Dataset(format!("{}: listed file {rel} does not exist", what())))
     }
+}
+
+/// Why [`read_at_most`] failed.
+#[derive(Debug)]
+pub(crate) enum BoundedReadError {
+    /// The file holds more than the limit (its size, or what was read).
+    TooLarge {
+        size: u64,
+        limit: u64,
+    },
+    Io(std::io::Error),
+}
+
+impl BoundedReadError {
+    /// The dataset error, naming the file as the dataset does and what kind of file (`an
+    /// image`, `a text file`) the limit is for.
+    pub(crate) fn named(self, name: &Path, kind: &str) -> Error {
+        match self {
+            BoundedReadError::TooLarge { size, limit } => Error::Dataset(format!(
+                "{} holds {size} bytes, more than the {limit} allowed for {kind}",
+                name.display()
+            )),
+            BoundedReadError::Io(e) => Error::io(name, e),
+        }
+    }
+}
+
+/// The bytes of `path`, refused from its size before reading when it holds more than `limit`
+/// (and while reading, should it grow meanwhile).
+pub(crate) fn read_at_most(
+    path: &Path,
+    limit: u64,
+) -> std::result::Result<Vec<u8>, BoundedReadError> {
+    use std::io::Read as _;
+    let file = std::fs::File::open(path).map_err(BoundedReadError::Io)?;
+    let size = file.metadata().map_err(BoundedReadError::Io)?.len();
+    if size > limit {
+        return Err(BoundedReadError::TooLarge { size, limit });
+    }
+    let mut bytes = Vec::with_capacity(usize::try_from(size).unwrap_or(0));
+    file.take(limit.saturating_add(1))
+        .read_to_end(&mut bytes)
+        .map_err(BoundedReadError::Io)?;
+    if bytes.len() as u64 > limit {
+        return Err(BoundedReadError::TooLarge {
+            size: bytes.len() as u64,
+            limit,
+        });
+    }
+    Ok(bytes)
 }
 
 #[cfg(test)]
