@@ -44,6 +44,7 @@ pub mod image;
 pub mod map;
 pub mod mapping;
 pub mod npy;
+pub mod odometry;
 pub mod optim;
 pub mod pipeline;
 pub mod scale_shift;

@@ -1,0 +1,100 @@
+//! Parameters of the sliding-window odometry back end, with DSO's defaults where DSO has one
+//! (Engel, Koltun and Cremers, TPAMI 2018; `settings.cpp` of JakobEngel/dso, read, not copied).
+
+use serde::{Deserialize, Serialize};
+
+use crate::frame::PYRAMID_LEVELS;
+use crate::{Error, Result};
+
+/// Configuration of [`super::SlidingWindow`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OdometryConfig {
+    /// Most keyframes in the window (`setting_maxFrames` = 7); the one past it is marginalised.
+    pub max_frames: usize,
+    /// Fewest keyframes kept when marginalising by rule (`setting_minFrames` = 5).
+    pub min_frames: usize,
+    /// Pyramid level the window's residuals live on. Default 0: DSO optimises at full
+    /// resolution; coarse levels are the tracker's job.
+    pub level: usize,
+    /// Gauss–Newton iterations per optimisation (DSO runs ≈ 6 per keyframe).
+    pub iterations: usize,
+    /// Huber width of one pattern pixel's weighted residual, grey levels (`setting_huberTH`).
+    pub huber: f64,
+    /// Constant `c` of the gradient weight `c² / (c² + |∇I|²)` (`setting_outlierTHSumComponent`
+    /// = 50²): edges, where a sub-pixel error means a large residual, count less.
+    pub gradient_weight_c: f64,
+    /// A point's pattern in one target is an outlier when its energy exceeds this squared per
+    /// pattern pixel (`setting_outlierTH` = 12²·8).
+    pub outlier_threshold: f64,
+    /// Information of the affine brightness `a` of every keyframe about 0 (DSO keeps a prior
+    /// on `a` and `b` so that brightness changes are allowed but not free). It also fixes the
+    /// brightness gauge, which the photometric residuals leave open.
+    pub affine_prior_a: f64,
+    /// Information of the affine offset `b` about 0, per grey level².
+    pub affine_prior_b: f64,
+    /// Weight of what marginalised points leave in the prior (`setting_margWeightFac` = 0.5²):
+    /// the prior is linearised once and cannot be relinearised, so it is trusted less.
+    pub marginalisation_weight: f64,
+    /// A keyframe leaves the window when fewer than this share of its points are still seen
+    /// in the newest keyframe (`setting_minPointsRemaining` = 0.05).
+    pub min_points_remaining: f64,
+    /// …or when its brightness differs from the newest's by more than `e^this`
+    /// (`setting_maxLogAffFacInWindow` = 0.7).
+    pub max_log_affine_in_window: f64,
+}
+
+impl Default for OdometryConfig {
+    fn default() -> Self {
+        Self {
+            max_frames: 7,
+            min_frames: 5,
+            level: 0,
+            iterations: 6,
+            huber: 9.0,
+            gradient_weight_c: 50.0,
+            outlier_threshold: 12.0,
+            affine_prior_a: 1e4,
+            affine_prior_b: 1.0,
+            marginalisation_weight: 0.25,
+            min_points_remaining: 0.05,
+            max_log_affine_in_window: 0.7,
+        }
+    }
+}
+
+impl OdometryConfig {
+    /// Checks sizes and factors.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |what: &str| Err(Error::Config(format!("odometry: {what}")));
+        if self.max_frames < 3 || self.max_frames > 16 {
+            return bad("max_frames must be in 3..=16");
+        }
+        if self.min_frames < 2 || self.min_frames > self.max_frames {
+            return bad("min_frames must be in 2..=max_frames");
+        }
+        if self.level >= PYRAMID_LEVELS {
+            return bad("level outside the pyramid");
+        }
+        if self.iterations == 0 || self.iterations > 100 {
+            return bad("iterations must be in 1..=100");
+        }
+        for (v, name) in [
+            (self.huber, "huber"),
+            (self.gradient_weight_c, "gradient_weight_c"),
+            (self.outlier_threshold, "outlier_threshold"),
+            (self.affine_prior_a, "affine_prior_a"),
+            (self.affine_prior_b, "affine_prior_b"),
+            (self.marginalisation_weight, "marginalisation_weight"),
+            (self.max_log_affine_in_window, "max_log_affine_in_window"),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(&format!("{name} must be positive"));
+            }
+        }
+        if !(0.0..1.0).contains(&self.min_points_remaining) {
+            return bad("min_points_remaining must be in [0, 1)");
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,205 @@
+//! The photometric residual of a window point in one target keyframe and its first-estimate
+//! Jacobians (DSO, TPAMI 2018, eqs. 4-5 and §2.2 "First Estimate Jacobians").
+//!
+//! A point is hosted in keyframe `h` at pixel `u`, with inverse depth `ρ` in `h`'s camera.
+//! Pattern pixel `u + o` is predicted in target `t` at `π(T_tw·T_wh·(K⁻¹(u + o)/ρ))` (the
+//! pattern shares the centre's depth: DSO's fronto-parallel assumption) and its residual is
+//! `r = I_t(u') − b_t − e^{a_t − a_h}(I_h(u + o) − b_h)`.
+//!
+//! Residual and image gradient are evaluated at the current state; the geometric part of the
+//! Jacobian (how the pixel moves with the two poses and the depth) at the keyframes'
+//! *first estimates*. Every residual then sees the same linearisation point of a keyframe, so
+//! the 7 directions that leave all residuals unchanged (a rigid motion and a scale of the whole
+//! window) stay exactly unobservable in every Hessian and in the marginalisation prior built
+//! from them; with Jacobians at the current state the prior would gain fake information along
+//! them and the estimate would drift while looking certain. Poses are perturbed on the right,
+//! `T ← T·exp(δ)`, tangent order (v, ω); a keyframe's eight parameters are `(v, ω, a, b)`.
+
+use nalgebra::{Matrix2x3, SMatrix, Vector2, Vector3};
+
+use crate::geometry::{PinholeCamera, SE3, SO3};
+use crate::image::pyramid::PyramidLevel;
+
+/// Parameters per keyframe: pose (6) and affine brightness (2).
+pub const FRAME_PARAMS: usize = 8;
+/// A keyframe's parameter vector.
+pub type Vector8 = SMatrix<f64, FRAME_PARAMS, 1>;
+/// A block of the window's Hessian between two keyframes.
+pub type Matrix8 = SMatrix<f64, FRAME_PARAMS, FRAME_PARAMS>;
+
+/// DSO's residual pattern of eight pixels around the point (`staticPattern[8]`): spread
+/// enough to be distinctive, small enough for one depth to hold.
+pub const PATTERN: [(f64, f64); 8] = [
+    (0.0, -2.0),
+    (-1.0, -1.0),
+    (1.0, -1.0),
+    (-2.0, 0.0),
+    (0.0, 0.0),
+    (2.0, 0.0),
+    (-1.0, 1.0),
+    (0.0, 2.0),
+];
+
+/// Pose and affine brightness `(a, b)` of a keyframe.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameState {
+    pub world_from_camera: SE3,
+    pub affine: (f64, f64),
+}
+
+impl FrameState {
+    /// The state moved by `delta`: pose `T·exp(δ)`, affine `(a + δa, b + δb)`.
+    pub fn step(&self, delta: &Vector8) -> Self {
+        let xi = delta.fixed_rows::<6>(0).into_owned();
+        Self {
+            world_from_camera: self.world_from_camera * SE3::exp(&xi),
+            affine: (self.affine.0 + delta[6], self.affine.1 + delta[7]),
+        }
+    }
+
+    /// Where this state is relative to `origin`, in the coordinates of [`Self::step`]
+    /// (`origin.step(d) == self`).
+    pub fn delta_from(&self, origin: &FrameState) -> Vector8 {
+        let xi = (origin.world_from_camera.inverse() * self.world_from_camera).log();
+        let mut d = Vector8::zeros();
+        d.fixed_rows_mut::<6>(0).copy_from(&xi);
+        d[6] = self.affine.0 - origin.affine.0;
+        d[7] = self.affine.1 - origin.affine.1;
+        d
+    }
+}
+
+/// A keyframe as the residuals see it: its image at the window's level, that level's camera,
+/// its current state and the state its Jacobians are evaluated at.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameView<'a> {
+    pub level: &'a PyramidLevel,
+    pub camera: PinholeCamera,
+    pub state: FrameState,
+    pub first_estimate: FrameState,
+}
+
+/// Which state the geometric Jacobians are evaluated at.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Linearisation {
+    /// The keyframes' first estimates (DSO; the gauge stays unobservable).
+    FirstEstimate,
+    /// The current state (plain Gauss–Newton; only to show what FEJ prevents).
+    Current,
+}
+
+/// The linearisation of one pattern pixel of a point in one target.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Linearised {
+    pub residual: f64,
+    /// Squared gradient of the target image at the prediction (for the residual's weight).
+    pub grad2: f64,
+    pub d_host: Vector8,
+    pub d_target: Vector8,
+    pub d_idepth: f64,
+}
+
+/// The pixel of `camera` that `x` (camera coordinates) projects to, and `∂u/∂x`.
+fn project(camera: &PinholeCamera, x: &Vector3<f64>) -> (Vector2<f64>, Matrix2x3<f64>) {
+    let iz = 1.0 / x.z;
+    let uv = Vector2::new(
+        camera.fx * x.x * iz + camera.cx,
+        camera.fy * x.y * iz + camera.cy,
+    );
+    let du_dx = Matrix2x3::new(
+        camera.fx * iz,
+        0.0,
+        -camera.fx * x.x * iz * iz,
+        0.0,
+        camera.fy * iz,
+        -camera.fy * x.y * iz * iz,
+    );
+    (uv, du_dx)
+}
+
+/// The ray of pixel `uv` of `camera` at depth 1.
+pub fn ray(camera: &PinholeCamera, uv: &Vector2<f64>) -> Vector3<f64> {
+    Vector3::new(
+        (uv.x - camera.cx) / camera.fx,
+        (uv.y - camera.cy) / camera.fy,
+        1.0,
+    )
+}
+
+/// The residual of pattern pixel `k` of the point at `uv` (host pixel) with inverse depth
+/// `idepth` and host intensity `host_intensity`, in `target`, with its derivatives with
+/// respect to both keyframes' parameters and the inverse depth; `None` when the point falls
+/// behind the target camera or outside its image.
+pub fn linearise(
+    uv: &Vector2<f64>,
+    idepth: f64,
+    host_intensity: f64,
+    k: usize,
+    host: &FrameView<'_>,
+    target: &FrameView<'_>,
+    mode: Linearisation,
+) -> Option<Linearised> {
+    // Also refuses NaN.
+    if idepth.is_nan() || idepth <= 0.0 {
+        return None;
+    }
+    let (ox, oy) = PATTERN[k];
+    let ray = ray(&host.camera, &Vector2::new(uv.x + ox, uv.y + oy));
+    let x_h = ray / idepth;
+    let relative =
+        |h: &FrameState, t: &FrameState| t.world_from_camera.inverse() * h.world_from_camera;
+    let x_t = relative(&host.state, &target.state).act(&x_h);
+    if x_t.z < 1e-3 {
+        return None;
+    }
+    let (u, _) = project(&target.camera, &x_t);
+    let lvl = target.level;
+    let (w, h) = (lvl.width() as f64, lvl.height() as f64);
+    if !(u.x >= 1.0 && u.y >= 1.0 && u.x <= w - 2.0 && u.y <= h - 2.0) {
+        return None;
+    }
+    let (uf, vf) = (u.x as f32, u.y as f32);
+    let i_t = f64::from(lvl.image.bilinear(uf, vf)?);
+    let gx = f64::from(lvl.gx.bilinear(uf, vf)?);
+    let gy = f64::from(lvl.gy.bilinear(uf, vf)?);
+    let (a_h, b_h) = host.state.affine;
+    let (a_t, b_t) = target.state.affine;
+    let e = (a_t - a_h).exp();
+    let residual = i_t - b_t - e * (host_intensity - b_h);
+
+    // Geometry at the linearisation point, the image gradient at the current prediction.
+    let (lin_h, lin_t) = match mode {
+        Linearisation::FirstEstimate => (&host.first_estimate, &target.first_estimate),
+        Linearisation::Current => (&host.state, &target.state),
+    };
+    let target_from_host = relative(lin_h, lin_t);
+    let r_th = target_from_host.rotation.matrix();
+    let x_t_lin = target_from_host.act(&x_h);
+    let (_, du_dx) = project(&target.camera, &x_t_lin);
+    let g = (Vector2::new(gx, gy).transpose() * du_dx).transpose(); // ∂r/∂x_t
+    // Host perturbation: x_t = R_th (x_h + v + ω × x_h) + t_th.
+    let dv_h = r_th.transpose() * g;
+    let dw_h = -SO3::hat(&x_h).transpose() * dv_h;
+    // Target perturbation: x_t ← x_t − v − ω × x_t.
+    let dv_t = -g;
+    let dw_t = SO3::hat(&x_t_lin).transpose() * g;
+    let d_idepth = g.dot(&(r_th * (-ray / (idepth * idepth))));
+
+    let mut d_host = Vector8::zeros();
+    d_host.fixed_rows_mut::<3>(0).copy_from(&dv_h);
+    d_host.fixed_rows_mut::<3>(3).copy_from(&dw_h);
+    d_host[6] = e * (host_intensity - b_h);
+    d_host[7] = e;
+    let mut d_target = Vector8::zeros();
+    d_target.fixed_rows_mut::<3>(0).copy_from(&dv_t);
+    d_target.fixed_rows_mut::<3>(3).copy_from(&dw_t);
+    d_target[6] = -e * (host_intensity - b_h);
+    d_target[7] = -1.0;
+    Some(Linearised {
+        residual,
+        grad2: gx * gx + gy * gy,
+        d_host,
+        d_target,
+        d_idepth,
+    })
+}
