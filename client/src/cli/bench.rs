@@ -18,6 +18,8 @@ pub enum BenchCommand {
     /// ATE, keyframe ATE and scale drift over several sequences, N threaded runs each plus one
     /// deterministic, with an aggregate line (judge a change on all of them).
     Accuracy(super::bench_accuracy::AccuracyArgs),
+    /// The DSO-class odometry core alone (issue 35): ATE, keyframe ATE, scale drift, time.
+    Odometry(super::bench_odometry::OdometryArgs),
     /// A running relfusiond: HTTP/Zenoh ingest rate, frame-to-pose latency, sessions at 30 fps.
     Serve(super::bench_serve::ServeArgs),
     /// relfusiond nodes on this machine as one service (spawned here: a router and 1..N
@@ -61,6 +63,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Pyramid(args) => pyramid(&args),
         BenchCommand::Slam(args) => super::bench_slam::slam(&args),
         BenchCommand::Accuracy(args) => super::bench_accuracy::accuracy(&args),
+        BenchCommand::Odometry(args) => super::bench_odometry::odometry(&args),
         BenchCommand::Serve(args) => super::bench_serve::serve(&args),
         BenchCommand::Cluster(args) => super::bench_cluster::cluster(&args),
         BenchCommand::Densify(args) => super::bench_densify::densify(&args),

@@ -42,6 +42,17 @@ pub struct OdometryConfig {
     /// …or when its brightness differs from the newest's by more than `e^this`
     /// (`setting_maxLogAffFacInWindow` = 0.7).
     pub max_log_affine_in_window: f64,
+    /// Active points the window keeps (`setting_desiredPointDensity` = 2000).
+    pub active_points: usize,
+    /// Candidates selected per new keyframe (`setting_desiredImmatureDensity` = 1500).
+    pub candidate_points: usize,
+    /// A new keyframe when `t·f_t + r·f_rt + a·|Δa| > 1`, `f_t` the RMS image motion of the
+    /// reference points from translation alone and `f_rt` from the whole motion, in pixels at
+    /// 640×480 (scaled with `width + height`), `Δa` the log brightness change. DSO's weights:
+    /// `t` = 0.04 (`setting_maxShiftWeightT`), `r` = 0.02 (`…RT`), `a` = 2 (`…Affine`).
+    pub keyframe_translation_weight: f64,
+    pub keyframe_rotation_weight: f64,
+    pub keyframe_affine_weight: f64,
 }
 
 impl Default for OdometryConfig {
@@ -59,6 +70,11 @@ impl Default for OdometryConfig {
             marginalisation_weight: 0.25,
             min_points_remaining: 0.05,
             max_log_affine_in_window: 0.7,
+            active_points: 2000,
+            candidate_points: 1500,
+            keyframe_translation_weight: 0.04,
+            keyframe_rotation_weight: 0.02,
+            keyframe_affine_weight: 2.0,
         }
     }
 }
@@ -87,10 +103,22 @@ impl OdometryConfig {
             (self.affine_prior_b, "affine_prior_b"),
             (self.marginalisation_weight, "marginalisation_weight"),
             (self.max_log_affine_in_window, "max_log_affine_in_window"),
+            (
+                self.keyframe_translation_weight,
+                "keyframe_translation_weight",
+            ),
+            (self.keyframe_rotation_weight, "keyframe_rotation_weight"),
+            (self.keyframe_affine_weight, "keyframe_affine_weight"),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return bad(&format!("{name} must be positive"));
             }
+        }
+        if self.active_points == 0 || self.active_points > 20_000 {
+            return bad("active_points must be in 1..=20000");
+        }
+        if self.candidate_points == 0 || self.candidate_points > 20_000 {
+            return bad("candidate_points must be in 1..=20000");
         }
         if !(0.0..1.0).contains(&self.min_points_remaining) {
             return bad("min_points_remaining must be in [0, 1)");

@@ -36,7 +36,7 @@ pub fn outlier_energy(config: &OdometryConfig) -> f64 {
 }
 
 /// The linearised pattern of `point` in `target`, or `None` when a pixel is not visible or the
-/// pattern is an outlier there (energy above `outlier_threshold²` per pixel).
+/// pattern is an outlier there (gradient-weighted energy above `outlier_threshold²` per pixel).
 pub fn pattern(
     config: &OdometryConfig,
     point: &WindowPoint,
@@ -44,6 +44,7 @@ pub fn pattern(
     target: &FrameView<'_>,
     mode: Linearisation,
 ) -> Option<[Linearised; PATTERN.len()]> {
+    let c2 = config.gradient_weight_c * config.gradient_weight_c;
     let mut out = [None; PATTERN.len()];
     let mut energy = 0.0;
     for (k, slot) in out.iter_mut().enumerate() {
@@ -56,7 +57,9 @@ pub fn pattern(
             target,
             mode,
         )?;
-        energy += lin.residual * lin.residual;
+        // Gradient-weighted, as DSO tests it: on a strong edge a sub-pixel error is a large
+        // residual, not an outlier.
+        energy += lin.residual * lin.residual * c2 / (c2 + lin.grad2);
         *slot = Some(lin);
     }
     let limit = config.outlier_threshold * config.outlier_threshold * PATTERN.len() as f64;
