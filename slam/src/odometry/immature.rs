@@ -42,6 +42,20 @@ impl Default for TraceConfig {
     }
 }
 
+/// A frame a candidate is traced in.
+#[derive(Clone, Copy, Debug)]
+pub struct TraceTarget<'a> {
+    /// The host keyframe's camera (level 0).
+    pub host_camera: &'a PinholeCamera,
+    /// The frame's level-0 image and camera.
+    pub level: &'a PyramidLevel,
+    pub camera: &'a PinholeCamera,
+    /// The frame's pose relative to the host.
+    pub target_from_host: &'a SE3,
+    /// Brightness transfer `I_t ≈ e·(I_h − b_h) + b_t` as `(e, b_h, b_t)`.
+    pub affine: (f64, f64, f64),
+}
+
 /// What the last trace of a point found.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TraceStatus {
@@ -150,38 +164,20 @@ impl ImmaturePoint {
         Some(total)
     }
 
-    /// Narrows the interval by a search along the epipolar line in `target` (level 0 image
-    /// and camera, `target_from_host` its pose relative to the host), `affine` as in
-    /// [`Self::energy`].
-    pub fn trace(
-        &mut self,
-        config: &TraceConfig,
-        host_camera: &PinholeCamera,
-        target: &PyramidLevel,
-        camera: &PinholeCamera,
-        target_from_host: &SE3,
-        affine: (f64, f64, f64),
-    ) -> TraceStatus {
-        self.status = self.search(
-            config,
-            host_camera,
-            target,
-            camera,
-            target_from_host,
-            affine,
-        );
+    /// Narrows the interval by a search along the epipolar line in `target`.
+    pub fn trace(&mut self, config: &TraceConfig, target: &TraceTarget<'_>) -> TraceStatus {
+        self.status = self.search(config, target);
         self.status
     }
 
-    fn search(
-        &mut self,
-        config: &TraceConfig,
-        host_camera: &PinholeCamera,
-        target: &PyramidLevel,
-        camera: &PinholeCamera,
-        target_from_host: &SE3,
-        affine: (f64, f64, f64),
-    ) -> TraceStatus {
+    fn search(&mut self, config: &TraceConfig, frame: &TraceTarget<'_>) -> TraceStatus {
+        let TraceTarget {
+            host_camera,
+            level: target,
+            camera,
+            target_from_host,
+            affine,
+        } = *frame;
         let (w, h) = (target.width() as f64, target.height() as f64);
         let margin = 4.0;
         let inside = |u: &Vector2<f64>| {

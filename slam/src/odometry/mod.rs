@@ -369,25 +369,36 @@ impl SlidingWindow {
 
     /// Whether `point` lands in the image of the newest keyframe.
     pub fn in_newest(&self, point: &WindowPoint) -> bool {
-        let (Some(newest), Some(k)) = (self.frames.last(), self.index_of(point.host)) else {
-            return false;
-        };
-        let host = &self.frames[k];
-        let camera = newest.frame.camera_at(self.config.level);
+        self.project_to_newest(point.host, &point.uv, point.idepth)
+            .is_some()
+    }
+
+    /// Where the point of keyframe `host` at pixel `uv` (window level) with inverse depth
+    /// `idepth` lands in the newest keyframe: its level-0 pixel and its inverse depth there;
+    /// `None` behind the camera, outside the image or for a host not in the window.
+    pub fn project_to_newest(
+        &self,
+        host: u64,
+        uv: &Vector2<f64>,
+        idepth: f64,
+    ) -> Option<(Vector2<f64>, f64)> {
+        let newest = self.frames.last()?;
+        let host = &self.frames[self.index_of(host)?];
         let newest_from_host =
             newest.state.world_from_camera.inverse() * host.state.world_from_camera;
-        let x = newest_from_host.act(
-            &(residual::ray(&host.frame.camera_at(self.config.level), &point.uv) / point.idepth),
-        );
-        let (u, v) = (
+        let ray = residual::ray(&host.frame.camera_at(self.config.level), uv);
+        let x = newest_from_host.act(&(ray / idepth));
+        let camera = &newest.frame.camera;
+        let u = Vector2::new(
             camera.fx * x.x / x.z + camera.cx,
             camera.fy * x.y / x.z + camera.cy,
         );
-        x.z > 0.0
-            && u >= 0.0
-            && v >= 0.0
-            && u < f64::from(camera.width)
-            && v < f64::from(camera.height)
+        (x.z > 1e-6
+            && u.x >= 0.0
+            && u.y >= 0.0
+            && u.x < f64::from(camera.width)
+            && u.y < f64::from(camera.height))
+        .then(|| (u, 1.0 / x.z))
     }
 }
 

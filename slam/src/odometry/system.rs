@@ -9,9 +9,9 @@ use std::sync::Arc;
 
 use nalgebra::{Vector2, Vector3};
 
-use super::immature::{ImmaturePoint, TraceConfig, TraceStatus};
+use super::immature::{ImmaturePoint, TraceConfig, TraceStatus, TraceTarget};
 use super::init::Initialiser;
-use super::residual::{FrameState, ray};
+use super::residual::FrameState;
 use super::select::select_candidates;
 use super::{OdometryConfig, SlidingWindow};
 use crate::Result;
@@ -333,14 +333,14 @@ impl Odometry {
                 continue;
             };
             let target_from_host = frame_from_world * *world_from_host;
-            c.trace(
-                &self.trace,
-                camera,
+            let target = TraceTarget {
+                host_camera: camera,
                 level,
-                &frame.camera,
-                &target_from_host,
-                (1.0, 0.0, 0.0),
-            );
+                camera: &frame.camera,
+                target_from_host: &target_from_host,
+                affine: (1.0, 0.0, 0.0),
+            };
+            c.trace(&self.trace, &target);
         }
         self.candidates
             .retain(|c| c.status != TraceStatus::OutOfBounds && c.outliers < 2);
@@ -397,7 +397,6 @@ impl Odometry {
             return;
         };
         let camera = newest.frame.camera;
-        let newest_from_world = newest.state.world_from_camera.inverse();
         let wanted = self
             .config
             .active_points
@@ -409,38 +408,28 @@ impl Odometry {
         let cell = (w * h / self.config.active_points as f64).sqrt().max(2.0);
         let columns = (w / cell).ceil() as usize + 1;
         let mut occupied = vec![false; columns * ((h / cell).ceil() as usize + 1)];
-        let poses: HashMap<u64, SE3> = self
-            .window
-            .frames()
-            .iter()
-            .map(|f| (f.id, f.state.world_from_camera))
-            .collect();
-        let project = |host: u64, uv: &Vector2<f64>, idepth: f64| -> Option<usize> {
-            let x = (newest_from_world * *poses.get(&host)?).act(&(ray(&camera, uv) / idepth));
-            let (u, v) = (
-                camera.fx * x.x / x.z + camera.cx,
-                camera.fy * x.y / x.z + camera.cy,
-            );
-            (x.z > 0.0 && u >= 0.0 && v >= 0.0 && u < w && v < h)
-                .then(|| (v / cell) as usize * columns + (u / cell) as usize)
+        let cell_of = |window: &SlidingWindow, host: u64, uv: &Vector2<f64>, idepth: f64| {
+            let (u, _) = window.project_to_newest(host, uv, idepth)?;
+            Some((u.y / cell) as usize * columns + (u.x / cell) as usize)
         };
-        let factor = f64::from(1u32 << self.config.level);
         for p in self.window.points() {
-            if let Some(i) = project(p.host, &(p.uv * factor), p.idepth) {
+            if let Some(i) = cell_of(&self.window, p.host, &p.uv, p.idepth) {
                 occupied[i] = true;
             }
         }
+        let factor = f64::from(1u32 << self.config.level);
         let mut added = 0;
         let mut remaining = Vec::with_capacity(self.candidates.len());
         for c in std::mem::take(&mut self.candidates) {
             if added < wanted && c.can_activate(&self.trace) {
-                let cell_index = project(c.host, &c.uv, c.idepth());
-                if let Some(i) = cell_index.filter(|&i| !occupied[i]) {
-                    if self.window.add_point(c.host, c.uv / factor, c.idepth()) {
-                        occupied[i] = true;
-                        added += 1;
-                        continue;
-                    }
+                let uv = c.uv / factor;
+                let free = cell_of(&self.window, c.host, &uv, c.idepth()).filter(|&i| !occupied[i]);
+                if let Some(i) = free
+                    && self.window.add_point(c.host, uv, c.idepth())
+                {
+                    occupied[i] = true;
+                    added += 1;
+                    continue;
                 }
             }
             remaining.push(c);
@@ -455,35 +444,21 @@ impl Odometry {
         let Some(newest) = self.window.frames().last() else {
             return Ok(());
         };
-        let camera = newest.frame.camera;
-        let (w, h) = (camera.width as usize, camera.height as usize);
-        let newest_from_world = newest.state.world_from_camera.inverse();
-        let poses: HashMap<u64, SE3> = self
-            .window
-            .frames()
-            .iter()
-            .map(|f| (f.id, f.state.world_from_camera))
-            .collect();
+        let (w, h) = (
+            newest.frame.camera.width as usize,
+            newest.frame.camera.height as usize,
+        );
         let mut depth = DepthMap::unknown(w, h);
         let mut seeds = Vec::new();
-        let factor = f64::from(1u32 << self.config.level);
         for p in self.window.points() {
-            let Some(world_from_host) = poses.get(&p.host) else {
+            let Some((u, idepth)) = self.window.project_to_newest(p.host, &p.uv, p.idepth) else {
                 continue;
             };
-            let x = (newest_from_world * *world_from_host)
-                .act(&(ray(&camera, &(p.uv * factor)) / p.idepth));
-            if x.z <= 1e-6 {
-                continue;
-            }
-            let (u, v) = (
-                (camera.fx * x.x / x.z + camera.cx).round(),
-                (camera.fy * x.y / x.z + camera.cy).round(),
-            );
-            if u >= 1.0 && v >= 1.0 && u < (w - 1) as f64 && v < (h - 1) as f64 {
-                let i = v as usize * w + u as usize;
+            let (x, y) = (u.x.round() as usize, u.y.round() as usize);
+            if x >= 1 && y >= 1 && x + 1 < w && y + 1 < h {
+                let i = y * w + x;
                 depth.pixels[i] = InverseDepth::Estimate {
-                    idepth: (1.0 / x.z) as f32,
+                    idepth: idepth as f32,
                     var: TRACKING_IDEPTH_VAR,
                 };
                 seeds.push(i);
