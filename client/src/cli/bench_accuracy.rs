@@ -157,6 +157,31 @@ pub(super) struct Loaded {
     pub gt: Vec<StampedPose>,
 }
 
+impl Loaded {
+    /// Length of the ground-truth path, metres.
+    pub fn path_length(&self) -> f64 {
+        self.gt
+            .windows(2)
+            .map(|w| {
+                (w[1].world_from_camera.translation - w[0].world_from_camera.translation).norm()
+            })
+            .sum()
+    }
+
+    /// ATE (Sim(3)-aligned RMSE) of `est` against the ground truth.
+    pub fn ate(&self, est: &[StampedPose]) -> Option<f64> {
+        ate(&self.gt, est, AlignMode::Sim3).ok().map(|r| r.rmse)
+    }
+
+    /// Scale drift of `est` over [`SCALE_WINDOW`]-pose windows.
+    pub fn scale_drift(&self, est: &[StampedPose]) -> Option<f64> {
+        associate_poses(&self.gt, est, DEFAULT_MAX_DT)
+            .ok()
+            .and_then(|m| scale_drift(&m, SCALE_WINDOW).ok())
+            .and_then(|d| d.drift)
+    }
+}
+
 /// Opens `dataset` and decodes its first `limit` frames (all by default) into memory, so that
 /// a benchmark times the pipeline, not the image decoding.
 pub(super) fn load(dataset: &Path, limit: Option<usize>) -> anyhow::Result<Loaded> {
@@ -209,11 +234,7 @@ fn sequence(
         config.pipeline.deterministic = true;
         Some(run_once(&loaded, &config, args.model.as_deref())?)
     };
-    let path_length_m = loaded
-        .gt
-        .windows(2)
-        .map(|w| (w[1].world_from_camera.translation - w[0].world_from_camera.translation).norm())
-        .sum();
+    let path_length_m = loaded.path_length();
     Ok(SequenceFigures {
         dataset: dataset.to_path_buf(),
         frames: loaded.frames.len(),
@@ -244,15 +265,8 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
     pipeline.finish()?;
     let trajectory = pipeline.trajectory();
     let keyframes = pipeline.keyframe_trajectory();
-    let ate_of = |poses: &[(f64, Sim3)]| -> Option<f64> {
-        ate(&loaded.gt, &stamped_se3(poses), AlignMode::Sim3)
-            .ok()
-            .map(|r| r.rmse)
-    };
-    let drift = associate_poses(&loaded.gt, &stamped_se3(&trajectory), DEFAULT_MAX_DT)
-        .ok()
-        .and_then(|m| scale_drift(&m, SCALE_WINDOW).ok())
-        .and_then(|d| d.drift);
+    let ate_of = |poses: &[(f64, Sim3)]| loaded.ate(&stamped_se3(poses));
+    let drift = loaded.scale_drift(&stamped_se3(&trajectory));
     let stats = pipeline.stats();
     Ok(RunFigures {
         deterministic: config.pipeline.deterministic,

@@ -7,16 +7,12 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use relfusion_slam::dataset::trajectory::StampedPose;
-use relfusion_slam::eval::{AlignMode, DEFAULT_MAX_DT, associate_poses, ate, scale_drift};
+use relfusion_slam::dataset::trajectory::{StampedPose, write_tum_trajectory};
 use relfusion_slam::frame::Frame;
 use relfusion_slam::geometry::UndistortMap;
 use relfusion_slam::odometry::{Odometry, OdometryConfig};
 
 use super::bench_accuracy::load;
-
-/// Poses per window of the scale-drift figure (as `bench accuracy`).
-const SCALE_WINDOW: usize = 60;
 
 #[derive(Debug, clap::Args)]
 pub struct OdometryArgs {
@@ -59,14 +55,8 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 .map(Arc::new)
             })
             .collect::<Result<Vec<_>, _>>()?;
-        let path: f64 = loaded
-            .gt
-            .windows(2)
-            .map(|w| {
-                (w[1].world_from_camera.translation - w[0].world_from_camera.translation).norm()
-            })
-            .sum();
-        for _ in 0..args.runs {
+        let path = loaded.path_length();
+        for run in 0..args.runs {
             let mut odometry = Odometry::new(OdometryConfig::default())?;
             let mut tracked = 0;
             let mut keyframe_stamps = Vec::new();
@@ -87,39 +77,23 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                     world_from_camera: pose,
                 })
                 .collect();
-            if let Some(dir) = &args.save {
+            // The core is deterministic: every run's trajectory is the first's.
+            if let (Some(dir), 0) = (&args.save, run) {
                 std::fs::create_dir_all(dir)?;
                 let name = dataset
                     .file_name()
                     .map_or_else(|| "sequence".into(), |n| n.to_string_lossy().into_owned());
-                let out = dir.join(format!("{name}.txt"));
-                let text: String = est
-                    .iter()
-                    .map(|p| {
-                        let q = p.world_from_camera.rotation.quaternion();
-                        let t = p.world_from_camera.translation;
-                        format!(
-                            "{} {} {} {} {} {} {} {}\n",
-                            p.timestamp, t.x, t.y, t.z, q.i, q.j, q.k, q.w
-                        )
-                    })
-                    .collect();
-                std::fs::write(&out, text)?;
+                write_tum_trajectory(&dir.join(format!("{name}.txt")), &est)?;
             }
             let kf_est: Vec<StampedPose> = est
                 .iter()
                 .filter(|p| keyframe_stamps.contains(&p.timestamp))
                 .cloned()
                 .collect();
-            let ate_of =
-                |e: &[StampedPose]| ate(&loaded.gt, e, AlignMode::Sim3).ok().map(|r| r.rmse);
-            let drift = associate_poses(&loaded.gt, &est, DEFAULT_MAX_DT)
-                .ok()
-                .and_then(|m| scale_drift(&m, SCALE_WINDOW).ok())
-                .and_then(|d| d.drift);
+            let drift = loaded.scale_drift(&est);
             let fmt =
                 |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
-            let traj = ate_of(&est);
+            let traj = loaded.ate(&est);
             println!(
                 "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8.1}",
                 dataset.display().to_string(),
@@ -127,7 +101,7 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 tracked,
                 odometry.keyframe_count(),
                 fmt(traj, 4),
-                fmt(ate_of(&kf_est), 4),
+                fmt(loaded.ate(&kf_est), 4),
                 fmt(traj.map(|a| 100.0 * a / path.max(1e-9)), 2),
                 fmt(drift, 2),
                 ms

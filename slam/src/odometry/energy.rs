@@ -22,9 +22,9 @@ fn weight(config: &OdometryConfig, lin: &Linearised) -> f64 {
     w_grad * huber
 }
 
-/// Huber energy of a gradient-weighted residual `r` (twice the usual ½ρ, as DSO sums it).
-fn huber_energy(config: &OdometryConfig, r: f64) -> f64 {
-    let (r, d) = (r.abs(), config.huber);
+/// Huber energy of a residual `r` with width `d` (twice the usual ½ρ, as DSO sums it).
+pub fn huber_energy(d: f64, r: f64) -> f64 {
+    let r = r.abs();
     if r <= d { r * r } else { 2.0 * d * r - d * d }
 }
 
@@ -32,7 +32,7 @@ fn huber_energy(config: &OdometryConfig, r: f64) -> f64 {
 /// whose every pixel sits at the outlier threshold, so that pushing a point out of view or
 /// into the outliers never lowers the energy.
 pub fn outlier_energy(config: &OdometryConfig) -> f64 {
-    PATTERN.len() as f64 * huber_energy(config, config.outlier_threshold)
+    PATTERN.len() as f64 * huber_energy(config.huber, config.outlier_threshold)
 }
 
 /// The linearised pattern of `point` in `target`, or `None` when a pixel is not visible or the
@@ -88,8 +88,10 @@ pub fn photometric_energy(
             match pattern(config, p, &views[h], target, Linearisation::Current) {
                 Some(lins) => {
                     for lin in &lins {
-                        total +=
-                            huber_energy(config, lin.residual * (c2 / (c2 + lin.grad2)).sqrt());
+                        total += huber_energy(
+                            config.huber,
+                            lin.residual * (c2 / (c2 + lin.grad2)).sqrt(),
+                        );
                         n += 1;
                     }
                 }

@@ -8,7 +8,8 @@
 
 use nalgebra::{Vector2, Vector3};
 
-use super::residual::{PATTERN, ray};
+use super::energy::huber_energy;
+use super::residual::PATTERN;
 use crate::geometry::{PinholeCamera, SE3};
 use crate::image::pyramid::PyramidLevel;
 
@@ -154,12 +155,7 @@ impl ImmaturePoint {
                     .image
                     .bilinear((u.x + ox) as f32, (u.y + oy) as f32)?,
             );
-            let r = (i - b_t - e * (self.intensity[k] - b_h)).abs();
-            total += if r <= config.huber {
-                r * r
-            } else {
-                2.0 * config.huber * r - config.huber * config.huber
-            };
+            total += huber_energy(config.huber, i - b_t - e * (self.intensity[k] - b_h));
         }
         Some(total)
     }
@@ -183,16 +179,11 @@ impl ImmaturePoint {
         let inside = |u: &Vector2<f64>| {
             u.x > margin && u.y > margin && u.x < w - margin - 1.0 && u.y < h - margin - 1.0
         };
-        let pr = target_from_host.rotation.act(&ray(host_camera, &self.uv));
+        let pr = target_from_host
+            .rotation
+            .act(&host_camera.unproject(&self.uv, 1.0));
         let t = target_from_host.translation;
-        let project = |p: Vector3<f64>| {
-            (p.z > 1e-6).then(|| {
-                Vector2::new(
-                    camera.fx * p.x / p.z + camera.cx,
-                    camera.fy * p.y / p.z + camera.cy,
-                )
-            })
-        };
+        let project = |p: Vector3<f64>| (p.z > 1e-6).then(|| camera.project(&p));
         let Some(u_min) = project(pr + t * self.idepth_min) else {
             return TraceStatus::OutOfBounds;
         };

@@ -139,16 +139,11 @@ impl Initialiser {
         let t = pose.inverse().translation;
         let mut sum = 0.0;
         for (uv, idepth) in &self.points {
-            let x = super::residual::ray(camera, uv);
-            let moved = x + t * *idepth;
+            let moved = camera.unproject(uv, 1.0) + t * *idepth;
             if moved.z <= 1e-6 {
                 continue;
             }
-            let u = Vector2::new(
-                camera.fx * moved.x / moved.z + camera.cx,
-                camera.fy * moved.y / moved.z + camera.cy,
-            );
-            sum += (u - uv).norm_squared();
+            sum += (camera.project(&moved) - uv).norm_squared();
         }
         (sum / self.points.len().max(1) as f64).sqrt()
     }

@@ -251,31 +251,15 @@ impl SlidingWindow {
             return Vec::new();
         };
         let mut flagged = Vec::new();
-        let newest_from_world = newest.state.world_from_camera.inverse();
-        let camera = newest.frame.camera_at(self.config.level);
         for f in &self.frames[..n - 1] {
             if n - flagged.len() <= self.config.min_frames {
                 break;
             }
-            let (mut total, mut seen) = (0usize, 0usize);
-            let newest_from_host = newest_from_world * f.state.world_from_camera;
-            let host_camera = f.frame.camera_at(self.config.level);
-            for p in self.points.iter().filter(|p| p.host == f.id) {
-                total += 1;
-                let x = newest_from_host.act(&(residual::ray(&host_camera, &p.uv) / p.idepth));
-                if x.z > 0.0 {
-                    let (u, v) = (
-                        camera.fx * x.x / x.z + camera.cx,
-                        camera.fy * x.y / x.z + camera.cy,
-                    );
-                    seen += usize::from(
-                        u >= 0.0
-                            && v >= 0.0
-                            && u < f64::from(camera.width)
-                            && v < f64::from(camera.height),
-                    );
-                }
-            }
+            let hosted = self.points.iter().filter(|p| p.host == f.id);
+            let total = hosted.clone().count();
+            let seen = hosted
+                .filter(|p| self.project_to_newest(p.host, &p.uv, p.idepth).is_some())
+                .count();
             let remaining = seen as f64 / total.max(1) as f64;
             let brightness = (f.state.affine.0 - newest.state.affine.0).abs();
             if remaining < self.config.min_points_remaining
@@ -316,13 +300,16 @@ impl SlidingWindow {
             .ok_or_else(|| Error::Config(format!("keyframe {id} is not in the window")))?;
         let hosted: Vec<bool> = self.points.iter().map(|p| p.host == id).collect();
         self.marginalize_points(&hosted);
-        let states: Vec<FrameState> = self.frames.iter().map(|f| f.state).collect();
-        let mut h = nalgebra::DMatrix::zeros(self.prior.h.nrows(), self.prior.h.ncols());
-        let mut g = nalgebra::DVector::zeros(self.prior.b.len());
-        // The keyframe's own affine prior goes with it (it would otherwise be lost).
-        solve::add_affine_prior(&self.config, k, &states[k], &mut h, &mut g);
-        self.prior
-            .add_linearised(&h, &g, &solve::offsets(&self.frames, &states));
+        // The keyframe's own affine prior goes with it (it would otherwise be lost): in the
+        // prior's coordinates it is the same quadratic written at the first estimate.
+        let first = self.frames[k].first_estimate;
+        solve::add_affine_prior(
+            &self.config,
+            k,
+            &first,
+            &mut self.prior.h,
+            &mut self.prior.b,
+        );
         self.prior.remove_frame(k);
         self.frames.remove(k);
         Ok(())
@@ -386,13 +373,10 @@ impl SlidingWindow {
         let host = &self.frames[self.index_of(host)?];
         let newest_from_host =
             newest.state.world_from_camera.inverse() * host.state.world_from_camera;
-        let ray = residual::ray(&host.frame.camera_at(self.config.level), uv);
+        let ray = host.frame.camera_at(self.config.level).unproject(uv, 1.0);
         let x = newest_from_host.act(&(ray / idepth));
         let camera = &newest.frame.camera;
-        let u = Vector2::new(
-            camera.fx * x.x / x.z + camera.cx,
-            camera.fy * x.y / x.z + camera.cy,
-        );
+        let u = camera.project(&x);
         (x.z > 1e-6
             && u.x >= 0.0
             && u.y >= 0.0

@@ -27,8 +27,8 @@ impl MarginalisationPrior {
     /// Extends the prior by a keyframe it knows nothing about.
     pub fn push_frame(&mut self) {
         let n = self.b.len() + FRAME_PARAMS;
-        self.h = self.h.clone().resize(n, n, 0.0);
-        self.b = self.b.clone().resize_vertically(n, 0.0);
+        self.h = std::mem::take(&mut self.h).resize(n, n, 0.0);
+        self.b = std::mem::take(&mut self.b).resize_vertically(n, 0.0);
     }
 
     /// The prior's energy at offsets `delta`.

@@ -15,7 +15,7 @@
 //! them and the estimate would drift while looking certain. Poses are perturbed on the right,
 //! `T ← T·exp(δ)`, tangent order (v, ω); a keyframe's eight parameters are `(v, ω, a, b)`.
 
-use nalgebra::{Matrix2x3, SMatrix, Vector2, Vector3};
+use nalgebra::{SMatrix, Vector2};
 
 use crate::geometry::{PinholeCamera, SE3, SO3};
 use crate::image::pyramid::PyramidLevel;
@@ -99,33 +99,6 @@ pub struct Linearised {
     pub d_idepth: f64,
 }
 
-/// The pixel of `camera` that `x` (camera coordinates) projects to, and `∂u/∂x`.
-fn project(camera: &PinholeCamera, x: &Vector3<f64>) -> (Vector2<f64>, Matrix2x3<f64>) {
-    let iz = 1.0 / x.z;
-    let uv = Vector2::new(
-        camera.fx * x.x * iz + camera.cx,
-        camera.fy * x.y * iz + camera.cy,
-    );
-    let du_dx = Matrix2x3::new(
-        camera.fx * iz,
-        0.0,
-        -camera.fx * x.x * iz * iz,
-        0.0,
-        camera.fy * iz,
-        -camera.fy * x.y * iz * iz,
-    );
-    (uv, du_dx)
-}
-
-/// The ray of pixel `uv` of `camera` at depth 1.
-pub fn ray(camera: &PinholeCamera, uv: &Vector2<f64>) -> Vector3<f64> {
-    Vector3::new(
-        (uv.x - camera.cx) / camera.fx,
-        (uv.y - camera.cy) / camera.fy,
-        1.0,
-    )
-}
-
 /// The residual of pattern pixel `k` of the point at `uv` (host pixel) with inverse depth
 /// `idepth` and host intensity `host_intensity`, in `target`, with its derivatives with
 /// respect to both keyframes' parameters and the inverse depth; `None` when the point falls
@@ -144,7 +117,9 @@ pub fn linearise(
         return None;
     }
     let (ox, oy) = PATTERN[k];
-    let ray = ray(&host.camera, &Vector2::new(uv.x + ox, uv.y + oy));
+    let ray = host
+        .camera
+        .unproject(&Vector2::new(uv.x + ox, uv.y + oy), 1.0);
     let x_h = ray / idepth;
     let relative =
         |h: &FrameState, t: &FrameState| t.world_from_camera.inverse() * h.world_from_camera;
@@ -152,7 +127,7 @@ pub fn linearise(
     if x_t.z < 1e-3 {
         return None;
     }
-    let (u, _) = project(&target.camera, &x_t);
+    let u = target.camera.project(&x_t);
     let lvl = target.level;
     let (w, h) = (lvl.width() as f64, lvl.height() as f64);
     if !(u.x >= 1.0 && u.y >= 1.0 && u.x <= w - 2.0 && u.y <= h - 2.0) {
@@ -175,7 +150,7 @@ pub fn linearise(
     let target_from_host = relative(lin_h, lin_t);
     let r_th = target_from_host.rotation.matrix();
     let x_t_lin = target_from_host.act(&x_h);
-    let (_, du_dx) = project(&target.camera, &x_t_lin);
+    let du_dx = target.camera.project_jacobian(&x_t_lin);
     let g = (Vector2::new(gx, gy).transpose() * du_dx).transpose(); // ∂r/∂x_t
     // Host perturbation: x_t = R_th (x_h + v + ω × x_h) + t_th.
     let dv_h = r_th.transpose() * g;

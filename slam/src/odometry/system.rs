@@ -154,60 +154,35 @@ impl Odometry {
     }
 
     fn initialise(&mut self, frame: Arc<Frame>) -> Result<FrameOutcome> {
+        let first_id = self.frames.first().map_or(frame.id, |(_, p)| p.keyframe);
+        // Frames during initialisation get the finished initialiser's poses.
+        self.frames.push((
+            frame.id,
+            FramePose {
+                keyframe: first_id,
+                keyframe_from_frame: SE3::identity(),
+            },
+        ));
+        let untracked = FrameOutcome {
+            world_from_camera: SE3::identity(),
+            keyframe: false,
+            tracked: false,
+        };
         let Some(init) = self.initialiser.as_mut() else {
-            self.frames.push((
-                frame.id,
-                FramePose {
-                    keyframe: frame.id,
-                    keyframe_from_frame: SE3::identity(),
-                },
-            ));
             self.initialiser = Some(Initialiser::new(
                 &self.config,
                 frame,
                 self.config.active_points,
             ));
-            return Ok(FrameOutcome {
-                world_from_camera: SE3::identity(),
-                keyframe: false,
-                tracked: false,
-            });
+            return Ok(untracked);
         };
-        let id = frame.id;
-        let done = init.push(frame.clone());
-        let first_id = match &done {
-            Some(d) => d.first.id,
-            None => self.frames[0].1.keyframe,
-        };
-        let pose = match &done {
-            Some(d) => *d.poses.last().unwrap_or(&SE3::identity()),
-            None => SE3::identity(),
-        };
-        let Some(done) = done else {
-            // Poses of frames during initialisation are those of the finished initialiser.
-            self.frames.push((
-                id,
-                FramePose {
-                    keyframe: first_id,
-                    keyframe_from_frame: SE3::identity(),
-                },
-            ));
-            return Ok(FrameOutcome {
-                world_from_camera: SE3::identity(),
-                keyframe: false,
-                tracked: false,
-            });
+        let Some(done) = init.push(frame) else {
+            return Ok(untracked);
         };
         for ((_, p), pose) in self.frames.iter_mut().zip(&done.poses) {
             p.keyframe_from_frame = *pose;
         }
-        self.frames.push((
-            id,
-            FramePose {
-                keyframe: first_id,
-                keyframe_from_frame: pose,
-            },
-        ));
+        let pose = done.poses.last().copied().unwrap_or_else(SE3::identity);
         let state = FrameState {
             world_from_camera: SE3::identity(),
             affine: (0.0, 0.0),
@@ -283,12 +258,6 @@ impl Odometry {
         let points = reference.level(0);
         let camera = &frame.camera;
         let frame_from_kf = pose.inverse() * *world_from_kf;
-        let project = |x: Vector3<f64>| {
-            Vector2::new(
-                camera.fx * x.x / x.z + camera.cx,
-                camera.fy * x.y / x.z + camera.cy,
-            )
-        };
         let (mut ft, mut frt, mut n) = (0.0, 0.0, 0usize);
         for i in (0..points.len()).step_by(4) {
             let x = Vector3::new(
@@ -301,9 +270,9 @@ impl Odometry {
             if moved.z <= 1e-6 || shifted.z <= 1e-6 {
                 continue;
             }
-            let u = project(x);
-            ft += (project(shifted) - u).norm_squared();
-            frt += (project(moved) - u).norm_squared();
+            let u = camera.project(&x);
+            ft += (camera.project(&shifted) - u).norm_squared();
+            frt += (camera.project(&moved) - u).norm_squared();
             n += 1;
         }
         if n == 0 {

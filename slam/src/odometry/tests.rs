@@ -19,26 +19,13 @@ use crate::geometry::{PinholeCamera, SE3};
 use crate::image::ImageF32;
 use crate::image::pyramid::Pyramid;
 
-/// A smooth image (so that bilinear interpolation and the sampled gradient agree closely).
-fn smooth_image(w: usize, h: usize, phase: f32) -> ImageF32 {
-    let mut img = ImageF32::filled(w, h, 0.0);
-    for y in 0..h {
-        for x in 0..w {
-            let (xf, yf) = (x as f32, y as f32);
-            *img.at_mut(x, y) = 120.0
-                + 50.0 * (0.035 * xf + phase).sin() * (0.03 * yf).cos()
-                + 30.0 * (0.02 * xf + 0.025 * yf + 2.0 * phase).sin();
-        }
-    }
-    img
-}
-
 #[test]
 fn residual_jacobians_match_numeric_differences() {
     let (w, h) = (160usize, 120usize);
     let camera = PinholeCamera::new(130.0, 130.0, 79.5, 59.5, w as u32, h as u32).expect("camera");
-    let host_pyr = Pyramid::build_cpu(&smooth_image(w, h, 0.0), 1).expect("pyramid");
-    let target_pyr = Pyramid::build_cpu(&smooth_image(w, h, 0.4), 1).expect("pyramid");
+    let host_pyr = Pyramid::build_cpu(&ImageF32::smooth_test_image(w, h, 0.0), 1).expect("pyramid");
+    let target_pyr =
+        Pyramid::build_cpu(&ImageF32::smooth_test_image(w, h, 0.4), 1).expect("pyramid");
     let state = |xi: Vector6<f64>, affine| FrameState {
         world_from_camera: SE3::exp(&xi),
         affine,
