@@ -7,10 +7,16 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
+use anyhow::Context;
+
 use relfusion_slam::dataset::trajectory::{StampedPose, write_tum_trajectory};
 use relfusion_slam::frame::Frame;
 use relfusion_slam::geometry::UndistortMap;
 use relfusion_slam::odometry::{Odometry, OdometryConfig};
+
+use relfusion_slam::dataset::TumSequence;
+use relfusion_slam::eval::depth_slope::{MIN_SLOPE_PIXELS, log_slope};
+use relfusion_slam::image::ImageF32;
 
 use super::bench_accuracy::load;
 
@@ -26,12 +32,36 @@ pub struct OdometryArgs {
     /// `relfusion eval traj`.
     #[arg(long)]
     pub save: Option<PathBuf>,
+    /// The core's parameters as JSON (`OdometryConfig`'s fields; those left out keep their
+    /// defaults), to measure a change without rebuilding.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
 }
 
 pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
+    let config: OdometryConfig = match &args.config {
+        Some(path) => serde_json::from_str(
+            &std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?,
+        )
+        .with_context(|| format!("parsing {}", path.display()))?,
+        None => OdometryConfig::default(),
+    };
+    config.validate()?;
     println!(
-        "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8}",
-        "sequence", "frames", "tracked", "kfs", "ATE m", "kf ATE m", "% path", "drift", "ms/frame"
+        "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8} {:>8} {:>11} {:>7}",
+        "sequence",
+        "frames",
+        "tracked",
+        "kfs",
+        "ATE m",
+        "kf ATE m",
+        "% path",
+        "drift",
+        "ms/frame",
+        "shape@1s",
+        "shape range",
+        "scale×"
     );
     for dataset in &args.datasets {
         let loaded = load(dataset, None)?;
@@ -57,15 +87,17 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
             .collect::<Result<Vec<_>, _>>()?;
         let path = loaded.path_length();
         for run in 0..args.runs {
-            let mut odometry = Odometry::new(OdometryConfig::default())?;
+            let mut odometry = Odometry::new(config.clone())?;
             let mut tracked = 0;
             let mut keyframe_stamps = Vec::new();
             let t0 = Instant::now();
+            let mut probe = DepthProbe::default();
             for f in &frames {
                 let outcome = odometry.push(f.clone())?;
                 tracked += usize::from(outcome.tracked);
                 if outcome.keyframe {
                     keyframe_stamps.push(f.timestamp);
+                    probe.measure(&loaded.seq, &odometry, f.timestamp)?;
                 }
             }
             let ms = 1e3 * t0.elapsed().as_secs_f64() / frames.len().max(1) as f64;
@@ -94,8 +126,9 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
             let fmt =
                 |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
             let traj = loaded.ate(&est);
+            let shape = probe.summary(frames.first().map_or(0.0, |f| f.timestamp));
             println!(
-                "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8.1}",
+                "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8.1} {:>8} {:>11} {:>7}",
                 dataset.display().to_string(),
                 frames.len(),
                 tracked,
@@ -104,9 +137,94 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 fmt(loaded.ate(&kf_est), 4),
                 fmt(traj.map(|a| 100.0 * a / path.max(1e-9)), 2),
                 fmt(drift, 2),
-                ms
+                ms,
+                fmt(shape.slope_after_1s, 2),
+                shape
+                    .slope_range
+                    .map_or_else(|| "-".into(), |(a, b)| format!("{a:.2}–{b:.2}")),
+                fmt(shape.scale_ratio, 2),
             );
         }
     }
     Ok(())
+}
+
+/// The window's depth shape and scale against the sensor depth after each keyframe: the slope
+/// of log estimated over log true inverse depth of the window's points in their hosts (1 = the
+/// depth ratios are right, [`depth_range_slope`]'s measure) and the median ratio of estimated
+/// to true inverse depth (its changes are the map's scale drift).
+#[derive(Debug, Default)]
+struct DepthProbe {
+    depth: std::collections::HashMap<u64, Option<ImageF32>>,
+    /// `(timestamp, slope, scale)` per keyframe.
+    samples: Vec<(f64, Option<f64>, f64)>,
+}
+
+impl DepthProbe {
+    fn measure(
+        &mut self,
+        seq: &TumSequence,
+        odometry: &Odometry,
+        timestamp: f64,
+    ) -> anyhow::Result<()> {
+        let window = odometry.window();
+        let factor = f64::from(1u32 << window.config().level);
+        let mut pairs = Vec::new();
+        for p in window.points() {
+            let depth = match self.depth.entry(p.host) {
+                std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+                std::collections::hash_map::Entry::Vacant(e) => {
+                    e.insert(seq.load_depth(p.host as usize)?)
+                }
+            };
+            let Some(depth) = depth else { continue };
+            let (x, y) = ((p.uv.x * factor).round(), (p.uv.y * factor).round());
+            if x < 0.0 || y < 0.0 || x >= depth.width as f64 || y >= depth.height as f64 {
+                continue;
+            }
+            let d = f64::from(depth.at(x as usize, y as usize));
+            if d > 0.0 && p.idepth > 0.0 {
+                pairs.push((-d.ln(), p.idepth.ln()));
+            }
+        }
+        if pairs.len() < MIN_SLOPE_PIXELS {
+            return Ok(());
+        }
+        let slope = log_slope(&pairs);
+        let mut ratios: Vec<f64> = pairs.iter().map(|(x, y)| y - x).collect();
+        ratios.sort_by(f64::total_cmp);
+        let scale = ratios[ratios.len() / 2].exp();
+        self.samples.push((timestamp, slope, scale));
+        Ok(())
+    }
+
+    /// The slope at the first keyframe 1 s after `start`, the slopes' range from then on, and
+    /// the ratio of the largest to the smallest scale over the same keyframes.
+    fn summary(&self, start: f64) -> ShapeSummary {
+        let later: Vec<&(f64, Option<f64>, f64)> =
+            self.samples.iter().filter(|s| s.0 >= start + 1.0).collect();
+        let slopes: Vec<f64> = later.iter().filter_map(|s| s.1).collect();
+        let scales = later.iter().map(|s| s.2);
+        let (lo, hi) = scales.fold((f64::INFINITY, 0.0f64), |(lo, hi), s| {
+            (lo.min(s), hi.max(s))
+        });
+        ShapeSummary {
+            slope_after_1s: later.first().and_then(|s| s.1),
+            slope_range: (!slopes.is_empty()).then(|| {
+                slopes
+                    .iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &s| {
+                        (a.min(s), b.max(s))
+                    })
+            }),
+            scale_ratio: (lo > 0.0 && lo.is_finite()).then(|| hi / lo),
+        }
+    }
+}
+
+/// What [`DepthProbe::summary`] reports.
+struct ShapeSummary {
+    slope_after_1s: Option<f64>,
+    slope_range: Option<(f64, f64)>,
+    scale_ratio: Option<f64>,
 }

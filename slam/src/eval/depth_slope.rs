@@ -48,6 +48,12 @@ pub fn depth_range_slope(est_idepth: &ImageF32, gt_depth: &ImageF32) -> Result<O
     if pairs.len() < MIN_SLOPE_PIXELS {
         return Ok(None);
     }
+    Ok(log_slope(&pairs))
+}
+
+/// The least-squares slope of `(log ρ_gt, log ρ_est)` pairs, or `None` when the ground truth
+/// spans no depth range ([`MIN_LOG_DEPTH_VARIANCE`]).
+pub fn log_slope(pairs: &[(f64, f64)]) -> Option<f64> {
     let n = pairs.len() as f64;
     let (mx, my) = pairs
         .iter()
@@ -55,7 +61,7 @@ pub fn depth_range_slope(est_idepth: &ImageF32, gt_depth: &ImageF32) -> Result<O
     let (sxx, sxy) = pairs.iter().fold((0.0, 0.0), |(sxx, sxy), (x, y)| {
         (sxx + (x - mx) * (x - mx), sxy + (x - mx) * (y - my))
     });
-    Ok((sxx / n >= MIN_LOG_DEPTH_VARIANCE).then(|| sxy / sxx))
+    (n > 0.0 && sxx / n >= MIN_LOG_DEPTH_VARIANCE).then(|| sxy / sxx)
 }
 
 /// Depth-range slopes of one stored keyframe's maps.

@@ -69,6 +69,14 @@ pub fn pattern(
     Some(out.map(|l| l.unwrap_or_else(|| unreachable!("every pattern pixel was filled"))))
 }
 
+/// The depth priors' energy of `points`.
+pub fn depth_prior_energy(points: &[WindowPoint]) -> f64 {
+    points
+        .iter()
+        .filter_map(|p| p.prior.map(|prior| prior.energy(p.idepth)))
+        .sum()
+}
+
 /// Photometric energy of the window and the number of pattern residuals in it.
 /// `hosts[i]` is the index in `views` of point `i`'s host.
 pub fn photometric_energy(
@@ -179,6 +187,10 @@ impl NormalEquations {
             }
             sys.inlier_targets += 1;
             sys.coupling.push((t, target_col));
+        }
+        if let Some(prior) = point.prior {
+            sys.h_dd += prior.weight;
+            sys.b_d += prior.weight * (point.idepth - prior.idepth);
         }
         sys.coupling.push((host, host_col));
         self.points.push(sys);

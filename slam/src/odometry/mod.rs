@@ -33,7 +33,7 @@ use nalgebra::Vector2;
 pub use config::OdometryConfig;
 pub use prior::MarginalisationPrior;
 pub use residual::{FrameState, Linearisation, PATTERN};
-pub use solve::SolveReport;
+pub use solve::{Anchor, SolveReport};
 pub use system::{FrameOutcome, Odometry};
 
 use crate::frame::Frame;
@@ -59,6 +59,24 @@ pub struct WindowPoint {
     pub idepth: f64,
     /// Host intensities at the pattern pixels.
     pub intensity: [f64; PATTERN.len()],
+    /// A quadratic prior on the inverse depth, if any.
+    pub prior: Option<DepthPrior>,
+}
+
+/// `½ · weight · (idepth − idepth₀)²` added to the window's energy for one point: DSO's
+/// regulariser of the initialiser's depths and its prior on the depths the initialiser
+/// hands over (`setting_idepthFixPrior`); weights in the photometric energy's units.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DepthPrior {
+    pub idepth: f64,
+    pub weight: f64,
+}
+
+impl DepthPrior {
+    /// Its energy at `idepth`.
+    pub fn energy(&self, idepth: f64) -> f64 {
+        0.5 * self.weight * (idepth - self.idepth).powi(2)
+    }
 }
 
 /// The sliding window: keyframes, their active points and the marginalisation prior.
@@ -69,6 +87,7 @@ pub struct SlidingWindow {
     points: Vec<WindowPoint>,
     prior: MarginalisationPrior,
     linearisation: Linearisation,
+    anchor: Option<solve::Anchor>,
 }
 
 impl SlidingWindow {
@@ -81,6 +100,7 @@ impl SlidingWindow {
             points: Vec::new(),
             prior: MarginalisationPrior::default(),
             linearisation: Linearisation::FirstEstimate,
+            anchor: None,
         })
     }
 
@@ -89,6 +109,18 @@ impl SlidingWindow {
     pub fn with_linearisation(mut self, linearisation: Linearisation) -> Self {
         self.linearisation = linearisation;
         self
+    }
+
+    fn priors(&self) -> solve::Priors<'_> {
+        solve::Priors {
+            marginalisation: &self.prior,
+            anchor: self.anchor.as_ref(),
+        }
+    }
+
+    /// Anchors the window ([`solve::Anchor`]), or frees it to the gauge projection.
+    pub fn set_anchor(&mut self, anchor: Option<solve::Anchor>) {
+        self.anchor = anchor;
     }
 
     pub fn config(&self) -> &OdometryConfig {
@@ -170,8 +202,16 @@ impl SlidingWindow {
             uv,
             idepth,
             intensity,
+            prior: None,
         });
         true
+    }
+
+    /// Sets (or clears) the depth prior of the newest point added.
+    pub fn set_last_prior(&mut self, prior: Option<DepthPrior>) {
+        if let Some(p) = self.points.last_mut() {
+            p.prior = prior;
+        }
     }
 
     /// Optimises every keyframe and point of the window jointly.
@@ -182,7 +222,10 @@ impl SlidingWindow {
             &mut self.frames,
             &mut self.points,
             &hosts,
-            &self.prior,
+            &solve::Priors {
+                marginalisation: &self.prior,
+                anchor: self.anchor.as_ref(),
+            },
             self.linearisation,
         )
     }
@@ -197,7 +240,7 @@ impl SlidingWindow {
             &states,
             &self.points,
             &self.hosts(),
-            &self.prior,
+            &self.priors(),
             self.linearisation,
         )
         .reduced(0.0)
@@ -391,3 +434,6 @@ mod tests;
 
 #[cfg(test)]
 mod system_tests;
+
+#[cfg(test)]
+mod prior_tests;

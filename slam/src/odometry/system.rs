@@ -10,10 +10,10 @@ use std::sync::Arc;
 use nalgebra::{Vector2, Vector3};
 
 use super::immature::{ImmaturePoint, TraceConfig, TraceStatus, TraceTarget};
-use super::init::Initialiser;
+use super::init::{HANDOVER_PRIOR_WEIGHT, Initialiser};
 use super::residual::FrameState;
 use super::select::select_candidates;
-use super::{OdometryConfig, SlidingWindow};
+use super::{DepthPrior, OdometryConfig, SlidingWindow};
 use crate::Result;
 use crate::frame::Frame;
 use crate::geometry::SE3;
@@ -190,7 +190,12 @@ impl Odometry {
         self.window.add_frame(first_id, done.first.clone(), state)?;
         let factor = f64::from(1u32 << self.config.level);
         for (uv, idepth) in &done.points {
-            self.window.add_point(first_id, uv / factor, *idepth);
+            if self.window.add_point(first_id, uv / factor, *idepth) {
+                self.window.set_last_prior(Some(DepthPrior {
+                    idepth: *idepth,
+                    weight: HANDOVER_PRIOR_WEIGHT,
+                }));
+            }
         }
         self.keyframes.insert(first_id, SE3::identity());
         self.initialiser = None;

@@ -123,13 +123,13 @@ fn residual_jacobians_match_numeric_differences() {
 }
 
 /// Rendered keyframes of the synthetic room: frames, true poses and true z-depth images.
-struct Rendered {
-    frames: Vec<Arc<Frame>>,
-    poses: Vec<SE3>,
-    depths: Vec<ImageF32>,
+pub(super) struct Rendered {
+    pub(super) frames: Vec<Arc<Frame>>,
+    pub(super) poses: Vec<SE3>,
+    pub(super) depths: Vec<ImageF32>,
 }
 
-fn render(seed: u64, picks: &[usize]) -> Rendered {
+pub(super) fn render(seed: u64, picks: &[usize]) -> Rendered {
     let config = SynthConfig {
         width: 320,
         height: 240,
@@ -158,7 +158,7 @@ fn render(seed: u64, picks: &[usize]) -> Rendered {
 
 /// Adds keyframe `n` of `r` at `pose` and up to `count` of its candidates with their true
 /// inverse depth times `depth_factor(point)`.
-fn add_keyframe(
+pub(super) fn add_keyframe(
     window: &mut SlidingWindow,
     r: &Rendered,
     n: usize,
