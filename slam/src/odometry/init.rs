@@ -133,8 +133,9 @@ impl Initialiser {
     }
 
     /// The result with the inverse depths rescaled to a mean of 1 and the translations with
-    /// them (DSO's units, in which [`HANDOVER_PRIOR_WEIGHT`] is set). DSO hands over the
-    /// smoothed depths; the optimised ones did better here (docs/tuning.md, 2026-11-28), so that [`HANDOVER_PRIOR_WEIGHT`] means the same in every scene.
+    /// them: DSO's units, in which [`HANDOVER_PRIOR_WEIGHT`] means the same in every scene.
+    /// DSO hands over the smoothed depths; the optimised ones did better here
+    /// (docs/tuning.md, 2026-11-28).
     fn finish(&self) -> Initialised {
         let mean =
             self.points.iter().map(|(_, d)| d).sum::<f64>() / self.points.len().max(1) as f64;
@@ -196,15 +197,16 @@ impl Initialiser {
             let mut kept = Vec::new();
             for (i, (uv, idepth)) in self.points.iter().enumerate() {
                 if window.add_point(0, uv / factor, *idepth) {
-                    window.set_last_prior(Some(match self.frames_since_snap {
-                        None => DepthPrior {
-                            idepth: 1.0,
-                            weight: ALPHA_WEIGHT,
-                        },
-                        Some(_) => DepthPrior {
+                    window.set_last_prior(Some(if snapped {
+                        DepthPrior {
                             idepth: self.smoothed[i],
                             weight: COUPLING_WEIGHT,
-                        },
+                        }
+                    } else {
+                        DepthPrior {
+                            idepth: 1.0,
+                            weight: ALPHA_WEIGHT,
+                        }
                     }));
                     kept.push(i);
                 }
