@@ -39,6 +39,13 @@ pub use system::{FrameOutcome, Odometry};
 use crate::frame::Frame;
 use crate::{Error, Result};
 
+/// Gauss–Newton steps on a candidate's depth before it is activated
+/// (`setting_GNItsOnPointActivation` = 3).
+const ACTIVATION_ITERATIONS: usize = 3;
+/// Keyframes in which a candidate must be an inlier to be activated
+/// (`setting_minGoodActiveResForMarg` = 3).
+const MIN_GOOD_TARGETS: usize = 3;
+
 /// A keyframe of the window.
 #[derive(Clone, Debug)]
 pub struct WindowFrame {
@@ -179,31 +186,92 @@ impl SlidingWindow {
         Ok(())
     }
 
-    /// Activates a point of keyframe `host` at pixel `uv` (window level) with inverse depth
-    /// `idepth`; `false` when the host is not in the window, the depth is not positive or the
-    /// pattern leaves the image.
-    pub fn add_point(&mut self, host: u64, uv: Vector2<f64>, idepth: f64) -> bool {
-        let Some(k) = self.index_of(host) else {
-            return false;
+    /// DSO's `optimizeImmaturePoint`: a candidate's inverse depth refined by a few
+    /// Gauss–Newton steps on its residuals in every keyframe of the window, before it joins.
+    /// `None` when it is an inlier in fewer than [`MIN_GOOD_TARGETS`] keyframes (or all but
+    /// its host, in a smaller window), or its depth leaves the positive range: the epipolar
+    /// search saw one frame, the window sees all of them.
+    pub fn refine_candidate(&self, host: u64, uv: Vector2<f64>, idepth: f64) -> Option<f64> {
+        let k = self.index_of(host)?;
+        let mut point = self.sample_point(k, host, uv, idepth)?;
+        let states: Vec<FrameState> = self.frames.iter().map(|f| f.state).collect();
+        let views = solve::views(&self.config, &self.frames, &states);
+        let energy = |p: &WindowPoint| {
+            energy::photometric_energy(&self.config, std::slice::from_ref(p), &[k], &views).0
         };
+        let mut current = energy(&point);
+        let mut lambda = 0.1;
+        for _ in 0..ACTIVATION_ITERATIONS {
+            let mut eq = energy::NormalEquations::zeros(self.frames.len());
+            eq.add_point(&self.config, &point, k, &views, Linearisation::Current);
+            let sys = &eq.points[0];
+            if sys.h_dd <= 1e-12 {
+                break;
+            }
+            let step = -sys.b_d / (sys.h_dd * (1.0 + lambda));
+            let trial = WindowPoint {
+                idepth: (point.idepth + step).clamp(0.5 * point.idepth, 2.0 * point.idepth),
+                ..point.clone()
+            };
+            let e = energy(&trial);
+            if e < current {
+                point = trial;
+                current = e;
+                lambda *= 0.5;
+            } else {
+                lambda *= 5.0;
+            }
+        }
+        let mut eq = energy::NormalEquations::zeros(self.frames.len());
+        eq.add_point(&self.config, &point, k, &views, Linearisation::Current);
+        let needed = MIN_GOOD_TARGETS
+            .min(self.frames.len().saturating_sub(1))
+            .max(1);
+        (eq.points[0].inlier_targets >= needed && point.idepth.is_finite() && point.idepth > 0.0)
+            .then_some(point.idepth)
+    }
+
+    /// The point of keyframe `k` (id `host`) at `uv` with the host's pattern intensities;
+    /// `None` when the depth is not positive or the pattern leaves the image.
+    fn sample_point(
+        &self,
+        k: usize,
+        host: u64,
+        uv: Vector2<f64>,
+        idepth: f64,
+    ) -> Option<WindowPoint> {
         if !(idepth.is_finite() && idepth > 0.0) {
-            return false;
+            return None;
         }
         let level = self.frames[k].frame.level(self.config.level);
         let mut intensity = [0.0; PATTERN.len()];
         for (value, (ox, oy)) in intensity.iter_mut().zip(PATTERN) {
-            match level.image.bilinear((uv.x + ox) as f32, (uv.y + oy) as f32) {
-                Some(v) => *value = f64::from(v),
-                None => return false,
-            }
+            *value = f64::from(
+                level
+                    .image
+                    .bilinear((uv.x + ox) as f32, (uv.y + oy) as f32)?,
+            );
         }
-        self.points.push(WindowPoint {
+        Some(WindowPoint {
             host,
             uv,
             idepth,
             intensity,
             prior: None,
-        });
+        })
+    }
+
+    /// Activates a point of keyframe `host` at pixel `uv` (window level) with inverse depth
+    /// `idepth`; `false` when the host is not in the window, the depth is not positive or the
+    /// pattern leaves the image.
+    pub fn add_point(&mut self, host: u64, uv: Vector2<f64>, idepth: f64) -> bool {
+        let Some(point) = self
+            .index_of(host)
+            .and_then(|k| self.sample_point(k, host, uv, idepth))
+        else {
+            return false;
+        };
+        self.points.push(point);
         true
     }
 

@@ -398,11 +398,14 @@ impl Odometry {
             if added < wanted && c.can_activate(&self.trace) {
                 let uv = c.uv / factor;
                 let free = cell_of(&self.window, c.host, &uv, c.idepth()).filter(|&i| !occupied[i]);
-                if let Some(i) = free
-                    && self.window.add_point(c.host, uv, c.idepth())
-                {
-                    occupied[i] = true;
-                    added += 1;
+                if let Some(i) = free {
+                    // A candidate the window rejects is dropped, as DSO does.
+                    if let Some(idepth) = self.window.refine_candidate(c.host, uv, c.idepth())
+                        && self.window.add_point(c.host, uv, idepth)
+                    {
+                        occupied[i] = true;
+                        added += 1;
+                    }
                     continue;
                 }
             }
