@@ -168,6 +168,9 @@ impl DepthProbe {
         timestamp: f64,
     ) -> anyhow::Result<()> {
         let window = odometry.window();
+        // Only the window's hosts are probed: drop the depth of keyframes that left it.
+        self.depth
+            .retain(|id, _| window.frames().iter().any(|f| f.id == *id));
         let factor = f64::from(1u32 << window.config().level);
         let mut pairs = Vec::new();
         for p in window.points() {

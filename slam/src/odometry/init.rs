@@ -196,18 +196,18 @@ impl Initialiser {
             let factor = f64::from(1u32 << level);
             let mut kept = Vec::new();
             for (i, (uv, idepth)) in self.points.iter().enumerate() {
-                if window.add_point(0, uv / factor, *idepth) {
-                    window.set_last_prior(Some(if snapped {
-                        DepthPrior {
-                            idepth: self.smoothed[i],
-                            weight: COUPLING_WEIGHT,
-                        }
-                    } else {
-                        DepthPrior {
-                            idepth: 1.0,
-                            weight: ALPHA_WEIGHT,
-                        }
-                    }));
+                let prior = if snapped {
+                    DepthPrior {
+                        idepth: self.smoothed[i],
+                        weight: COUPLING_WEIGHT,
+                    }
+                } else {
+                    DepthPrior {
+                        idepth: 1.0,
+                        weight: ALPHA_WEIGHT,
+                    }
+                };
+                if window.add_point(0, uv / factor, *idepth, Some(prior)) {
                     kept.push(i);
                 }
             }

@@ -262,24 +262,23 @@ impl SlidingWindow {
     }
 
     /// Activates a point of keyframe `host` at pixel `uv` (window level) with inverse depth
-    /// `idepth`; `false` when the host is not in the window, the depth is not positive or the
-    /// pattern leaves the image.
-    pub fn add_point(&mut self, host: u64, uv: Vector2<f64>, idepth: f64) -> bool {
+    /// `idepth` and an optional prior on it; `false` when the host is not in the window, the
+    /// depth is not positive or the pattern leaves the image.
+    pub fn add_point(
+        &mut self,
+        host: u64,
+        uv: Vector2<f64>,
+        idepth: f64,
+        prior: Option<DepthPrior>,
+    ) -> bool {
         let Some(point) = self
             .index_of(host)
             .and_then(|k| self.sample_point(k, host, uv, idepth))
         else {
             return false;
         };
-        self.points.push(point);
+        self.points.push(WindowPoint { prior, ..point });
         true
-    }
-
-    /// Sets (or clears) the depth prior of the newest point added.
-    pub fn set_last_prior(&mut self, prior: Option<DepthPrior>) {
-        if let Some(p) = self.points.last_mut() {
-            p.prior = prior;
-        }
     }
 
     /// Optimises every keyframe and point of the window jointly.

@@ -190,12 +190,12 @@ impl Odometry {
         self.window.add_frame(first_id, done.first.clone(), state)?;
         let factor = f64::from(1u32 << self.config.level);
         for (uv, idepth) in &done.points {
-            if self.window.add_point(first_id, uv / factor, *idepth) {
-                self.window.set_last_prior(Some(DepthPrior {
-                    idepth: *idepth,
-                    weight: HANDOVER_PRIOR_WEIGHT,
-                }));
-            }
+            let prior = DepthPrior {
+                idepth: *idepth,
+                weight: HANDOVER_PRIOR_WEIGHT,
+            };
+            self.window
+                .add_point(first_id, uv / factor, *idepth, Some(prior));
         }
         self.keyframes.insert(first_id, SE3::identity());
         self.initialiser = None;
@@ -401,7 +401,7 @@ impl Odometry {
                 if let Some(i) = free {
                     // A candidate the window rejects is dropped, as DSO does.
                     if let Some(idepth) = self.window.refine_candidate(c.host, uv, c.idepth())
-                        && self.window.add_point(c.host, uv, idepth)
+                        && self.window.add_point(c.host, uv, idepth, None)
                     {
                         occupied[i] = true;
                         added += 1;

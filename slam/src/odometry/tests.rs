@@ -176,7 +176,7 @@ pub(super) fn add_keyframe(
     for uv in select_candidates(r.frames[n].level(0), count) {
         let d = r.depths[n].at(uv.x as usize, uv.y as usize);
         if d > 0.0 {
-            window.add_point(n as u64, uv, depth_factor() / f64::from(d));
+            window.add_point(n as u64, uv, depth_factor() / f64::from(d), None);
         }
     }
 }
