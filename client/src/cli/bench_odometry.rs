@@ -39,7 +39,8 @@ pub struct OdometryArgs {
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Print one line per keyframe to stderr (frame, window points, depth-shape slope, scale
-    /// against the sensor depth), to see when and where a run goes wrong.
+    /// against the sensor depth, the newest keyframe's brightness `(a, b)`), to see when and
+    /// where a run goes wrong.
     #[arg(long)]
     pub keyframes: bool,
 }
@@ -93,6 +94,7 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
             .collect::<Result<Vec<_>, _>>()?;
         let path = loaded.path_length();
         let mut medians: [Vec<f64>; 5] = Default::default();
+        let fmt = |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
         for run in 0..args.runs {
             let mut odometry = Odometry::new(config.clone())?.with_seed(run as u64);
             let mut tracked = 0;
@@ -154,8 +156,6 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 .cloned()
                 .collect();
             let drift = loaded.scale_drift(&est);
-            let fmt =
-                |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
             let traj = loaded.ate(&est);
             let shape = probe.summary(frames.first().map_or(0.0, |f| f.timestamp));
             let kf_ate = loaded.ate(&kf_est);
@@ -186,8 +186,6 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
         }
         if args.runs > 1 {
             let [ate, kf_ate, share, drift, ms] = medians.map(|mut v| median(&mut v));
-            let fmt =
-                |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
             println!(
                 "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8} {:>8} {:>11} {:>7}",
                 format!("{} (median of {})", dataset.display(), args.runs),
