@@ -5,8 +5,11 @@
 //! Per sequence it prints the frames with a pose, the ATE (Sim(3)-aligned RMSE) of all frames
 //! and of the keyframes (median and worst of the threaded runs, and the deterministic run),
 //! the ATE as a share of the ground-truth path, the scale drift (largest over smallest scale of
-//! 60-frame windows, [`relfusion_slam::eval::scale_drift`]) and the wall time per frame; then one
-//! aggregate line over the sequences.
+//! 60-frame windows, [`relfusion_slam::eval::scale_drift`]), the wall time per frame and the
+//! probes of the keyframes' semi-dense depth against the sensor's ([`super::depth_probe`]:
+//! depth-shape slope 1 s after the start, its range, the depth scale's drift), so that the
+//! cause of a bad trajectory stays visible (issue 35); then one aggregate line over the
+//! sequences.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -19,6 +22,7 @@ use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
 use serde::Serialize;
 
+use super::depth_probe::{DepthProbe, ShapeSummary, map_pairs};
 use super::run::load_prior;
 
 /// Poses per window of the scale-drift figure (2 s at 30 Hz: short enough that tracking is
@@ -64,6 +68,8 @@ pub struct RunFigures {
     pub ate_keyframes_m: Option<f64>,
     pub scale_drift: Option<f64>,
     pub ms_per_frame: f64,
+    /// The keyframes' semi-dense depth against the sensor's (issue 35's probes).
+    pub depth: ShapeSummary,
 }
 
 /// Median and worst of a figure over the threaded runs.
@@ -100,6 +106,12 @@ pub struct SequenceFigures {
     pub ate_keyframes_m: Option<Spread>,
     pub scale_drift: Option<Spread>,
     pub ms_per_frame: Option<Spread>,
+    /// Median over the threaded runs of the depth-shape slope 1 s after the start.
+    pub shape_after_1s: Option<f64>,
+    /// Lowest and highest depth-shape slope of any threaded run from 1 s on.
+    pub shape_range: Option<(f64, f64)>,
+    /// Largest over smallest keyframe depth scale against the sensor's, median and worst.
+    pub depth_scale_ratio: Option<Spread>,
     pub deterministic: Option<RunFigures>,
     pub runs: Vec<RunFigures>,
 }
@@ -249,6 +261,12 @@ fn sequence(
         ate_keyframes_m: Spread::of(runs.iter().map(|r| r.ate_keyframes_m)),
         scale_drift: Spread::of(runs.iter().map(|r| r.scale_drift)),
         ms_per_frame: Spread::of(runs.iter().map(|r| Some(r.ms_per_frame))),
+        shape_after_1s: median(runs.iter().filter_map(|r| r.depth.slope_after_1s)),
+        shape_range: runs
+            .iter()
+            .filter_map(|r| r.depth.slope_range)
+            .reduce(|(a, b), (c, d)| (a.min(c), b.max(d))),
+        depth_scale_ratio: Spread::of(runs.iter().map(|r| r.depth.scale_ratio)),
         deterministic,
         runs,
     })
@@ -268,6 +286,13 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
     let ate_of = |poses: &[(f64, Sim3)]| loaded.ate(&stamped_se3(poses));
     let drift = loaded.scale_drift(&stamped_se3(&trajectory));
     let stats = pipeline.stats();
+    let mut probe = DepthProbe::default();
+    for (_, frame, depth) in pipeline.keyframe_depths() {
+        if let Some(sensor) = loaded.seq.load_depth(frame.id as usize)? {
+            probe.add(frame.timestamp, &map_pairs(&depth, &sensor));
+        }
+    }
+    let start = loaded.frames.first().map_or(0.0, |f| f.timestamp);
     Ok(RunFigures {
         deterministic: config.pipeline.deterministic,
         frames_with_pose: trajectory.len(),
@@ -277,7 +302,15 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
         ate_keyframes_m: ate_of(&keyframes),
         scale_drift: drift,
         ms_per_frame: 1e3 * frames_s / loaded.frames.len().max(1) as f64,
+        depth: probe.summary(start),
     })
+}
+
+/// The median of `values` (the upper one of an even count); `None` when empty.
+pub(super) fn median(values: impl Iterator<Item = f64>) -> Option<f64> {
+    let mut v: Vec<f64> = values.collect();
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied()
 }
 
 fn fmt_m(v: Option<f64>) -> String {
@@ -299,7 +332,8 @@ fn print_row(f: &SequenceFigures) {
     let det = f.deterministic.as_ref();
     println!(
         "{name}: poses {}/{} | ATE traj median/worst {} m (det {}) | keyframes {} m (det {}) \
-         | kf ATE {} % of {:.2} m path | scale drift {} (det {}) | {} ms/frame",
+         | kf ATE {} % of {:.2} m path | scale drift {} (det {}) | {} ms/frame \
+         | depth shape@1s {} range {} scale× {}",
         f.frames_with_pose_min,
         f.frames,
         fmt_spread(f.ate_trajectory_m, 4),
@@ -315,6 +349,11 @@ fn print_row(f: &SequenceFigures) {
         det.and_then(|d| d.scale_drift)
             .map_or_else(|| "-".into(), |x| format!("{x:.2}")),
         fmt_spread(f.ms_per_frame, 1),
+        f.shape_after_1s
+            .map_or_else(|| "-".into(), |x| format!("{x:.2}")),
+        f.shape_range
+            .map_or_else(|| "-".into(), |(a, b)| format!("{a:.2}–{b:.2}")),
+        fmt_spread(f.depth_scale_ratio, 2),
     );
 }
 

@@ -15,10 +15,10 @@ use relfusion_slam::geometry::UndistortMap;
 use relfusion_slam::odometry::{Odometry, OdometryConfig};
 
 use relfusion_slam::dataset::TumSequence;
-use relfusion_slam::eval::depth_slope::{MIN_SLOPE_PIXELS, log_slope};
 use relfusion_slam::image::ImageF32;
 
-use super::bench_accuracy::load;
+use super::bench_accuracy::{load, median};
+use super::depth_probe::DepthProbe;
 
 #[derive(Debug, clap::Args)]
 pub struct OdometryArgs {
@@ -101,12 +101,13 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
             let mut keyframe_stamps = Vec::new();
             let t0 = Instant::now();
             let mut probe = DepthProbe::default();
+            let mut window_depth = WindowDepth::default();
             for f in &frames {
                 let outcome = odometry.push(f.clone())?;
                 tracked += usize::from(outcome.tracked);
                 if outcome.keyframe {
                     keyframe_stamps.push(f.timestamp);
-                    probe.measure(&loaded.seq, &odometry, f.timestamp)?;
+                    window_depth.measure(&mut probe, &loaded.seq, &odometry, f.timestamp)?;
                     if args.keyframes {
                         let sample = probe.samples.last().filter(|s| s.0 == f.timestamp);
                         eprintln!(
@@ -178,14 +179,12 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 fmt(drift, 2),
                 ms,
                 fmt(shape.slope_after_1s, 2),
-                shape
-                    .slope_range
-                    .map_or_else(|| "-".into(), |(a, b)| format!("{a:.2}–{b:.2}")),
+                shape.range_text(),
                 fmt(shape.scale_ratio, 2),
             );
         }
         if args.runs > 1 {
-            let [ate, kf_ate, share, drift, ms] = medians.map(|mut v| median(&mut v));
+            let [ate, kf_ate, share, drift, ms] = medians.map(|v| median(v.into_iter()));
             println!(
                 "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8} {:>8} {:>11} {:>7}",
                 format!("{} (median of {})", dataset.display(), args.runs),
@@ -206,32 +205,22 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The median of `values` (the upper one of an even count); `None` when empty.
-fn median(values: &mut [f64]) -> Option<f64> {
-    values.sort_by(f64::total_cmp);
-    values.get(values.len() / 2).copied()
-}
-
-/// The window's depth shape and scale against the sensor depth after each keyframe: the slope
-/// of log estimated over log true inverse depth of the window's points in their hosts (1 = the
-/// depth ratios are right, [`depth_range_slope`]'s measure) and the median ratio of estimated
-/// to true inverse depth (its changes are the map's scale drift).
+/// The sensor depth of the window's hosts, loaded once per host while it is in the window.
 #[derive(Debug, Default)]
-struct DepthProbe {
+struct WindowDepth {
     depth: std::collections::HashMap<u64, Option<ImageF32>>,
-    /// `(timestamp, slope, scale)` per keyframe.
-    samples: Vec<(f64, Option<f64>, f64)>,
 }
 
-impl DepthProbe {
+impl WindowDepth {
+    /// Adds to `probe` the window's points against the sensor depth of their hosts.
     fn measure(
         &mut self,
+        probe: &mut DepthProbe,
         seq: &TumSequence,
         odometry: &Odometry,
         timestamp: f64,
     ) -> anyhow::Result<()> {
         let window = odometry.window();
-        // Only the window's hosts are probed: drop the depth of keyframes that left it.
         self.depth
             .retain(|id, _| window.frames().iter().any(|f| f.id == *id));
         let factor = f64::from(1u32 << window.config().level);
@@ -253,44 +242,7 @@ impl DepthProbe {
                 pairs.push((-d.ln(), p.idepth.ln()));
             }
         }
-        if pairs.len() < MIN_SLOPE_PIXELS {
-            return Ok(());
-        }
-        let slope = log_slope(&pairs);
-        let mut ratios: Vec<f64> = pairs.iter().map(|(x, y)| y - x).collect();
-        ratios.sort_by(f64::total_cmp);
-        let scale = ratios[ratios.len() / 2].exp();
-        self.samples.push((timestamp, slope, scale));
+        probe.add(timestamp, &pairs);
         Ok(())
     }
-
-    /// The slope at the first keyframe 1 s after `start`, the slopes' range from then on, and
-    /// the ratio of the largest to the smallest scale over the same keyframes.
-    fn summary(&self, start: f64) -> ShapeSummary {
-        let later: Vec<&(f64, Option<f64>, f64)> =
-            self.samples.iter().filter(|s| s.0 >= start + 1.0).collect();
-        let slopes: Vec<f64> = later.iter().filter_map(|s| s.1).collect();
-        let scales = later.iter().map(|s| s.2);
-        let (lo, hi) = scales.fold((f64::INFINITY, 0.0f64), |(lo, hi), s| {
-            (lo.min(s), hi.max(s))
-        });
-        ShapeSummary {
-            slope_after_1s: later.first().and_then(|s| s.1),
-            slope_range: (!slopes.is_empty()).then(|| {
-                slopes
-                    .iter()
-                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &s| {
-                        (a.min(s), b.max(s))
-                    })
-            }),
-            scale_ratio: (lo > 0.0 && lo.is_finite()).then(|| hi / lo),
-        }
-    }
-}
-
-/// What [`DepthProbe::summary`] reports.
-struct ShapeSummary {
-    slope_after_1s: Option<f64>,
-    slope_range: Option<(f64, f64)>,
-    scale_ratio: Option<f64>,
 }

@@ -43,12 +43,14 @@ use crate::background::{Link, Priority, WorkerSpec};
 use crate::dense::DenseKeyframe;
 use crate::dense::layer::{DenseLayer, SharedPrior};
 use crate::dense::prior::DepthPrior;
+use crate::frame::Frame;
 use crate::fusion::worker::FusionLink;
 use crate::fusion::{FusionStats, Mesh};
 use crate::geometry::{PinholeCamera, SE3, Sim3, UndistortMap};
 use crate::gpu::GpuContext;
 use crate::graph::{Backend, BackendLink, KeyframeId};
 use crate::image::ImageF32;
+use crate::mapping::DepthMap;
 use crate::tracking::SE3Tracker;
 use extend::MapOrigin;
 use keyframes::{FrameRecord, KeyframeRecord};
@@ -324,6 +326,17 @@ impl Pipeline {
                 let front_end = self.keyframes[id].world_from_keyframe;
                 (id, optimised.get(&id).copied().unwrap_or(front_end))
             })
+            .collect()
+    }
+
+    /// Every keyframe's image and semi-dense inverse depth as last published (final once the
+    /// keyframe is finished), in the keyframe's own scale: what the depth probes of
+    /// `relfusion bench accuracy` compare with the sensor's depth.
+    pub fn keyframe_depths(&self) -> Vec<(KeyframeId, Arc<Frame>, Arc<DepthMap>)> {
+        self.keyframes
+            .iter()
+            .enumerate()
+            .map(|(id, k)| (id, k.frame.clone(), k.depth.clone()))
             .collect()
     }
 
