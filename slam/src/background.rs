@@ -340,6 +340,9 @@ impl<S: Service> Link<S> {
 /// How far a background thread steps back from the frame path.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Priority {
+    /// Part of the frame path, beside tracking: the odometry's window (keeps the priority of
+    /// the thread that starts it).
+    Frame,
     /// The back end: asynchronous, but its poses and loop closures are wanted within a few
     /// keyframes (nice 10).
     Graph,
@@ -350,6 +353,7 @@ pub enum Priority {
 impl Priority {
     fn nice(self) -> i32 {
         match self {
+            Self::Frame => 0,
             Self::Graph => 10,
             Self::Dense => 19,
         }
@@ -359,6 +363,9 @@ impl Priority {
 /// Lowers the calling thread's scheduling priority (and that of threads it starts later). Where
 /// that is not possible the thread keeps its priority; that is logged, not an error.
 pub fn lower_current_thread_priority(priority: Priority) {
+    if priority == Priority::Frame {
+        return;
+    }
     #[cfg(target_os = "linux")]
     {
         // On Linux `setpriority(PRIO_PROCESS, 0, …)` sets the nice value of the calling thread

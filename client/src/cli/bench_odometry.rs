@@ -12,7 +12,7 @@ use anyhow::Context;
 use relfusion_slam::dataset::trajectory::{StampedPose, write_tum_trajectory};
 use relfusion_slam::frame::Frame;
 use relfusion_slam::geometry::UndistortMap;
-use relfusion_slam::odometry::{Odometry, OdometryConfig};
+use relfusion_slam::odometry::{Odometry, OdometryConfig, WindowSnapshot};
 
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::image::ImageF32;
@@ -43,6 +43,14 @@ pub struct OdometryArgs {
     /// where a run goes wrong.
     #[arg(long)]
     pub keyframes: bool,
+    /// Run the window on its own thread beside tracking (as a live session would); without
+    /// it every frame's window work is done in step, deterministically.
+    #[arg(long)]
+    pub threaded: bool,
+    /// Hand over each frame at its timestamp, as a live camera would (ms/frame is then the
+    /// time tracking took); without it frames come as fast as they are taken.
+    #[arg(long)]
+    pub paced: bool,
 }
 
 pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
@@ -96,45 +104,63 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
         let mut medians: [Vec<f64>; 5] = Default::default();
         let fmt = |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
         for run in 0..args.runs {
-            let mut odometry = Odometry::new(config.clone())?.with_seed(run as u64);
+            let mut odometry = Odometry::start(config.clone(), run as u64, args.threaded)?;
             let mut tracked = 0;
             let mut keyframe_stamps = Vec::new();
             let t0 = Instant::now();
             let mut probe = DepthProbe::default();
             let mut window_depth = WindowDepth::default();
+            let mut seen = 0;
+            // Probes the window whenever it has published a new keyframe.
+            let mut look = |odometry: &Odometry| -> anyhow::Result<()> {
+                let Some(window) = odometry.window().filter(|_| odometry.published() > seen) else {
+                    return Ok(());
+                };
+                seen = odometry.published();
+                let Some(&(id, _, (a, b))) = window.frames.last() else {
+                    return Ok(());
+                };
+                let timestamp = frames[id as usize].timestamp;
+                window_depth.measure(&mut probe, &loaded.seq, window, timestamp)?;
+                if args.keyframes {
+                    let sample = probe.samples.last().filter(|s| s.0 == timestamp);
+                    eprintln!(
+                        "kf frame {:>5} t {:>8.3} frames {} points {:>5} slope {:>6} scale {:>8} affine {:>6.3} {:>6.1}",
+                        id,
+                        timestamp - frames[0].timestamp,
+                        window.frames.len(),
+                        window.points.len(),
+                        sample
+                            .and_then(|s| s.1)
+                            .map_or_else(|| "-".into(), |v| format!("{v:.2}")),
+                        sample.map_or_else(|| "-".into(), |s| format!("{:.4}", s.2)),
+                        a,
+                        b,
+                    );
+                }
+                Ok(())
+            };
+            let mut busy = std::time::Duration::ZERO;
             for f in &frames {
+                if args.paced {
+                    let due = std::time::Duration::from_secs_f64(
+                        (f.timestamp - frames[0].timestamp).max(0.0),
+                    );
+                    std::thread::sleep(due.saturating_sub(t0.elapsed()));
+                }
+                let started = Instant::now();
                 let outcome = odometry.push(f.clone())?;
+                busy += started.elapsed();
                 tracked += usize::from(outcome.tracked);
                 if outcome.keyframe {
                     keyframe_stamps.push(f.timestamp);
-                    window_depth.measure(&mut probe, &loaded.seq, &odometry, f.timestamp)?;
-                    if args.keyframes {
-                        let sample = probe.samples.last().filter(|s| s.0 == f.timestamp);
-                        eprintln!(
-                            "kf frame {:>5} t {:>8.3} frames {} points {:>5} slope {:>6} scale {:>8} affine {:>6.3} {:>6.1}",
-                            f.id,
-                            f.timestamp - frames[0].timestamp,
-                            odometry.window().frames().len(),
-                            odometry.window().points().len(),
-                            sample
-                                .and_then(|s| s.1)
-                                .map_or_else(|| "-".into(), |v| format!("{v:.2}")),
-                            sample.map_or_else(|| "-".into(), |s| format!("{:.4}", s.2)),
-                            odometry
-                                .window()
-                                .frames()
-                                .last()
-                                .map_or(0.0, |k| k.state.affine.0),
-                            odometry
-                                .window()
-                                .frames()
-                                .last()
-                                .map_or(0.0, |k| k.state.affine.1),
-                        );
-                    }
                 }
+                look(&odometry)?;
             }
-            let ms = 1e3 * t0.elapsed().as_secs_f64() / frames.len().max(1) as f64;
+            odometry.finish()?;
+            look(&odometry)?;
+            let wall = if args.paced { busy } else { t0.elapsed() };
+            let ms = 1e3 * wall.as_secs_f64() / frames.len().max(1) as f64;
             let est: Vec<StampedPose> = odometry
                 .trajectory()
                 .into_iter()
@@ -217,15 +243,14 @@ impl WindowDepth {
         &mut self,
         probe: &mut DepthProbe,
         seq: &TumSequence,
-        odometry: &Odometry,
+        window: &WindowSnapshot,
         timestamp: f64,
     ) -> anyhow::Result<()> {
-        let window = odometry.window();
         self.depth
-            .retain(|id, _| window.frames().iter().any(|f| f.id == *id));
-        let factor = f64::from(1u32 << window.config().level);
+            .retain(|id, _| window.frames.iter().any(|f| f.0 == *id));
+        let factor = f64::from(1u32 << window.level);
         let mut pairs = Vec::new();
-        for p in window.points() {
+        for p in &window.points {
             let depth = match self.depth.entry(p.host) {
                 std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
                 std::collections::hash_map::Entry::Vacant(e) => {

@@ -6,7 +6,8 @@ use nalgebra::{DMatrix, DVector};
 use super::WindowPoint;
 use super::config::OdometryConfig;
 use super::residual::{
-    FRAME_PARAMS, FrameView, Linearisation, Linearised, PATTERN, Vector8, linearise,
+    FRAME_PARAMS, FrameView, Linearisation, Linearised, PATTERN, PairGeometry, Vector8,
+    linearise_in,
 };
 
 /// Robust weight of a pattern pixel: DSO's gradient-dependent weight times Huber's.
@@ -47,15 +48,16 @@ pub fn pattern(
     let c2 = config.gradient_weight_c * config.gradient_weight_c;
     let mut out = [None; PATTERN.len()];
     let mut energy = 0.0;
+    let pair = PairGeometry::new(host, target, mode);
     for (k, slot) in out.iter_mut().enumerate() {
-        let lin = linearise(
+        let lin = linearise_in(
+            &pair,
             &point.uv,
             point.idepth,
             point.intensity[k],
             k,
             host,
             target,
-            mode,
         )?;
         // Gradient-weighted, as DSO tests it: on a strong edge a sub-pixel error is a large
         // residual, not an outlier.

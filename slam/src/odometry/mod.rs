@@ -13,13 +13,17 @@
 //! - [`energy`]: robust weights, outliers, normal equations with the depths kept apart;
 //! - [`solve`]: Levenberg–Marquardt with the Schur complement, the step out of the gauge;
 //! - [`prior`]: the marginalisation prior; [`gauge`]: the 7 unobservable directions;
-//! - [`select`]: candidate points spread over the image by a region-adaptive threshold.
+//! - [`select`]: candidate points spread over the image by a region-adaptive threshold;
+//! - [`init`]: the coarse initialiser; [`immature`]: candidates traced along epipolar lines;
+//! - [`mapper`]: the window's side (tracing, activation, keyframes), in step or on a thread;
+//!   [`system`]: the tracking side, which drives it.
 
 pub mod config;
 pub mod energy;
 pub mod gauge;
 pub mod immature;
 pub mod init;
+pub mod mapper;
 pub mod prior;
 pub mod residual;
 pub mod select;
@@ -31,6 +35,7 @@ use std::sync::Arc;
 use nalgebra::Vector2;
 
 pub use config::OdometryConfig;
+pub use mapper::{PublishedPoint, WindowSnapshot};
 pub use prior::MarginalisationPrior;
 pub use residual::{FrameState, Linearisation, PATTERN};
 pub use solve::{Anchor, SolveReport};
@@ -54,6 +59,8 @@ pub struct WindowFrame {
     pub state: FrameState,
     /// The state at which its Jacobians are evaluated: where it entered the window.
     pub first_estimate: FrameState,
+    /// The window's level of its image, interleaved for sampling.
+    pub samples: Arc<residual::Interleaved>,
 }
 
 /// An active point: one inverse depth in its host keyframe's camera.
@@ -178,6 +185,7 @@ impl SlidingWindow {
         }
         self.frames.push(WindowFrame {
             id,
+            samples: Arc::new(residual::Interleaved::new(frame.level(self.config.level))),
             frame,
             state,
             first_estimate: state,

@@ -15,7 +15,7 @@
 //! them and the estimate would drift while looking certain. Poses are perturbed on the right,
 //! `T ← T·exp(δ)`, tangent order (v, ω); a keyframe's eight parameters are `(v, ω, a, b)`.
 
-use nalgebra::{SMatrix, Vector2};
+use nalgebra::{Matrix3, SMatrix, Vector2};
 
 use crate::geometry::{PinholeCamera, SE3, SO3};
 use crate::image::pyramid::PyramidLevel;
@@ -74,6 +74,8 @@ impl FrameState {
 #[derive(Clone, Copy, Debug)]
 pub struct FrameView<'a> {
     pub level: &'a PyramidLevel,
+    /// The same level interleaved, for sampling.
+    pub samples: &'a Interleaved,
     pub camera: PinholeCamera,
     pub state: FrameState,
     pub first_estimate: FrameState,
@@ -99,6 +101,37 @@ pub struct Linearised {
     pub d_idepth: f64,
 }
 
+/// What the pattern pixels of every point of one host seen in one target share: the relative
+/// poses at the current state and at the linearisation point, and the brightness transfer.
+/// Computed once per point and target instead of once per pixel (it was a tenth of the
+/// window's time).
+#[derive(Clone, Copy, Debug)]
+pub struct PairGeometry {
+    target_from_host: SE3,
+    lin_target_from_host: SE3,
+    lin_rotation: Matrix3<f64>,
+    transfer: f64,
+}
+
+impl PairGeometry {
+    pub fn new(host: &FrameView<'_>, target: &FrameView<'_>, mode: Linearisation) -> Self {
+        let relative =
+            |h: &FrameState, t: &FrameState| t.world_from_camera.inverse() * h.world_from_camera;
+        // Geometry at the linearisation point, the image gradient at the current prediction.
+        let (lin_h, lin_t) = match mode {
+            Linearisation::FirstEstimate => (&host.first_estimate, &target.first_estimate),
+            Linearisation::Current => (&host.state, &target.state),
+        };
+        let lin_target_from_host = relative(lin_h, lin_t);
+        Self {
+            target_from_host: relative(&host.state, &target.state),
+            lin_rotation: lin_target_from_host.rotation.matrix(),
+            lin_target_from_host,
+            transfer: (target.state.affine.0 - host.state.affine.0).exp(),
+        }
+    }
+}
+
 /// The residual of pattern pixel `k` of the point at `uv` (host pixel) with inverse depth
 /// `idepth` and host intensity `host_intensity`, in `target`, with its derivatives with
 /// respect to both keyframes' parameters and the inverse depth; `None` when the point falls
@@ -112,6 +145,20 @@ pub fn linearise(
     target: &FrameView<'_>,
     mode: Linearisation,
 ) -> Option<Linearised> {
+    let pair = PairGeometry::new(host, target, mode);
+    linearise_in(&pair, uv, idepth, host_intensity, k, host, target)
+}
+
+/// [`linearise`] with the pair's shared values computed.
+pub fn linearise_in(
+    pair: &PairGeometry,
+    uv: &Vector2<f64>,
+    idepth: f64,
+    host_intensity: f64,
+    k: usize,
+    host: &FrameView<'_>,
+    target: &FrameView<'_>,
+) -> Option<Linearised> {
     // Also refuses NaN.
     if idepth.is_nan() || idepth <= 0.0 {
         return None;
@@ -121,9 +168,7 @@ pub fn linearise(
         .camera
         .unproject(&Vector2::new(uv.x + ox, uv.y + oy), 1.0);
     let x_h = ray / idepth;
-    let relative =
-        |h: &FrameState, t: &FrameState| t.world_from_camera.inverse() * h.world_from_camera;
-    let x_t = relative(&host.state, &target.state).act(&x_h);
+    let x_t = pair.target_from_host.act(&x_h);
     if x_t.z < 1e-3 {
         return None;
     }
@@ -133,23 +178,14 @@ pub fn linearise(
     if !(u.x >= 1.0 && u.y >= 1.0 && u.x <= w - 2.0 && u.y <= h - 2.0) {
         return None;
     }
-    let (uf, vf) = (u.x as f32, u.y as f32);
-    let i_t = f64::from(lvl.image.bilinear(uf, vf)?);
-    let gx = f64::from(lvl.gx.bilinear(uf, vf)?);
-    let gy = f64::from(lvl.gy.bilinear(uf, vf)?);
-    let (a_h, b_h) = host.state.affine;
-    let (a_t, b_t) = target.state.affine;
-    let e = (a_t - a_h).exp();
+    let (i_t, gx, gy) = target.samples.sample(u.x as f32, u.y as f32)?;
+    let (_, b_h) = host.state.affine;
+    let (_, b_t) = target.state.affine;
+    let e = pair.transfer;
     let residual = i_t - b_t - e * (host_intensity - b_h);
 
-    // Geometry at the linearisation point, the image gradient at the current prediction.
-    let (lin_h, lin_t) = match mode {
-        Linearisation::FirstEstimate => (&host.first_estimate, &target.first_estimate),
-        Linearisation::Current => (&host.state, &target.state),
-    };
-    let target_from_host = relative(lin_h, lin_t);
-    let r_th = target_from_host.rotation.matrix();
-    let x_t_lin = target_from_host.act(&x_h);
+    let r_th = &pair.lin_rotation;
+    let x_t_lin = pair.lin_target_from_host.act(&x_h);
     let du_dx = target.camera.project_jacobian(&x_t_lin);
     let g = (Vector2::new(gx, gy).transpose() * du_dx).transpose(); // ∂r/∂x_t
     // Host perturbation: x_t = R_th (x_h + v + ω × x_h) + t_th.
@@ -177,4 +213,54 @@ pub fn linearise(
         d_target,
         d_idepth,
     })
+}
+
+/// A level's intensity and gradients interleaved per pixel (DSO's `dI`), so that sampling a
+/// point reads two cache lines instead of six: sampling was a fifth of the window's time.
+#[derive(Clone, Debug)]
+pub struct Interleaved {
+    width: usize,
+    height: usize,
+    data: Vec<[f32; 3]>,
+}
+
+impl Interleaved {
+    pub fn new(level: &PyramidLevel) -> Self {
+        let data = (level.image.data.iter())
+            .zip(&level.gx.data)
+            .zip(&level.gy.data)
+            .map(|((i, gx), gy)| [*i, *gx, *gy])
+            .collect();
+        Self {
+            width: level.image.width,
+            height: level.image.height,
+            data,
+        }
+    }
+
+    /// Intensity and gradients at `(x, y)`, bilinear (the arithmetic of
+    /// [`ImageF32::bilinear`](crate::image::ImageF32::bilinear) on each of the three).
+    fn sample(&self, x: f32, y: f32) -> Option<(f64, f64, f64)> {
+        let (w, h) = (self.width, self.height);
+        if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32) {
+            return None;
+        }
+        let x0 = (x.floor() as usize).min(w.saturating_sub(2));
+        let y0 = (y.floor() as usize).min(h.saturating_sub(2));
+        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+        let x1 = (x0 + 1).min(w - 1);
+        let y1 = (y0 + 1).min(h - 1);
+        let [a, b, c, d] = [
+            self.data[y0 * w + x0],
+            self.data[y0 * w + x1],
+            self.data[y1 * w + x0],
+            self.data[y1 * w + x1],
+        ];
+        let at = |j: usize| {
+            let top = a[j] * (1.0 - fx) + b[j] * fx;
+            let bottom = c[j] * (1.0 - fx) + d[j] * fx;
+            f64::from(top * (1.0 - fy) + bottom * fy)
+        };
+        Some((at(0), at(1), at(2)))
+    }
 }

@@ -95,6 +95,7 @@ pub fn views<'a>(
         .zip(states)
         .map(|(f, s)| FrameView {
             level: f.frame.level(config.level),
+            samples: &f.samples,
             camera: f.frame.camera_at(config.level),
             state: *s,
             first_estimate: f.first_estimate,

@@ -65,3 +65,53 @@ fn odometry_poses_a_rendered_orbit_at_a_consistent_scale() {
     let (_, s2) = aligned(&est[half..], &gt[half..]);
     assert!((s2 / s1 - 1.0).abs() < 0.1, "scale {s1} then {s2}");
 }
+
+#[test]
+fn threaded_window_that_catches_up_computes_what_the_window_in_step_does() {
+    let config = SynthConfig {
+        width: 640,
+        height: 480,
+        seed: 12,
+        frames: 50,
+        ..SynthConfig::default()
+    };
+    let camera = config.camera().expect("camera");
+    let scene = Scene::generate(config.seed);
+    let frames: Vec<Arc<Frame>> = config
+        .poses()
+        .iter()
+        .enumerate()
+        .map(|(i, pose)| {
+            let (rgb, _) = render_frame_with(&scene, &camera, pose, 1);
+            let gray = ImageF32::from_rgb8(&rgb);
+            Arc::new(Frame::new(i as u64, i as f64 / 30.0, camera, &gray, None).expect("frame"))
+        })
+        .collect();
+    let run = |threaded: bool| {
+        let mut odometry =
+            Odometry::start(OdometryConfig::default(), 0, threaded).expect("odometry");
+        let mut outcomes = Vec::new();
+        for f in &frames {
+            outcomes.push(odometry.push(f.clone()).expect("push"));
+            // Given the time, the thread stands where the window in step does.
+            odometry
+                .catch_up(std::time::Duration::from_secs(120))
+                .expect("catch up");
+        }
+        odometry.finish().expect("finish");
+        (outcomes, odometry.trajectory(), odometry.keyframe_count())
+    };
+    let (in_step, in_step_trajectory, keyframes) = run(false);
+    assert!(keyframes >= 3, "{keyframes} keyframes in 50 frames");
+    let (threaded, threaded_trajectory, threaded_keyframes) = run(true);
+    assert_eq!(threaded_keyframes, keyframes);
+    assert_eq!(threaded, in_step, "frame outcomes differ");
+    assert_eq!(threaded_trajectory.len(), in_step_trajectory.len());
+    for ((a, p), (b, q)) in threaded_trajectory.iter().zip(&in_step_trajectory) {
+        assert_eq!(a, b);
+        assert!(
+            (p.translation - q.translation).norm() < 1e-12,
+            "frame {a}: {p:?} vs {q:?}"
+        );
+    }
+}

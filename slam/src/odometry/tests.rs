@@ -9,7 +9,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::gauge::{GAUGE_DIMENSION, basis};
-use super::residual::{FRAME_PARAMS, FrameView, Vector8, linearise};
+use super::residual::{FRAME_PARAMS, FrameView, Interleaved, Vector8, linearise};
 use super::select::select_candidates;
 use super::*;
 use crate::dataset::synth::{Scene, SynthConfig, render_frame_with};
@@ -38,8 +38,11 @@ fn residual_jacobians_match_numeric_differences() {
         Vector6::new(0.18, 0.02, -0.04, -0.01, 0.02, 0.03),
         (-0.05, -2.0),
     );
-    let view = |level, s: FrameState| FrameView {
+    let host_samples = Interleaved::new(&host_pyr.levels[0]);
+    let target_samples = Interleaved::new(&target_pyr.levels[0]);
+    let view = |level, samples, s: FrameState| FrameView {
         level,
+        samples,
         camera,
         state: s,
         first_estimate: s,
@@ -57,8 +60,8 @@ fn residual_jacobians_match_numeric_differences() {
         let uv = Vector2::new(u, v);
         let intensity = 100.0 + 3.0 * i as f64;
         for k in 0..PATTERN.len() {
-            let host = view(&host_pyr.levels[0], host_state);
-            let target = view(&target_pyr.levels[0], target_state);
+            let host = view(&host_pyr.levels[0], &host_samples, host_state);
+            let target = view(&target_pyr.levels[0], &target_samples, target_state);
             let Some(lin) = linearise(
                 &uv,
                 rho,
@@ -72,8 +75,12 @@ fn residual_jacobians_match_numeric_differences() {
             };
             let eps = 1e-3;
             let residual_with = |dh: &Vector8, dt: &Vector8, drho: f64| -> f64 {
-                let host = view(&host_pyr.levels[0], host_state.step(dh));
-                let target = view(&target_pyr.levels[0], target_state.step(dt));
+                let host = view(&host_pyr.levels[0], &host_samples, host_state.step(dh));
+                let target = view(
+                    &target_pyr.levels[0],
+                    &target_samples,
+                    target_state.step(dt),
+                );
                 linearise(
                     &uv,
                     rho + drho,
