@@ -6,8 +6,8 @@ use nalgebra::{DMatrix, DVector};
 use super::WindowPoint;
 use super::config::OdometryConfig;
 use super::residual::{
-    FRAME_PARAMS, FrameView, Linearisation, Linearised, PATTERN, PairGeometry, Vector8,
-    linearise_in,
+    FRAME_PARAMS, FrameView, Linearisation, Linearised, Matrix8, PATTERN, PairGeometry, Vector8,
+    linearise_in, residual_in,
 };
 
 /// Robust weight of a pattern pixel: DSO's gradient-dependent weight times Huber's.
@@ -71,6 +71,35 @@ pub fn pattern(
     Some(out.map(|l| l.unwrap_or_else(|| unreachable!("every pattern pixel was filled"))))
 }
 
+/// [`pattern`]'s residuals and squared gradients at the current state, without the
+/// Jacobians (what an energy needs); `None` as for [`pattern`].
+fn pattern_residuals(
+    config: &OdometryConfig,
+    point: &WindowPoint,
+    host: &FrameView<'_>,
+    target: &FrameView<'_>,
+) -> Option<[(f64, f64); PATTERN.len()]> {
+    let c2 = config.gradient_weight_c * config.gradient_weight_c;
+    let pair = PairGeometry::new(host, target, Linearisation::Current);
+    let mut out = [(0.0, 0.0); PATTERN.len()];
+    let mut energy = 0.0;
+    for (k, slot) in out.iter_mut().enumerate() {
+        let (residual, grad2) = residual_in(
+            &pair,
+            &point.uv,
+            point.idepth,
+            point.intensity[k],
+            k,
+            host,
+            target,
+        )?;
+        energy += residual * residual * c2 / (c2 + grad2);
+        *slot = (residual, grad2);
+    }
+    let limit = config.outlier_threshold * config.outlier_threshold * PATTERN.len() as f64;
+    (energy <= limit).then_some(out)
+}
+
 /// The depth priors' energy of `points`.
 pub fn depth_prior_energy(points: &[WindowPoint]) -> f64 {
     points
@@ -95,13 +124,10 @@ pub fn photometric_energy(
             if t == h {
                 continue;
             }
-            match pattern(config, p, &views[h], target, Linearisation::Current) {
-                Some(lins) => {
-                    for lin in &lins {
-                        total += huber_energy(
-                            config.huber,
-                            lin.residual * (c2 / (c2 + lin.grad2)).sqrt(),
-                        );
+            match pattern_residuals(config, p, &views[h], target) {
+                Some(pixels) => {
+                    for (residual, grad2) in pixels {
+                        total += huber_energy(config.huber, residual * (c2 / (c2 + grad2)).sqrt());
                         n += 1;
                     }
                 }
@@ -169,7 +195,7 @@ impl NormalEquations {
                 let w = weight(config, lin);
                 let (jh, jt, jd, r) = (&lin.d_host, &lin.d_target, lin.d_idepth, lin.residual);
                 let ht = w * jh * jt.transpose();
-                let mut add = |r0: usize, c0: usize, m: &super::residual::Matrix8| {
+                let mut add = |r0: usize, c0: usize, m: &Matrix8| {
                     let mut view = self.h.view_mut((r0, c0), (FRAME_PARAMS, FRAME_PARAMS));
                     view += m;
                 };

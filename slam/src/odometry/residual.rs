@@ -15,7 +15,7 @@
 //! them and the estimate would drift while looking certain. Poses are perturbed on the right,
 //! `T ← T·exp(δ)`, tangent order (v, ω); a keyframe's eight parameters are `(v, ω, a, b)`.
 
-use nalgebra::{Matrix3, SMatrix, Vector2};
+use nalgebra::{Matrix3, SMatrix, Vector2, Vector3};
 
 use crate::geometry::{PinholeCamera, SE3, SO3};
 use crate::image::pyramid::PyramidLevel;
@@ -149,8 +149,18 @@ pub fn linearise(
     linearise_in(&pair, uv, idepth, host_intensity, k, host, target)
 }
 
-/// [`linearise`] with the pair's shared values computed.
-pub fn linearise_in(
+/// One pattern pixel's prediction in the target: what the residual and the Jacobians share.
+struct Prediction {
+    ray: Vector3<f64>,
+    x_h: Vector3<f64>,
+    residual: f64,
+    gx: f64,
+    gy: f64,
+}
+
+/// The residual of pattern pixel `k` and the target's gradient there; `None` when the point
+/// falls behind the target camera or outside its image.
+fn predict(
     pair: &PairGeometry,
     uv: &Vector2<f64>,
     idepth: f64,
@@ -158,7 +168,7 @@ pub fn linearise_in(
     k: usize,
     host: &FrameView<'_>,
     target: &FrameView<'_>,
-) -> Option<Linearised> {
+) -> Option<Prediction> {
     // Also refuses NaN.
     if idepth.is_nan() || idepth <= 0.0 {
         return None;
@@ -181,9 +191,50 @@ pub fn linearise_in(
     let (i_t, gx, gy) = target.samples.sample(u.x as f32, u.y as f32)?;
     let (_, b_h) = host.state.affine;
     let (_, b_t) = target.state.affine;
-    let e = pair.transfer;
-    let residual = i_t - b_t - e * (host_intensity - b_h);
+    let residual = i_t - b_t - pair.transfer * (host_intensity - b_h);
+    Some(Prediction {
+        ray,
+        x_h,
+        residual,
+        gx,
+        gy,
+    })
+}
 
+/// The residual of pattern pixel `k` and the squared gradient there, without the Jacobians
+/// (for energies: half the cost of [`linearise_in`]).
+pub fn residual_in(
+    pair: &PairGeometry,
+    uv: &Vector2<f64>,
+    idepth: f64,
+    host_intensity: f64,
+    k: usize,
+    host: &FrameView<'_>,
+    target: &FrameView<'_>,
+) -> Option<(f64, f64)> {
+    let p = predict(pair, uv, idepth, host_intensity, k, host, target)?;
+    Some((p.residual, p.gx * p.gx + p.gy * p.gy))
+}
+
+/// [`linearise`] with the pair's shared values computed.
+pub fn linearise_in(
+    pair: &PairGeometry,
+    uv: &Vector2<f64>,
+    idepth: f64,
+    host_intensity: f64,
+    k: usize,
+    host: &FrameView<'_>,
+    target: &FrameView<'_>,
+) -> Option<Linearised> {
+    let Prediction {
+        ray,
+        x_h,
+        residual,
+        gx,
+        gy,
+    } = predict(pair, uv, idepth, host_intensity, k, host, target)?;
+    let (_, b_h) = host.state.affine;
+    let e = pair.transfer;
     let r_th = &pair.lin_rotation;
     let x_t_lin = pair.lin_target_from_host.act(&x_h);
     let du_dx = target.camera.project_jacobian(&x_t_lin);
