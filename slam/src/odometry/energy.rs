@@ -37,7 +37,7 @@ pub fn outlier_energy(config: &OdometryConfig) -> f64 {
 }
 
 /// The linearised pattern of `point` in `target`, or `None` when a pixel is not visible or the
-/// pattern is an outlier there (gradient-weighted energy above `outlier_threshold²` per pixel).
+/// pattern is an outlier there (see [`outlier_tested`]).
 pub fn pattern(
     config: &OdometryConfig,
     point: &WindowPoint,
@@ -45,30 +45,22 @@ pub fn pattern(
     target: &FrameView<'_>,
     mode: Linearisation,
 ) -> Option<[Linearised; PATTERN.len()]> {
-    let c2 = config.gradient_weight_c * config.gradient_weight_c;
-    let mut out = [None; PATTERN.len()];
-    let mut energy = 0.0;
     let pair = PairGeometry::new(host, target, mode);
-    for (k, slot) in out.iter_mut().enumerate() {
-        let lin = linearise_in(
-            &pair,
-            &point.uv,
-            point.idepth,
-            point.intensity[k],
-            k,
-            host,
-            target,
-        )?;
-        // Gradient-weighted, as DSO tests it: on a strong edge a sub-pixel error is a large
-        // residual, not an outlier.
-        energy += lin.residual * lin.residual * c2 / (c2 + lin.grad2);
-        *slot = Some(lin);
-    }
-    let limit = config.outlier_threshold * config.outlier_threshold * PATTERN.len() as f64;
-    if energy > limit {
-        return None;
-    }
-    Some(out.map(|l| l.unwrap_or_else(|| unreachable!("every pattern pixel was filled"))))
+    outlier_tested(
+        config,
+        |k| {
+            linearise_in(
+                &pair,
+                &point.uv,
+                point.idepth,
+                point.intensity[k],
+                k,
+                host,
+                target,
+            )
+        },
+        |lin| (lin.residual, lin.grad2),
+    )
 }
 
 /// [`pattern`]'s residuals and squared gradients at the current state, without the
@@ -79,25 +71,48 @@ fn pattern_residuals(
     host: &FrameView<'_>,
     target: &FrameView<'_>,
 ) -> Option<[(f64, f64); PATTERN.len()]> {
-    let c2 = config.gradient_weight_c * config.gradient_weight_c;
     let pair = PairGeometry::new(host, target, Linearisation::Current);
-    let mut out = [(0.0, 0.0); PATTERN.len()];
+    outlier_tested(
+        config,
+        |k| {
+            residual_in(
+                &pair,
+                &point.uv,
+                point.idepth,
+                point.intensity[k],
+                k,
+                host,
+                target,
+            )
+        },
+        |&pixel| pixel,
+    )
+}
+
+/// The pattern's pixels from `pixel` (`None` when one is not visible), or `None` when their
+/// gradient-weighted energy (`residual(pixel)` gives residual and squared gradient) is above
+/// `outlier_threshold²` per pixel. Gradient-weighted, as DSO tests it: on a strong edge a
+/// sub-pixel error is a large residual, not an outlier.
+#[inline]
+fn outlier_tested<T: Copy>(
+    config: &OdometryConfig,
+    mut pixel: impl FnMut(usize) -> Option<T>,
+    residual: impl Fn(&T) -> (f64, f64),
+) -> Option<[T; PATTERN.len()]> {
+    let c2 = config.gradient_weight_c * config.gradient_weight_c;
+    let mut out = [None; PATTERN.len()];
     let mut energy = 0.0;
     for (k, slot) in out.iter_mut().enumerate() {
-        let (residual, grad2) = residual_in(
-            &pair,
-            &point.uv,
-            point.idepth,
-            point.intensity[k],
-            k,
-            host,
-            target,
-        )?;
-        energy += residual * residual * c2 / (c2 + grad2);
-        *slot = (residual, grad2);
+        let value = pixel(k)?;
+        let (r, grad2) = residual(&value);
+        energy += r * r * c2 / (c2 + grad2);
+        *slot = Some(value);
     }
     let limit = config.outlier_threshold * config.outlier_threshold * PATTERN.len() as f64;
-    (energy <= limit).then_some(out)
+    if energy > limit {
+        return None;
+    }
+    Some(out.map(|v| v.unwrap_or_else(|| unreachable!("every pattern pixel was filled"))))
 }
 
 /// The depth priors' energy of `points`.

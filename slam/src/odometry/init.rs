@@ -256,30 +256,18 @@ impl Initialiser {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::synth::{Motion, Scene, SynthConfig, render_frame_with};
-    use crate::image::ImageF32;
+    use crate::dataset::synth::{Motion, SynthConfig};
+    use crate::odometry::system_tests::rendered_frames;
 
     fn frames(motion: Motion, count: usize) -> Vec<Arc<Frame>> {
-        let config = SynthConfig {
+        rendered_frames(&SynthConfig {
             width: 320,
             height: 240,
             seed: 4,
             frames: count,
             motion,
             ..SynthConfig::default()
-        };
-        let camera = config.camera().expect("camera");
-        let scene = Scene::generate(config.seed);
-        config
-            .poses()
-            .iter()
-            .enumerate()
-            .map(|(i, pose)| {
-                let (rgb, _) = render_frame_with(&scene, &camera, pose, 1);
-                let gray = ImageF32::from_rgb8(&rgb);
-                Arc::new(Frame::new(i as u64, i as f64 / 30.0, camera, &gray, None).expect("frame"))
-            })
-            .collect()
+        })
     }
 
     #[test]

@@ -11,6 +11,22 @@ use crate::eval::umeyama::umeyama;
 use crate::frame::Frame;
 use crate::image::ImageF32;
 
+/// The frames of `config`'s rendered sequence, numbered from 0 at 30 Hz.
+pub(super) fn rendered_frames(config: &SynthConfig) -> Vec<Arc<Frame>> {
+    let camera = config.camera().expect("camera");
+    let scene = Scene::generate(config.seed);
+    config
+        .poses()
+        .iter()
+        .enumerate()
+        .map(|(i, pose)| {
+            let (rgb, _) = render_frame_with(&scene, &camera, pose, 1);
+            let gray = ImageF32::from_rgb8(&rgb);
+            Arc::new(Frame::new(i as u64, i as f64 / 30.0, camera, &gray, None).expect("frame"))
+        })
+        .collect()
+}
+
 /// RMSE after a Sim(3) alignment, and the alignment's scale.
 fn aligned(est: &[Vector3<f64>], gt: &[Vector3<f64>]) -> (f64, f64) {
     let align = umeyama(est, gt, true).expect("alignment");
@@ -32,16 +48,11 @@ fn odometry_poses_a_rendered_orbit_at_a_consistent_scale() {
         frames: 120,
         ..SynthConfig::default()
     };
-    let camera = config.camera().expect("camera");
-    let scene = Scene::generate(config.seed);
     let truth = config.poses();
     let mut odometry = Odometry::new(OdometryConfig::default()).expect("config");
     let mut tracked = 0;
-    for (i, pose) in truth.iter().enumerate() {
-        let (rgb, _) = render_frame_with(&scene, &camera, pose, 1);
-        let gray = ImageF32::from_rgb8(&rgb);
-        let frame = Frame::new(i as u64, i as f64 / 30.0, camera, &gray, None).expect("frame");
-        tracked += usize::from(odometry.push(Arc::new(frame)).expect("push").tracked);
+    for frame in rendered_frames(&config) {
+        tracked += usize::from(odometry.push(frame).expect("push").tracked);
     }
     let trajectory = odometry.trajectory();
     assert_eq!(trajectory.len(), truth.len(), "every frame has a pose");
@@ -75,18 +86,7 @@ fn threaded_window_that_catches_up_computes_what_the_window_in_step_does() {
         frames: 50,
         ..SynthConfig::default()
     };
-    let camera = config.camera().expect("camera");
-    let scene = Scene::generate(config.seed);
-    let frames: Vec<Arc<Frame>> = config
-        .poses()
-        .iter()
-        .enumerate()
-        .map(|(i, pose)| {
-            let (rgb, _) = render_frame_with(&scene, &camera, pose, 1);
-            let gray = ImageF32::from_rgb8(&rgb);
-            Arc::new(Frame::new(i as u64, i as f64 / 30.0, camera, &gray, None).expect("frame"))
-        })
-        .collect();
+    let frames = rendered_frames(&config);
     let run = |threaded: bool| {
         let mut odometry =
             Odometry::start(OdometryConfig::default(), 0, threaded).expect("odometry");
