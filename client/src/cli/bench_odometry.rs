@@ -3,16 +3,21 @@
 //! posed, ATE of every frame and of the keyframes (Sim(3)-aligned), scale drift and the wall
 //! time per frame, so that the new core is judged on the same figures as `bench accuracy`.
 
+use std::collections::HashMap;
 use std::path::PathBuf;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::Context;
 
 use relfusion_slam::dataset::trajectory::{StampedPose, write_tum_trajectory};
 use relfusion_slam::frame::Frame;
+use relfusion_slam::geometry::SE3;
 use relfusion_slam::geometry::UndistortMap;
-use relfusion_slam::odometry::{Odometry, OdometryConfig, WindowSnapshot};
+use relfusion_slam::odometry::truth::{self, TruthProbe};
+use relfusion_slam::odometry::{
+    Odometry, OdometryConfig, SlidingWindow, WindowObserver, WindowSnapshot,
+};
 
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::image::ImageF32;
@@ -51,6 +56,11 @@ pub struct OdometryArgs {
     /// time tracking took); without it frames come as fast as they are taken.
     #[arg(long)]
     pub paced: bool,
+    /// After each keyframe's optimisation, compare the window's energy at its estimate with
+    /// the energy at the ground-truth poses, and where free optimisation goes from each
+    /// (`odometry::truth`); prints one summary line per run. About 3× slower.
+    #[arg(long)]
+    pub truth_probe: bool,
 }
 
 pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
@@ -101,10 +111,25 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
             })
             .collect::<Result<Vec<_>, _>>()?;
         let path = loaded.path_length();
+        let truth = args
+            .truth_probe
+            .then(|| truth_by_frame(&loaded.gt, &frames));
         let mut medians: [Vec<f64>; 5] = Default::default();
         let fmt = |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
         for run in 0..args.runs {
-            let mut odometry = Odometry::start(config.clone(), run as u64, args.threaded)?;
+            let probes = Arc::new(Mutex::new(Vec::new()));
+            let observer = truth.clone().map(|truth| {
+                let probes = probes.clone();
+                WindowObserver(Arc::new(move |window: &SlidingWindow| {
+                    if let Some(p) = truth::probe(window, &|id| truth.get(&id).copied())
+                        && let Ok(mut probes) = probes.lock()
+                    {
+                        probes.push(p);
+                    }
+                }))
+            });
+            let mut odometry =
+                Odometry::start_observed(config.clone(), run as u64, args.threaded, observer)?;
             let mut tracked = 0;
             let mut keyframe_stamps = Vec::new();
             let t0 = Instant::now();
@@ -208,6 +233,11 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 shape.range_text(),
                 fmt(shape.scale_ratio, 2),
             );
+            if truth.is_some()
+                && let Ok(probes) = probes.lock()
+            {
+                print_truth_probes(&probes);
+            }
         }
         if args.runs > 1 {
             let [ate, kf_ate, share, drift, ms] = medians.map(|v| median(v.into_iter()));
@@ -270,4 +300,54 @@ impl WindowDepth {
         probe.add(timestamp, &pairs);
         Ok(())
     }
+}
+
+/// The ground-truth pose of every frame (by index, as the core numbers them) that has one
+/// within 20 ms of its timestamp.
+fn truth_by_frame(gt: &[StampedPose], frames: &[Arc<Frame>]) -> Arc<HashMap<u64, SE3>> {
+    let mut truth = HashMap::new();
+    for (i, f) in frames.iter().enumerate() {
+        let nearest = gt.iter().min_by(|a, b| {
+            (a.timestamp - f.timestamp)
+                .abs()
+                .total_cmp(&(b.timestamp - f.timestamp).abs())
+        });
+        if let Some(g) = nearest.filter(|g| (g.timestamp - f.timestamp).abs() < 0.02) {
+            truth.insert(i as u64, g.world_from_camera);
+        }
+    }
+    Arc::new(truth)
+}
+
+/// One line: medians over the run's windows of the energies relative to the estimate's and
+/// of how far each standing is off the truth.
+fn print_truth_probes(probes: &[TruthProbe]) {
+    let ratio = |f: fn(&TruthProbe) -> f64| {
+        median(probes.iter().map(|p| f(p) / p.estimate.energy.max(1e-12)))
+    };
+    let off = |f: fn(&TruthProbe) -> (f64, f64)| {
+        let (r, t) = (
+            median(probes.iter().map(|p| f(p).0)),
+            median(probes.iter().map(|p| f(p).1)),
+        );
+        format!(
+            "{} deg {}",
+            r.map_or_else(|| "-".into(), |v| format!("{v:.2}")),
+            t.map_or_else(|| "-".into(), |v| format!("{v:.3}"))
+        )
+    };
+    let x = |v: Option<f64>| v.map_or_else(|| "-".into(), |v| format!("{v:.2}"));
+    println!(
+        "  truth probe, medians of {} windows: energy at the truth ×{}, free from the truth ×{}, free from the estimate ×{} (of the estimate's); off the truth (rotation, position/spread): estimate {}, free from the truth {}, free from the estimate {}",
+        probes.len(),
+        x(ratio(|p| p.truth.energy)),
+        x(ratio(|p| p.from_truth.energy)),
+        x(ratio(|p| p.from_estimate.energy)),
+        off(|p| (p.estimate.rotation_deg, p.estimate.translation_rel)),
+        off(|p| (p.from_truth.rotation_deg, p.from_truth.translation_rel)),
+        off(|p| (
+            p.from_estimate.rotation_deg,
+            p.from_estimate.translation_rel
+        )),
+    );
 }

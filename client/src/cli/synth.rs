@@ -55,6 +55,10 @@ pub struct Args {
     /// JPEG quality of the colour images (0 = PNG).
     #[arg(long)]
     pub jpeg: Option<u8>,
+    /// Rolling shutter: row read-out time as a fraction of the frame interval (0 = global
+    /// shutter; Kinect-class and phone sensors read out in most of a frame).
+    #[arg(long)]
+    pub rolling_shutter: Option<f64>,
 }
 
 impl Args {
@@ -70,6 +74,7 @@ impl Args {
             noise: self.noise.unwrap_or(base.noise),
             motion_blur: self.motion_blur.unwrap_or(base.motion_blur),
             jpeg_quality: self.jpeg.unwrap_or(base.jpeg_quality),
+            rolling_shutter: self.rolling_shutter.unwrap_or(base.rolling_shutter),
         }
     }
 }

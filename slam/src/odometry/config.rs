@@ -53,6 +53,9 @@ pub struct OdometryConfig {
     pub keyframe_translation_weight: f64,
     pub keyframe_rotation_weight: f64,
     pub keyframe_affine_weight: f64,
+    /// Rolling shutter: seconds from reading the first image row to the last (0: a global
+    /// shutter). Each row's pose then follows the keyframe's tracked velocity.
+    pub rolling_shutter_readout: f64,
 }
 
 impl Default for OdometryConfig {
@@ -75,6 +78,7 @@ impl Default for OdometryConfig {
             keyframe_translation_weight: 0.04,
             keyframe_rotation_weight: 0.02,
             keyframe_affine_weight: 2.0,
+            rolling_shutter_readout: 0.0,
         }
     }
 }
@@ -113,6 +117,11 @@ impl OdometryConfig {
             if !(v.is_finite() && v > 0.0) {
                 return bad(&format!("{name} must be positive"));
             }
+        }
+        if !(self.rolling_shutter_readout.is_finite()
+            && (0.0..=1.0).contains(&self.rolling_shutter_readout))
+        {
+            return bad("rolling_shutter_readout must be in 0..=1 s");
         }
         if self.active_points == 0 || self.active_points > 20_000 {
             return bad("active_points must be in 1..=20000");

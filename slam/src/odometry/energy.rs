@@ -45,7 +45,7 @@ pub fn pattern(
     target: &FrameView<'_>,
     mode: Linearisation,
 ) -> Option<[Linearised; PATTERN.len()]> {
-    let pair = PairGeometry::new(host, target, mode);
+    let pair = PairGeometry::new(host, target, mode, &point.uv, point.idepth);
     outlier_tested(
         config,
         |k| {
@@ -71,7 +71,13 @@ fn pattern_residuals(
     host: &FrameView<'_>,
     target: &FrameView<'_>,
 ) -> Option<[(f64, f64); PATTERN.len()]> {
-    let pair = PairGeometry::new(host, target, Linearisation::Current);
+    let pair = PairGeometry::new(
+        host,
+        target,
+        Linearisation::Current,
+        &point.uv,
+        point.idepth,
+    );
     outlier_tested(
         config,
         |k| {

@@ -7,7 +7,7 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use nalgebra::Vector2;
+use nalgebra::{Vector2, Vector6};
 
 use super::immature::{ImmaturePoint, TraceConfig, TraceStatus, TraceTarget};
 use super::init::{HANDOVER_PRIOR_WEIGHT, Initialised};
@@ -67,8 +67,13 @@ pub enum MapJob {
     Start(Initialised),
     /// A tracked frame: trace the candidates in it.
     Frame { frame: Arc<Frame>, pose: SE3 },
-    /// A tracked frame that becomes a keyframe.
-    Keyframe { frame: Arc<Frame>, pose: SE3 },
+    /// A tracked frame that becomes a keyframe, with its tracked velocity (a twist per
+    /// second in its own frame).
+    Keyframe {
+        frame: Arc<Frame>,
+        pose: SE3,
+        velocity: Vector6<f64>,
+    },
 }
 
 /// A window point as published: host keyframe, pixel at the window's level, inverse depth.
@@ -101,6 +106,17 @@ pub struct Published {
     pub window: Arc<WindowSnapshot>,
 }
 
+/// Called with the window right after each keyframe's optimisation, on the window's
+/// thread: how benchmarks probe the window (`truth::probe`) without the window knowing them.
+#[derive(Clone)]
+pub struct WindowObserver(pub Arc<dyn Fn(&SlidingWindow) + Send + Sync>);
+
+impl std::fmt::Debug for WindowObserver {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("WindowObserver")
+    }
+}
+
 /// The window, its candidates and the activation order's generator.
 #[derive(Debug)]
 pub struct WindowMapper {
@@ -110,6 +126,7 @@ pub struct WindowMapper {
     candidates: Vec<ImmaturePoint>,
     /// State of the generator behind [`activation_order`]; 0: no shuffle.
     shuffle: u64,
+    observer: Option<WindowObserver>,
 }
 
 impl Service for WindowMapper {
@@ -128,9 +145,13 @@ impl Service for WindowMapper {
                         self.trace_candidates(&frame, &pose);
                     }
                 }
-                MapJob::Keyframe { frame, pose } => {
+                MapJob::Keyframe {
+                    frame,
+                    pose,
+                    velocity,
+                } => {
                     self.trace_candidates(&frame, &pose);
-                    reply(self.make_keyframe(frame, pose)?);
+                    reply(self.make_keyframe(frame, pose, velocity)?);
                 }
             }
         }
@@ -139,13 +160,18 @@ impl Service for WindowMapper {
 }
 
 impl WindowMapper {
-    pub fn new(config: OdometryConfig, seed: u64) -> Result<Self> {
+    pub fn new(
+        config: OdometryConfig,
+        seed: u64,
+        observer: Option<WindowObserver>,
+    ) -> Result<Self> {
         Ok(Self {
             window: SlidingWindow::new(config.clone())?,
             config,
             trace: TraceConfig::default(),
             candidates: Vec::new(),
             shuffle: shuffle_state(seed),
+            observer,
         })
     }
 
@@ -205,7 +231,12 @@ impl WindowMapper {
         }
     }
 
-    fn make_keyframe(&mut self, frame: Arc<Frame>, pose: SE3) -> Result<Published> {
+    fn make_keyframe(
+        &mut self,
+        frame: Arc<Frame>,
+        pose: SE3,
+        velocity: Vector6<f64>,
+    ) -> Result<Published> {
         let affine = self
             .window
             .frames()
@@ -219,8 +250,12 @@ impl WindowMapper {
                 affine,
             },
         )?;
+        self.window.set_velocity(frame.id, velocity);
         self.activate();
         self.window.optimize();
+        if let Some(observer) = &self.observer {
+            (observer.0)(&self.window);
+        }
         self.window.prune_outliers();
         let out_of_view = self.window.out_of_view();
         self.window.marginalize_points(&out_of_view);

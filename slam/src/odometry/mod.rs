@@ -16,7 +16,9 @@
 //! - [`select`]: candidate points spread over the image by a region-adaptive threshold;
 //! - [`init`]: the coarse initialiser; [`immature`]: candidates traced along epipolar lines;
 //! - [`mapper`]: the window's side (tracing, activation, keyframes), in step or on a thread;
-//!   [`system`]: the tracking side, which drives it.
+//!   [`system`]: the tracking side, which drives it;
+//! - [`truth`]: a benchmark's probe of where the window's energy has its minimum against the
+//!   ground truth.
 
 pub mod config;
 pub mod energy;
@@ -29,13 +31,14 @@ pub mod residual;
 pub mod select;
 pub mod solve;
 pub mod system;
+pub mod truth;
 
 use std::sync::Arc;
 
-use nalgebra::Vector2;
+use nalgebra::{Vector2, Vector6};
 
 pub use config::OdometryConfig;
-pub use mapper::{PublishedPoint, WindowSnapshot};
+pub use mapper::{PublishedPoint, WindowObserver, WindowSnapshot};
 pub use prior::MarginalisationPrior;
 pub use residual::{FrameState, Linearisation, PATTERN};
 pub use solve::{Anchor, SolveReport};
@@ -61,6 +64,9 @@ pub struct WindowFrame {
     pub first_estimate: FrameState,
     /// The window's level of its image, interleaved for sampling.
     pub samples: Arc<residual::Interleaved>,
+    /// The camera's motion when it was taken, a twist per second in its own frame (as
+    /// tracked): with a rolling shutter each row has its own pose.
+    pub velocity: Vector6<f64>,
 }
 
 /// An active point: one inverse depth in its host keyframe's camera.
@@ -189,9 +195,17 @@ impl SlidingWindow {
             frame,
             state,
             first_estimate: state,
+            velocity: Vector6::zeros(),
         });
         self.prior.push_frame();
         Ok(())
+    }
+
+    /// Sets keyframe `id`'s velocity ([`WindowFrame::velocity`]).
+    pub fn set_velocity(&mut self, id: u64, velocity: Vector6<f64>) {
+        if let Some(k) = self.index_of(id) {
+            self.frames[k].velocity = velocity;
+        }
     }
 
     /// DSO's `optimizeImmaturePoint`: a candidate's inverse depth refined by a few

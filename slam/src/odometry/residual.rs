@@ -15,7 +15,7 @@
 //! them and the estimate would drift while looking certain. Poses are perturbed on the right,
 //! `T ← T·exp(δ)`, tangent order (v, ω); a keyframe's eight parameters are `(v, ω, a, b)`.
 
-use nalgebra::{Matrix3, SMatrix, Vector2, Vector3};
+use nalgebra::{Matrix3, SMatrix, Vector2, Vector3, Vector6};
 
 use crate::geometry::{PinholeCamera, SE3, SO3};
 use crate::image::pyramid::PyramidLevel;
@@ -79,6 +79,22 @@ pub struct FrameView<'a> {
     pub camera: PinholeCamera,
     pub state: FrameState,
     pub first_estimate: FrameState,
+    /// The camera's motion from one image row to the next at this level (rolling shutter:
+    /// row `v` is seen from `pose · exp(row_twist · (v − middle row))`); zero for a global
+    /// shutter.
+    pub row_twist: Vector6<f64>,
+}
+
+impl FrameView<'_> {
+    /// The pose of row `v` relative to the frame's pose (the middle row's); `None` for a
+    /// global shutter.
+    fn row_offset(&self, v: f64) -> Option<SE3> {
+        if self.row_twist == Vector6::zeros() {
+            return None;
+        }
+        let middle = 0.5 * (self.level.height() as f64 - 1.0);
+        Some(SE3::exp(&(self.row_twist * (v - middle))))
+    }
 }
 
 /// Which state the geometric Jacobians are evaluated at.
@@ -114,15 +130,39 @@ pub struct PairGeometry {
 }
 
 impl PairGeometry {
-    pub fn new(host: &FrameView<'_>, target: &FrameView<'_>, mode: Linearisation) -> Self {
+    /// The geometry of the point at host pixel `uv` with inverse depth `idepth` in `target`.
+    /// With a rolling shutter the host pose is that of the point's row, the target's that of
+    /// the row where the point lands (found with the host row's pose); the Jacobians treat
+    /// the rows' offsets as constants (they are a fraction of a degree).
+    pub fn new(
+        host: &FrameView<'_>,
+        target: &FrameView<'_>,
+        mode: Linearisation,
+        uv: &Vector2<f64>,
+        idepth: f64,
+    ) -> Self {
         let relative =
             |h: &FrameState, t: &FrameState| t.world_from_camera.inverse() * h.world_from_camera;
-        let target_from_host = relative(&host.state, &target.state);
+        let mut target_from_host = relative(&host.state, &target.state);
         // Geometry at the linearisation point, the image gradient at the current prediction.
-        let lin_target_from_host = match mode {
+        let mut lin_target_from_host = match mode {
             Linearisation::FirstEstimate => relative(&host.first_estimate, &target.first_estimate),
             Linearisation::Current => target_from_host,
         };
+        if let Some(d) = host.row_offset(uv.y) {
+            target_from_host = target_from_host * d;
+            lin_target_from_host = lin_target_from_host * d;
+        }
+        if target.row_twist != Vector6::zeros() {
+            let x = target_from_host.act(&(host.camera.unproject(uv, 1.0) / idepth.max(1e-12)));
+            if x.z > 1e-6
+                && let Some(d) = target.row_offset(target.camera.project(&x).y)
+            {
+                let back = d.inverse();
+                target_from_host = back * target_from_host;
+                lin_target_from_host = back * lin_target_from_host;
+            }
+        }
         Self {
             target_from_host,
             lin_rotation: lin_target_from_host.rotation.matrix(),
@@ -145,7 +185,7 @@ pub fn linearise(
     target: &FrameView<'_>,
     mode: Linearisation,
 ) -> Option<Linearised> {
-    let pair = PairGeometry::new(host, target, mode);
+    let pair = PairGeometry::new(host, target, mode, uv, idepth);
     linearise_in(&pair, uv, idepth, host_intensity, k, host, target)
 }
 

@@ -93,12 +93,16 @@ pub fn views<'a>(
     frames
         .iter()
         .zip(states)
-        .map(|(f, s)| FrameView {
-            level: f.frame.level(config.level),
-            samples: &f.samples,
-            camera: f.frame.camera_at(config.level),
-            state: *s,
-            first_estimate: f.first_estimate,
+        .map(|(f, s)| {
+            let level = f.frame.level(config.level);
+            FrameView {
+                level,
+                samples: &f.samples,
+                camera: f.frame.camera_at(config.level),
+                state: *s,
+                first_estimate: f.first_estimate,
+                row_twist: f.velocity * (config.rolling_shutter_readout / level.height() as f64),
+            }
         })
         .collect()
 }

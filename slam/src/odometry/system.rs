@@ -10,11 +10,11 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use nalgebra::Vector3;
+use nalgebra::{Vector3, Vector6};
 
 use super::OdometryConfig;
 use super::init::Initialiser;
-use super::mapper::{MapJob, Published, WindowMapper, WindowSnapshot};
+use super::mapper::{MapJob, Published, WindowMapper, WindowObserver, WindowSnapshot};
 use crate::background::{Link, Priority, WorkerSpec};
 use crate::frame::Frame;
 use crate::geometry::SE3;
@@ -65,6 +65,8 @@ pub struct Odometry {
     pending: Option<(u64, SE3)>,
     /// World poses of the last two frames (the motion model).
     last: Option<(SE3, SE3)>,
+    /// Timestamp of the last frame (for the velocity a rolling shutter needs).
+    last_stamp: Option<f64>,
     /// Tracking residual of the first frame after the newest keyframe.
     first_residual: Option<f32>,
 }
@@ -83,6 +85,16 @@ impl Odometry {
     /// owes to chance: the core is deterministic, but not stable (docs/tuning.md,
     /// 2026-11-28, third stop).
     pub fn start(config: OdometryConfig, seed: u64, threaded: bool) -> Result<Self> {
+        Self::start_observed(config, seed, threaded, None)
+    }
+
+    /// [`Odometry::start`] with an observer of the window after each optimisation.
+    pub fn start_observed(
+        config: OdometryConfig,
+        seed: u64,
+        threaded: bool,
+        observer: Option<WindowObserver>,
+    ) -> Result<Self> {
         config.validate()?;
         let tracking = TrackingConfig {
             min_level: 0,
@@ -99,7 +111,7 @@ impl Odometry {
         };
         Ok(Self {
             window: Link::new(threaded, spec, move || {
-                WindowMapper::new(mapper_config, seed)
+                WindowMapper::new(mapper_config, seed, observer)
             })?,
             tracker: SE3Tracker::new(tracking)?,
             config,
@@ -111,6 +123,7 @@ impl Odometry {
             keyframes: HashMap::new(),
             pending: None,
             last: None,
+            last_stamp: None,
             first_residual: None,
         })
     }
@@ -166,7 +179,14 @@ impl Odometry {
             None => world_from_kf,
         };
         let (pose, tracked, residual) = self.track(&frame, &world_from_kf, &guess);
+        let velocity = match (self.last, self.last_stamp) {
+            (Some((_, before)), Some(t)) if frame.timestamp > t => {
+                (before.inverse() * pose).log() / (frame.timestamp - t)
+            }
+            _ => Vector6::zeros(),
+        };
         self.last = Some((self.last.map_or(pose, |l| l.1), pose));
+        self.last_stamp = Some(frame.timestamp);
         self.frames.push((
             frame.id,
             FramePose {
@@ -186,7 +206,11 @@ impl Odometry {
             && (self.needs_keyframe(&frame, &world_from_kf, &pose) || residual > 2.0 * first);
         let job = if keyframe {
             self.pending = Some((frame.id, pose));
-            MapJob::Keyframe { frame, pose }
+            MapJob::Keyframe {
+                frame,
+                pose,
+                velocity,
+            }
         } else {
             MapJob::Frame { frame, pose }
         };
@@ -263,6 +287,7 @@ impl Odometry {
     }
 
     fn initialise(&mut self, frame: Arc<Frame>) -> Result<FrameOutcome> {
+        let frame_timestamp = frame.timestamp;
         let first_id = self.frames.first().map_or(frame.id, |(_, p)| p.keyframe);
         // Frames during initialisation get the finished initialiser's poses.
         self.frames.push((
@@ -307,6 +332,7 @@ impl Odometry {
             ));
         }
         self.last = Some((previous, pose));
+        self.last_stamp = Some(frame_timestamp);
         Ok(FrameOutcome {
             world_from_camera: pose,
             keyframe: true,

@@ -46,6 +46,7 @@ fn residual_jacobians_match_numeric_differences() {
         camera,
         state: s,
         first_estimate: s,
+        row_twist: Vector6::zeros(),
     };
     let mut checked = 0;
     for (i, (u, v, rho)) in [
@@ -189,7 +190,7 @@ pub(super) fn add_keyframe(
 }
 
 /// A pose moved by about `cm` centimetres and `deg` degrees in a random direction.
-fn perturbed(pose: &SE3, rng: &mut ChaCha8Rng, cm: f64, deg: f64) -> SE3 {
+pub(super) fn perturbed(pose: &SE3, rng: &mut ChaCha8Rng, cm: f64, deg: f64) -> SE3 {
     let mut unit = || {
         Vector3::new(
             rng.random_range(-1.0..1.0),

@@ -158,23 +158,54 @@ pub fn render_frame_with(
     world_from_camera: &SE3,
     n: u32,
 ) -> (::image::RgbImage, ImageF32) {
+    render_rows(scene, camera, &|_| *world_from_camera, false, n)
+}
+
+/// A rolling-shutter view: row `y` seen from `pose_of_row(y)` (a real sensor reads its rows
+/// one after another while the camera moves), `n × n` colour samples per pixel.
+pub fn render_rolling(
+    scene: &Scene,
+    camera: &PinholeCamera,
+    pose_of_row: &dyn Fn(u32) -> SE3,
+    n: u32,
+) -> (::image::RgbImage, ImageF32) {
+    render_rows(scene, camera, pose_of_row, true, n)
+}
+
+/// Ray-casts every row from `pose_of_row`; `per_row`: the pose changes from row to row (the
+/// blocks' image bounds are then recomputed per row, else once).
+fn render_rows(
+    scene: &Scene,
+    camera: &PinholeCamera,
+    pose_of_row: &dyn Fn(u32) -> SE3,
+    per_row: bool,
+    n: u32,
+) -> (::image::RgbImage, ImageF32) {
     let (w, h) = (camera.width, camera.height);
-    let rot = world_from_camera.rotation.matrix();
-    let origin = world_from_camera.translation;
     let n = n.max(1);
     let inv_samples = 1.0 / (n * n) as f32;
-    // Ray through image point (x, y) with camera-frame z = 1, so the hit parameter is z-depth.
-    let ray = |x: f64, y: f64| {
-        rot * Vector3::new(
-            (x - camera.cx) / camera.fx,
-            (y - camera.cy) / camera.fy,
-            1.0,
-        )
-    };
-    let bounds = scene.block_pixel_bounds(camera, world_from_camera);
     let mut rgb = ::image::RgbImage::new(w, h);
     let mut depth = ImageF32::filled(w as usize, h as usize, 0.0);
+    let first = pose_of_row(0);
+    let mut bounds = scene.block_pixel_bounds(camera, &first);
     for y in 0..h {
+        let world_from_camera = if per_row && y > 0 {
+            let pose = pose_of_row(y);
+            bounds = scene.block_pixel_bounds(camera, &pose);
+            pose
+        } else {
+            first
+        };
+        let rot = world_from_camera.rotation.matrix();
+        let origin = world_from_camera.translation;
+        // Ray through image point (x, y) with camera-frame z = 1: the hit parameter is z-depth.
+        let ray = |x: f64, y: f64| {
+            rot * Vector3::new(
+                (x - camera.cx) / camera.fx,
+                (y - camera.cy) / camera.fy,
+                1.0,
+            )
+        };
         let py = f64::from(y);
         let row_mask = bounds
             .iter()
@@ -310,7 +341,15 @@ fn write_frame(
         let offsets = nuisances.exposure_offsets(config.fps);
         let mut linear = vec![0.0f32; ideal.as_raw().len()];
         for &dt in &offsets {
-            let sub = if dt == 0.0 {
+            let sub = if nuisances.rolling_shutter > 0.0 {
+                let readout = nuisances.rolling_shutter / config.fps;
+                let rows = f64::from(camera.height);
+                let pose_of_row = |y: u32| {
+                    let row = (f64::from(y) + 0.5) / rows - 0.5;
+                    trajectory.world_from_camera(time + dt + readout * row)
+                };
+                render_rolling(scene, camera, &pose_of_row, config.supersample).0
+            } else if dt == 0.0 {
                 ideal.clone()
             } else {
                 let pose = trajectory.world_from_camera(time + dt);

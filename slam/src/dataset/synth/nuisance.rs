@@ -3,7 +3,8 @@
 //! data that is not kinder than real video).
 //!
 //! Order follows the image formation: the scene radiance is integrated over the shutter time
-//! (motion blur: the mean of renderings at poses spread over the exposure), attenuated by the
+//! (motion blur: the mean of renderings at poses spread over the exposure; with a rolling
+//! shutter each rendering sees each row from that row's pose), attenuated by the
 //! lens (vignetting, `1 − k·r²` with `r` the distance from the centre over the half diagonal),
 //! scaled by the exposure gain, disturbed by noise, quantised to 8 bits and compressed. TUM and
 //! 7-Scenes frames show all of these; the direct tracker models only the global affine part
@@ -34,6 +35,10 @@ pub struct Nuisances {
     pub motion_blur: f64,
     /// JPEG quality of the colour images (1-100); 0 writes lossless PNG.
     pub jpeg_quality: u8,
+    /// Rolling shutter: the time the sensor takes to read its rows, as a fraction of the
+    /// frame interval (0 = global shutter). Row `y` is seen at the frame's time plus
+    /// `(y/h − ½)` of it; the ground truth is the middle row's pose.
+    pub rolling_shutter: f64,
 }
 
 impl Default for Nuisances {
@@ -44,6 +49,7 @@ impl Default for Nuisances {
             noise: 0.0,
             motion_blur: 0.0,
             jpeg_quality: 0,
+            rolling_shutter: 0.0,
         }
     }
 }
@@ -61,6 +67,7 @@ impl Nuisances {
         noise: 2.0,
         motion_blur: 0.5,
         jpeg_quality: 85,
+        rolling_shutter: 0.0,
     };
 
     /// Whether any nuisance is on.
@@ -91,6 +98,10 @@ impl Nuisances {
         check(
             self.motion_blur.is_finite() && (0.0..=1.0).contains(&self.motion_blur),
             "motion_blur must be in 0..=1 frame intervals",
+        )?;
+        check(
+            self.rolling_shutter.is_finite() && (0.0..=1.0).contains(&self.rolling_shutter),
+            "rolling_shutter must be in 0..=1 frame intervals",
         )?;
         check(self.jpeg_quality <= 100, "jpeg_quality must be 0..=100")
     }

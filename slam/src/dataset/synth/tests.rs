@@ -512,3 +512,37 @@ fn dataset_synth_nuisances_are_deterministic_and_do_what_they_say() {
         let _ = std::fs::remove_dir_all(dir);
     }
 }
+
+/// A rolling-shutter rendering is the global one when the pose does not change, and each row
+/// is the row of the global rendering from that row's pose when it does.
+#[test]
+fn dataset_synth_rolling_shutter_renders_each_row_from_its_pose() {
+    let config = small(2, 1);
+    let camera = config.camera().expect("camera");
+    let scene = Scene::generate(config.seed);
+    let pose = config.poses()[0];
+    let still = render_rolling(&scene, &camera, &|_| pose, 1);
+    assert_eq!(still.0, render_frame_with(&scene, &camera, &pose, 1).0);
+    let turn = |y: u32| {
+        pose * SE3::exp(&nalgebra::Vector6::new(
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.002 * f64::from(y),
+            0.0,
+        ))
+    };
+    let rolling = render_rolling(&scene, &camera, &turn, 1).0;
+    let last = camera.height - 1;
+    let row = |img: &::image::RgbImage, y: u32| -> Vec<u8> {
+        (0..img.width())
+            .flat_map(|x| img.get_pixel(x, y).0)
+            .collect()
+    };
+    for y in [0, camera.height / 2, last] {
+        let global = render_frame_with(&scene, &camera, &turn(y), 1).0;
+        assert_eq!(row(&rolling, y), row(&global, y), "row {y}");
+    }
+    assert_ne!(row(&rolling, last), row(&still.0, last));
+}
