@@ -337,12 +337,25 @@ fn print_truth_probes(probes: &[TruthProbe]) {
         )
     };
     let x = |v: Option<f64>| v.map_or_else(|| "-".into(), |v| format!("{v:.2}"));
+    let common = median(
+        probes
+            .iter()
+            .filter(|p| p.common_points > 0)
+            .map(|p| p.common_truth / p.common_estimate.max(1e-12)),
+    );
+    let share = median(
+        probes
+            .iter()
+            .map(|p| p.common_points as f64 / p.points.max(1) as f64),
+    );
     println!(
-        "  truth probe, medians of {} windows: energy at the truth ×{}, free from the truth ×{}, free from the estimate ×{} (of the estimate's); off the truth (rotation, position/spread): estimate {}, free from the truth {}, free from the estimate {}",
+        "  truth probe, medians of {} windows: energy at the truth ×{}, free from the truth ×{}, free from the estimate ×{} (of the estimate's); on the points that are inliers everywhere at both ({} of the window's) the truth costs ×{}; off the truth (rotation, position/spread): estimate {}, free from the truth {}, free from the estimate {}",
         probes.len(),
         x(ratio(|p| p.truth.energy)),
         x(ratio(|p| p.from_truth.energy)),
         x(ratio(|p| p.from_estimate.energy)),
+        x(share),
+        x(common),
         off(|p| (p.estimate.rotation_deg, p.estimate.translation_rel)),
         off(|p| (p.from_truth.rotation_deg, p.from_truth.translation_rel)),
         off(|p| (

@@ -54,7 +54,9 @@ pub struct OdometryConfig {
     pub keyframe_rotation_weight: f64,
     pub keyframe_affine_weight: f64,
     /// Rolling shutter: seconds from reading the first image row to the last (0: a global
-    /// shutter). Each row's pose then follows the keyframe's tracked velocity.
+    /// shutter). Each row's pose then follows the keyframe's tracked velocity. Default 0: it
+    /// helps rendered rolling-shutter video, but 23 or 30 ms made the real sequences worse
+    /// (docs/tuning.md, 2026-11-28, fifth stop); a camera's known read-out time may be set.
     pub rolling_shutter_readout: f64,
 }
 

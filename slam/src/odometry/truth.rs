@@ -9,7 +9,7 @@
 use nalgebra::{Matrix3, Vector3};
 
 use super::energy::{self, NormalEquations};
-use super::residual::{FrameState, Linearisation};
+use super::residual::{FrameState, Linearisation, PATTERN};
 use super::{SlidingWindow, WindowPoint, solve};
 use crate::geometry::{SE3, SO3};
 
@@ -97,6 +97,12 @@ pub struct TruthProbe {
     /// Optimised freely (no prior) from the truth, and from the estimate.
     pub from_truth: Standing,
     pub from_estimate: Standing,
+    /// The points that are inliers in every other keyframe both at the estimate and at the
+    /// truth: how many, and their energy at each. The window keeps the points that agree with
+    /// its estimate; on this common set that choice cannot favour either.
+    pub common_points: usize,
+    pub common_estimate: f64,
+    pub common_truth: f64,
 }
 
 impl SlidingWindow {
@@ -134,6 +140,22 @@ impl SlidingWindow {
             rotation_deg: rotation / n,
             translation_rel: (position / n).sqrt() / spread.max(1e-12),
         }
+    }
+
+    /// Every point's photometric energy, and whether it is an inlier in every other keyframe.
+    fn point_energies(&self) -> Vec<(f64, bool)> {
+        let states: Vec<FrameState> = self.frames.iter().map(|f| f.state).collect();
+        let views = solve::views(&self.config, &self.frames, &states);
+        let full = PATTERN.len() * (views.len() - 1);
+        self.points
+            .iter()
+            .zip(self.hosts())
+            .map(|(p, h)| {
+                let (e, n) =
+                    energy::photometric_energy(&self.config, std::slice::from_ref(p), &[h], &views);
+                (e, n == full)
+            })
+            .collect()
     }
 
     /// Every point's inverse depth alone, poses and brightness fixed: a log-spaced search,
@@ -226,7 +248,22 @@ pub fn probe(window: &SlidingWindow, truth: &dyn Fn(u64) -> Option<SE3>) -> Opti
     from_truth.optimize();
     let mut from_estimate = window.unprimed();
     from_estimate.optimize();
+    let (mut common_points, mut common_estimate, mut common_truth) = (0, 0.0, 0.0);
+    for ((e, e_in), (t, t_in)) in window
+        .point_energies()
+        .into_iter()
+        .zip(at_truth.point_energies())
+    {
+        if e_in && t_in {
+            common_points += 1;
+            common_estimate += e;
+            common_truth += t;
+        }
+    }
     Some(TruthProbe {
+        common_points,
+        common_estimate,
+        common_truth,
         keyframe: window.frames.last()?.id,
         points: window.points.len(),
         estimate: window.standing(&truth),
