@@ -24,11 +24,36 @@ use crate::api::{Client, CreateSession, FramePolicy, SessionInfo};
 use crate::error::ClientError;
 use crate::link::{SessionLink, Transport, end_of_stream, frame_message, open_session};
 
+/// When each frame is sent.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum Pace {
+    /// As fast as the server accepts: with [`FramePolicy::Wait`] every frame is processed at
+    /// the server's speed (a recorded sequence as a batch).
+    #[default]
+    Fast,
+    /// At the sequence's own timestamps, as the camera delivered them (a live replay).
+    Timestamps,
+    /// At a fixed rate, frames per second.
+    Fps(f64),
+}
+
+impl Pace {
+    /// When frame `i` with timestamp `t` is due, after the start; `first` is the first
+    /// frame's timestamp. `None`: at once.
+    fn due(&self, i: usize, t: f64, first: f64) -> Option<Duration> {
+        match *self {
+            Pace::Fast => None,
+            Pace::Timestamps => Some(Duration::from_secs_f64((t - first).max(0.0))),
+            Pace::Fps(fps) => Some(Duration::from_secs_f64(i as f64 / fps)),
+        }
+    }
+}
+
 /// How to stream a dataset.
 #[derive(Clone, Debug, Default)]
 pub struct StreamOptions {
-    /// Frames per second to pace the stream at; `None`: as fast as the server accepts.
-    pub fps: Option<f64>,
+    /// When frames are sent.
+    pub pace: Pace,
     /// `drop_oldest` for a live camera, `wait` to have every frame processed.
     pub policy: FramePolicy,
     /// Partial pipeline config (JSON object), `null` for the defaults.
@@ -106,7 +131,7 @@ pub async fn stream_dataset(
     opts: &StreamOptions,
     mut on_event: impl FnMut(StreamEvent),
 ) -> Result<StreamSummary, ClientError> {
-    if let Some(fps) = opts.fps
+    if let Pace::Fps(fps) = opts.pace
         && !(fps.is_finite() && fps > 0.0)
     {
         return Err(ClientError::InvalidOption(format!(
@@ -140,7 +165,7 @@ pub async fn stream_dataset(
     });
 
     let (sent_tx, mut sent_rx) = mpsc::unbounded_channel();
-    let sender = tokio::spawn(send_frames(frames, opts.fps, frames_tx, sent_tx));
+    let sender = tokio::spawn(send_frames(frames, opts.pace, frames_tx, sent_tx));
     let mut summary = StreamSummary {
         session_id: session_id.clone(),
         frames_sent: 0,
@@ -205,22 +230,23 @@ struct Sent {
     ended: bool,
 }
 
-/// Sends every frame (paced at `fps` if given), then the end-of-stream marker. Stops early
-/// when the transport is gone (the reader reports why).
+/// Sends every frame at its `pace`, then the end-of-stream marker. Stops early when the
+/// transport is gone (the reader reports why).
 async fn send_frames(
     frames: Vec<(f64, PathBuf)>,
-    fps: Option<f64>,
+    pace: Pace,
     tx: mpsc::Sender<relfusion_proto::v1::ClientMessage>,
     sent: mpsc::UnboundedSender<u64>,
 ) -> Result<Sent, ClientError> {
     let start = tokio::time::Instant::now();
+    let first = frames.first().map_or(0.0, |f| f.0);
     let mut count = 0;
     for (i, (timestamp, path)) in frames.into_iter().enumerate() {
         let image = tokio::fs::read(&path)
             .await
             .map_err(|e| ClientError::io(&path, e))?;
-        if let Some(fps) = fps {
-            tokio::time::sleep_until(start + Duration::from_secs_f64(i as f64 / fps)).await;
+        if let Some(due) = pace.due(i, timestamp, first) {
+            tokio::time::sleep_until(start + due).await;
         }
         if tx
             .send(frame_message(i as u64, timestamp, image))
@@ -316,6 +342,17 @@ pub fn pose_line(pose: Option<&Sim3Pose>, tracking_state: i32) -> PoseLine {
 mod tests {
     use super::*;
     use relfusion_proto::v1::{PoseUpdate, Quaternion, Vector3};
+
+    #[test]
+    fn pace_sends_at_the_timestamps_a_rate_or_at_once() {
+        let ms = |d: Option<Duration>| d.map(|d| d.as_millis());
+        assert_eq!(ms(Pace::Timestamps.due(0, 10.0, 10.0)), Some(0));
+        // A gap in the recording stays a gap; the frame index does not matter.
+        assert_eq!(ms(Pace::Timestamps.due(1, 10.5, 10.0)), Some(500));
+        assert_eq!(ms(Pace::Fps(20.0).due(3, 99.0, 10.0)), Some(150));
+        assert_eq!(Pace::Fast.due(3, 99.0, 10.0), None);
+        assert_eq!(Pace::default(), Pace::Fast);
+    }
 
     #[test]
     fn pose_updates_become_pose_lines() {

@@ -26,7 +26,7 @@ pub use api::{
     CameraJson, Client, CreateSession, FramePolicy, MapInfo, MapMode, MapStart, SessionInfo,
     SessionKind, SessionState, camera_json,
 };
-pub use dataset_stream::{StreamEvent, StreamOptions, StreamSummary, stream_dataset};
+pub use dataset_stream::{Pace, StreamEvent, StreamOptions, StreamSummary, stream_dataset};
 pub use error::ClientError;
 pub use fetch::{Fetched, fetch};
 pub use link::{SessionLink, Transport};

@@ -47,6 +47,7 @@ fn stream_gives_every_pose_and_the_same_trajectory_as_run() {
         "--server",
         &url,
         "--wait",
+        "--fast",
         "--config",
         path_str(&config),
     ]);

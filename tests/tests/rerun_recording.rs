@@ -208,6 +208,7 @@ fn stream_and_run_write_rerun_recordings_that_read_back() {
         "--server",
         &server.url(),
         "--wait",
+        "--fast",
         "--rerun",
         streamed.to_str().expect("path"),
     ]);

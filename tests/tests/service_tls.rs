@@ -78,6 +78,7 @@ fn the_client_streams_and_fetches_over_tls_with_the_ca_it_is_given() {
             "--ca-cert",
             s(&ca),
             "--wait",
+            "--fast",
             "--config",
             s(&config),
         ]),

@@ -1,4 +1,6 @@
-//! `relfusion stream DATASET --server URL`: a TUM-layout sequence streamed live to relfusiond.
+//! `relfusion stream DATASET --server URL`: a TUM-layout sequence streamed live to relfusiond,
+//! at its own timestamps by default (`--fps F` at a fixed rate, `--fast --wait` as fast as the
+//! server takes every frame).
 //!
 //! stdout is JSON lines, for scripts: `{"session": ID}` first, then one line per pose as it
 //! arrives (`frame_id`, `timestamp`, `t`, `q` (x y z w), `s`, `state`), then
@@ -10,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use relfusion_client::dataset_stream::{StreamEvent, StreamOptions, stream_dataset};
-use relfusion_client::{Client, FramePolicy, Transport};
+use relfusion_client::{Client, FramePolicy, Pace, Transport};
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{StampedPose, parse_tum_trajectory};
 use relfusion_slam::eval::{AlignMode, ate};
@@ -29,9 +31,14 @@ pub struct Args {
     /// WebSocket; --server is still used for the final figures.
     #[arg(long)]
     pub zenoh: Option<String>,
-    /// Pace frames like a camera at F frames/s (default: as fast as the server accepts).
-    #[arg(long)]
+    /// Send frames at F frames/s (default: at the sequence's own timestamps, as the camera
+    /// delivered them).
+    #[arg(long, conflicts_with = "fast")]
     pub fps: Option<f64>,
+    /// Send frames as fast as the server takes them; needs --wait (a live camera's policy
+    /// would drop most of them).
+    #[arg(long, requires = "wait")]
+    pub fast: bool,
     /// Pipeline config overrides (JSON or TOML file, e.g. {"pipeline":{"deterministic":true}}).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -66,7 +73,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         None => Value::Null,
     };
     let opts = StreamOptions {
-        fps: args.fps,
+        pace: match (args.fps, args.fast) {
+            (Some(fps), _) => Pace::Fps(fps),
+            (None, true) => Pace::Fast,
+            (None, false) => Pace::Timestamps,
+        },
         policy: if args.wait {
             FramePolicy::Wait
         } else {

@@ -13,6 +13,7 @@ use super::error::ErrorBody;
 use super::openapi::Binary;
 use crate::session::Session;
 use crate::{ApiError, AppState};
+use relfusion_proto::http::SessionInfo;
 
 const TEXT: &str = "text/plain; charset=utf-8";
 const BINARY: &str = "application/octet-stream";
@@ -42,10 +43,24 @@ fn file(content_type: &'static str, name: String, body: impl IntoResponse) -> Re
         .into_response()
 }
 
-fn no_mesh(id: &str) -> ApiError {
+/// The 404 of a session without a mesh, saying why from its figures.
+fn no_mesh(id: &str, info: &SessionInfo) -> ApiError {
+    let why = if info.dense_mode == "off" {
+        "its dense layer is off (pipeline.dense.enabled = false), so it fuses nothing".to_string()
+    } else {
+        let source = if info.dense_mode == "no_model" {
+            "without a depth model, from the semi-dense keyframe depth"
+        } else {
+            "with the depth model"
+        };
+        format!(
+            "nothing fused yet: {} keyframes, {} of them densified ({source}); the mesh \
+             appears once a densified keyframe is fused",
+            info.keyframes, info.keyframes_densified
+        )
+    };
     ApiError::not_found(format!(
-        "no mesh yet: session {id} has no fused surface (this server's pipeline does not fuse \
-         meshes yet); the trajectory, keyframes and point cloud are available"
+        "no mesh: session {id}: {why}; the trajectory, keyframes and point cloud are available"
     ))
 }
 
@@ -132,9 +147,10 @@ pub async fn mesh_ply(
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     let session = state.sessions.get(&id, &owner)?;
+    let info = session.info();
     let bytes = produce(session, Session::mesh_ply)
         .await?
-        .ok_or_else(|| no_mesh(&id))?;
+        .ok_or_else(|| no_mesh(&id, &info))?;
     Ok(file(BINARY, format!("{id}-mesh.ply"), bytes))
 }
 
@@ -155,8 +171,9 @@ pub async fn mesh_glb(
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     let session = state.sessions.get(&id, &owner)?;
+    let info = session.info();
     let bytes = produce(session, Session::mesh_glb)
         .await?
-        .ok_or_else(|| no_mesh(&id))?;
+        .ok_or_else(|| no_mesh(&id, &info))?;
     Ok(file(GLB, format!("{id}-mesh.glb"), bytes))
 }

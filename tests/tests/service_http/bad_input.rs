@@ -217,3 +217,40 @@ fn invalid_session_requests_get_400() {
         created.body
     );
 }
+
+/// A mesh asked for before there is one gets a 404 that says why: the dense layer is off, or
+/// nothing has been fused yet (with the keyframe counts).
+#[test]
+fn a_session_without_a_mesh_says_why() {
+    let seq = TumSequence::open(&synth_sequence("http-bad", 8, 5), None).expect("synth");
+    let server = spawn("no-mesh", None, &[]);
+    let created = post_json(
+        &server,
+        "/v1/sessions",
+        None,
+        &json!({
+            "camera": camera_json(&seq),
+            "config": { "dense": { "enabled": false } },
+        }),
+    );
+    assert_eq!(created.status, 201, "{}", created.body);
+    let off = created.json()["id"].as_str().expect("id").to_string();
+    let fresh = create_session(&server, &seq, None);
+    for file in ["mesh.ply", "mesh.glb"] {
+        let message = get(&server, &format!("/v1/sessions/{off}/{file}"), None).expect_error(
+            404,
+            "not_found",
+            "dense layer off",
+        );
+        assert!(message.contains("dense layer is off"), "{message}");
+        let message = get(&server, &format!("/v1/sessions/{fresh}/{file}"), None).expect_error(
+            404,
+            "not_found",
+            "nothing fused",
+        );
+        assert!(
+            message.contains("nothing fused yet: 0 keyframes"),
+            "{message}"
+        );
+    }
+}
