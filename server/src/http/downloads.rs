@@ -147,10 +147,9 @@ pub async fn mesh_ply(
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     let session = state.sessions.get(&id, &owner)?;
-    let info = session.info();
-    let bytes = produce(session, Session::mesh_ply)
+    let bytes = produce(session.clone(), Session::mesh_ply)
         .await?
-        .ok_or_else(|| no_mesh(&id, &info))?;
+        .ok_or_else(|| no_mesh(&id, &session.info()))?;
     Ok(file(BINARY, format!("{id}-mesh.ply"), bytes))
 }
 
@@ -171,9 +170,8 @@ pub async fn mesh_glb(
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     let session = state.sessions.get(&id, &owner)?;
-    let info = session.info();
-    let bytes = produce(session, Session::mesh_glb)
+    let bytes = produce(session.clone(), Session::mesh_glb)
         .await?
-        .ok_or_else(|| no_mesh(&id, &info))?;
+        .ok_or_else(|| no_mesh(&id, &session.info()))?;
     Ok(file(GLB, format!("{id}-mesh.glb"), bytes))
 }

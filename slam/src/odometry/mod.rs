@@ -99,6 +99,51 @@ impl DepthPrior {
     }
 }
 
+/// `point`'s energy in `views` (its host is `views[k]`): photometric plus its depth prior.
+fn point_energy(
+    config: &OdometryConfig,
+    point: &WindowPoint,
+    k: usize,
+    views: &[residual::FrameView<'_>],
+) -> f64 {
+    energy::photometric_energy(config, std::slice::from_ref(point), &[k], views).0
+        + energy::depth_prior_energy(std::slice::from_ref(point))
+}
+
+/// Levenberg–Marquardt on `point`'s inverse depth alone, everything else fixed, for at most
+/// `iterations` steps (each at most halves or doubles it).
+fn refine_depth(
+    config: &OdometryConfig,
+    point: &mut WindowPoint,
+    k: usize,
+    views: &[residual::FrameView<'_>],
+    iterations: usize,
+) {
+    let mut current = point_energy(config, point, k, views);
+    let mut lambda = 0.1;
+    for _ in 0..iterations {
+        let mut eq = energy::NormalEquations::zeros(views.len());
+        eq.add_point(config, point, k, views, Linearisation::Current);
+        let sys = &eq.points[0];
+        if sys.h_dd <= 1e-12 {
+            break;
+        }
+        let step = -sys.b_d / (sys.h_dd * (1.0 + lambda));
+        let trial = WindowPoint {
+            idepth: (point.idepth + step).clamp(0.5 * point.idepth, 2.0 * point.idepth),
+            ..point.clone()
+        };
+        let e = point_energy(config, &trial, k, views);
+        if e < current {
+            *point = trial;
+            current = e;
+            lambda *= 0.5;
+        } else {
+            lambda *= 5.0;
+        }
+    }
+}
+
 /// The sliding window: keyframes, their active points and the marginalisation prior.
 #[derive(Clone, Debug)]
 pub struct SlidingWindow {
@@ -218,32 +263,7 @@ impl SlidingWindow {
         let mut point = self.sample_point(k, host, uv, idepth)?;
         let states: Vec<FrameState> = self.frames.iter().map(|f| f.state).collect();
         let views = solve::views(&self.config, &self.frames, &states);
-        let energy = |p: &WindowPoint| {
-            energy::photometric_energy(&self.config, std::slice::from_ref(p), &[k], &views).0
-        };
-        let mut current = energy(&point);
-        let mut lambda = 0.1;
-        for _ in 0..ACTIVATION_ITERATIONS {
-            let mut eq = energy::NormalEquations::zeros(self.frames.len());
-            eq.add_point(&self.config, &point, k, &views, Linearisation::Current);
-            let sys = &eq.points[0];
-            if sys.h_dd <= 1e-12 {
-                break;
-            }
-            let step = -sys.b_d / (sys.h_dd * (1.0 + lambda));
-            let trial = WindowPoint {
-                idepth: (point.idepth + step).clamp(0.5 * point.idepth, 2.0 * point.idepth),
-                ..point.clone()
-            };
-            let e = energy(&trial);
-            if e < current {
-                point = trial;
-                current = e;
-                lambda *= 0.5;
-            } else {
-                lambda *= 5.0;
-            }
-        }
+        refine_depth(&self.config, &mut point, k, &views, ACTIVATION_ITERATIONS);
         let mut eq = energy::NormalEquations::zeros(self.frames.len());
         eq.add_point(&self.config, &point, k, &views, Linearisation::Current);
         let needed = MIN_GOOD_TARGETS

@@ -8,67 +8,53 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::energy::{self, NormalEquations};
-use super::residual::{FrameState, Linearisation, PATTERN};
-use super::{SlidingWindow, WindowPoint, solve};
-use crate::geometry::{SE3, SO3};
+use super::energy;
+use super::residual::{FrameState, PATTERN};
+use super::{SlidingWindow, WindowPoint, point_energy, refine_depth, solve};
+use crate::geometry::{SE3, SO3, Sim3};
 
 /// Iterations of the free optimisations: enough to reach the minimum near each start.
 const FREE_ITERATIONS: usize = 20;
 /// Inverse depths tried per point at the true poses, log-spaced over ±8× the estimate: the
 /// estimate's depth may be an outlier at other poses, and Gauss–Newton never leaves one.
 const DEPTH_SEARCH: usize = 61;
+/// Levenberg–Marquardt steps on each depth after the search.
+const DEPTH_ITERATIONS: usize = 10;
 
-/// A similarity `(s, R, t)`: `x ↦ s·R·x + t`.
-#[derive(Clone, Copy, Debug)]
-struct Similarity {
-    scale: f64,
-    rotation: SO3,
-    translation: Vector3<f64>,
+/// The similarity that maps the poses `from` onto `to`: the rotation from the poses'
+/// rotations (chordal mean), scale and translation from their centres. Windows span little
+/// motion, so centres alone (Umeyama) would leave the rotation ill-defined.
+fn fit_similarity(from: &[SE3], to: &[SE3]) -> Sim3 {
+    let mut m = Matrix3::zeros();
+    for (f, t) in from.iter().zip(to) {
+        m += t.rotation.matrix() * f.rotation.matrix().transpose();
+    }
+    let svd = m.svd(true, true);
+    let (u, v_t) = match (svd.u, svd.v_t) {
+        (Some(u), Some(v_t)) => (u, v_t),
+        _ => (Matrix3::identity(), Matrix3::identity()),
+    };
+    let mut d = Matrix3::identity();
+    if (u * v_t).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let r = u * d * v_t;
+    let n = from.len().max(1) as f64;
+    let cf = from.iter().map(|p| p.translation).sum::<Vector3<f64>>() / n;
+    let ct = to.iter().map(|p| p.translation).sum::<Vector3<f64>>() / n;
+    let (mut num, mut den) = (0.0, 0.0);
+    for (f, t) in from.iter().zip(to) {
+        let a = r * (f.translation - cf);
+        num += a.dot(&(t.translation - ct));
+        den += a.norm_squared();
+    }
+    let scale = if den > 1e-18 { num / den } else { 1.0 };
+    Sim3::new(SO3::from_matrix(&r), ct - scale * (r * cf), scale)
 }
 
-impl Similarity {
-    /// The one that maps `from` onto `to`: the rotation from the poses' rotations (chordal
-    /// mean), scale and translation from their centres. Windows span little motion, so
-    /// centres alone would leave the rotation ill-defined.
-    fn fit(from: &[SE3], to: &[SE3]) -> Self {
-        let mut m = Matrix3::zeros();
-        for (f, t) in from.iter().zip(to) {
-            m += t.rotation.matrix() * f.rotation.matrix().transpose();
-        }
-        let svd = m.svd(true, true);
-        let (u, v_t) = match (svd.u, svd.v_t) {
-            (Some(u), Some(v_t)) => (u, v_t),
-            _ => (Matrix3::identity(), Matrix3::identity()),
-        };
-        let mut d = Matrix3::identity();
-        if (u * v_t).determinant() < 0.0 {
-            d[(2, 2)] = -1.0;
-        }
-        let r = u * d * v_t;
-        let n = from.len().max(1) as f64;
-        let cf = from.iter().map(|p| p.translation).sum::<Vector3<f64>>() / n;
-        let ct = to.iter().map(|p| p.translation).sum::<Vector3<f64>>() / n;
-        let (mut num, mut den) = (0.0, 0.0);
-        for (f, t) in from.iter().zip(to) {
-            let a = r * (f.translation - cf);
-            num += a.dot(&(t.translation - ct));
-            den += a.norm_squared();
-        }
-        let scale = if den > 1e-18 { num / den } else { 1.0 };
-        Self {
-            scale,
-            rotation: SO3::from_matrix(&r),
-            translation: ct - scale * (r * cf),
-        }
-    }
-
-    fn apply(&self, p: &SE3) -> SE3 {
-        SE3::new(
-            self.rotation * p.rotation,
-            self.scale * self.rotation.act(&p.translation) + self.translation,
-        )
-    }
+/// The camera pose `pose` moved by the similarity `s` (its centre scaled, its axes turned).
+fn moved(s: &Sim3, pose: &SE3) -> SE3 {
+    (s * &Sim3::from_se3(pose, 1.0)).to_se3_and_scale().0
 }
 
 /// The window at one set of poses.
@@ -119,7 +105,7 @@ impl SlidingWindow {
         let (energy, residuals) =
             energy::photometric_energy(&self.config, &self.points, &self.hosts(), &views);
         let est = self.poses();
-        let align = Similarity::fit(&est, truth);
+        let align = fit_similarity(&est, truth);
         let n = truth.len().max(1) as f64;
         let centre = truth.iter().map(|p| p.translation).sum::<Vector3<f64>>() / n;
         let spread = (truth
@@ -130,7 +116,7 @@ impl SlidingWindow {
             .sqrt();
         let (mut position, mut rotation) = (0.0, 0.0);
         for (e, t) in est.iter().zip(truth) {
-            let a = align.apply(e);
+            let a = moved(&align, e);
             position += (a.translation - t.translation).norm_squared();
             rotation += (a.rotation.inverse() * t.rotation).angle().to_degrees();
         }
@@ -166,48 +152,21 @@ impl SlidingWindow {
         let hosts = self.hosts();
         let config = &self.config;
         for (point, &k) in self.points.iter_mut().zip(&hosts) {
-            let energy = |p: &WindowPoint| {
-                energy::photometric_energy(config, std::slice::from_ref(p), &[k], &views).0
-                    + energy::depth_prior_energy(std::slice::from_ref(p))
-            };
-            let at = |p: &WindowPoint, idepth: f64| WindowPoint {
-                idepth,
-                ..p.clone()
-            };
             let half = (DEPTH_SEARCH / 2) as f64;
             let start = point.idepth;
-            let mut best = (energy(point), start);
+            let mut best = (point_energy(config, point, k, &views), start);
             for i in 0..DEPTH_SEARCH {
-                let idepth = start * 8f64.powf((i as f64 - half) / half);
-                let e = energy(&at(point, idepth));
+                let trial = WindowPoint {
+                    idepth: start * 8f64.powf((i as f64 - half) / half),
+                    ..point.clone()
+                };
+                let e = point_energy(config, &trial, k, &views);
                 if e < best.0 {
-                    best = (e, idepth);
+                    best = (e, trial.idepth);
                 }
             }
             point.idepth = best.1;
-            let mut current = best.0;
-            let mut lambda = 0.1;
-            for _ in 0..10 {
-                let mut eq = NormalEquations::zeros(views.len());
-                eq.add_point(config, point, k, &views, Linearisation::Current);
-                let sys = &eq.points[0];
-                if sys.h_dd <= 1e-12 {
-                    break;
-                }
-                let step = -sys.b_d / (sys.h_dd * (1.0 + lambda));
-                let trial = at(
-                    point,
-                    (point.idepth + step).clamp(0.5 * point.idepth, 2.0 * point.idepth),
-                );
-                let e = energy(&trial);
-                if e < current {
-                    *point = trial;
-                    current = e;
-                    lambda *= 0.5;
-                } else {
-                    lambda *= 5.0;
-                }
-            }
+            refine_depth(config, point, k, &views, DEPTH_ITERATIONS);
         }
     }
 
@@ -237,10 +196,10 @@ pub fn probe(window: &SlidingWindow, truth: &dyn Fn(u64) -> Option<SE3>) -> Opti
         .iter()
         .map(|f| truth(f.id))
         .collect::<Option<_>>()?;
-    let into_window = Similarity::fit(&truth, &window.poses());
+    let into_window = fit_similarity(&truth, &window.poses());
     let mut at_truth = window.unprimed();
     for (f, t) in at_truth.frames.iter_mut().zip(&truth) {
-        f.state.world_from_camera = into_window.apply(t);
+        f.state.world_from_camera = moved(&into_window, t);
         f.first_estimate = f.state;
     }
     at_truth.search_depths();
@@ -289,19 +248,19 @@ mod tests {
     #[test]
     fn similarity_fit_recovers_a_known_one() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let known = Similarity {
-            scale: 2.5,
-            rotation: SO3::exp(&Vector3::new(0.3, -0.2, 0.9)),
-            translation: Vector3::new(1.0, -2.0, 0.5),
-        };
+        let known = Sim3::new(
+            SO3::exp(&Vector3::new(0.3, -0.2, 0.9)),
+            Vector3::new(1.0, -2.0, 0.5),
+            2.5,
+        );
         let from: Vec<SE3> = (0..5)
             .map(|_| {
                 let mut r = || rng.random_range(-1.0..1.0);
                 SE3::exp(&Vector6::new(r(), r(), r(), r(), r(), r()))
             })
             .collect();
-        let to: Vec<SE3> = from.iter().map(|p| known.apply(p)).collect();
-        let fit = Similarity::fit(&from, &to);
+        let to: Vec<SE3> = from.iter().map(|p| moved(&known, p)).collect();
+        let fit = fit_similarity(&from, &to);
         assert!((fit.scale - known.scale).abs() < 1e-9, "{fit:?}");
         assert!((fit.rotation.inverse() * known.rotation).angle() < 1e-9);
         assert!((fit.translation - known.translation).norm() < 1e-9);
@@ -322,12 +281,12 @@ mod tests {
                 noise.random_range(0.9..1.1)
             });
         }
-        let elsewhere = Similarity {
-            scale: 0.4,
-            rotation: SO3::exp(&Vector3::new(0.5, 0.1, -0.3)),
-            translation: Vector3::new(3.0, 1.0, -1.0),
-        };
-        let truth = |id: u64| r.poses.get(id as usize).map(|p| elsewhere.apply(p));
+        let elsewhere = Sim3::new(
+            SO3::exp(&Vector3::new(0.5, 0.1, -0.3)),
+            Vector3::new(3.0, 1.0, -1.0),
+            0.4,
+        );
+        let truth = |id: u64| r.poses.get(id as usize).map(|p| moved(&elsewhere, p));
         let p = probe(&window, &truth).expect("a probe");
         assert!(p.estimate.rotation_deg > 0.1, "{p:?}");
         assert!(p.truth.rotation_deg < 1e-6, "{p:?}");
