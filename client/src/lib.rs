@@ -1,33 +1,10 @@
-//! The relfusion client library: everything `relfusion stream`, `upload`, `fetch` and
-//! `bench serve` do, as Rust functions against a running `relfusiond`.
+//! The `relfusion` command line's own library: the lab-bench parts that the SDK
+//! (`relfusion-sdk`) leaves out.
 //!
-//! - [`Client`] ([`api`]): one method per HTTP route (`/v1/sessions`, frames, downloads, ...);
-//!   failures are [`ClientError`]s with the server's `{"error":{code,message}}` parsed.
-//! - [`link`]: a live session as two channels (protobuf frames in, protobuf updates out)
-//!   whatever the transport: WebSocket ([`ws`]) or Zenoh.
-//! - [`dataset_stream::stream_dataset`]: a TUM-layout sequence streamed like a camera.
-//! - [`upload::upload_dataset`]: a dataset as a tar archive built on the fly.
-//! - [`fetch::fetch`]: a session's results into a folder.
+//! - [`browser`]: drives Chromium through chromedriver (`relfusion bench viewer`, the viewer's
+//!   browser test).
+//! - [`recording`] (feature `rerun`): Rerun `.rrd` recordings of a session or a local run.
 
-pub mod api;
 pub mod browser;
-pub mod dataset_stream;
-pub mod error;
-pub mod fetch;
-pub mod link;
 #[cfg(feature = "rerun")]
 pub mod recording;
-pub mod tls;
-pub mod upload;
-pub mod ws;
-pub mod zenoh_transport;
-
-pub use api::{
-    CameraJson, Client, CreateSession, FramePolicy, MapInfo, MapMode, MapStart, SessionInfo,
-    SessionKind, SessionState, camera_json,
-};
-pub use dataset_stream::{Pace, StreamEvent, StreamOptions, StreamSummary, stream_dataset};
-pub use error::ClientError;
-pub use fetch::{Fetched, fetch};
-pub use link::{SessionLink, Transport};
-pub use upload::{UploadOptions, upload_dataset};

@@ -66,3 +66,18 @@ impl Error {
         }
     }
 }
+
+/// The shared types' errors keep their variant: a bad camera stays `InvalidCamera`, a bad
+/// dataset `Dataset`.
+impl From<relfusion_core::Error> for Error {
+    fn from(e: relfusion_core::Error) -> Self {
+        use relfusion_core::Error as E;
+        match e {
+            E::Io { path, source } => Error::Io { path, source },
+            E::Image { path, source } => Error::Image { path, source },
+            E::Dataset(m) => Error::Dataset(m),
+            E::InvalidCamera(m) => Error::InvalidCamera(m),
+            E::Shape(m) => Error::Shape(m),
+        }
+    }
+}

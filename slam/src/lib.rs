@@ -5,15 +5,18 @@
 //! - [`error`]: the crate's `Error` and `Result`.
 //! - [`background`]: one background-worker pattern (`Service`, `Worker`, `Link`) with the
 //!   threads' priorities below the frame path.
-//! - [`image`]: grayscale float images, pyramids and gradients (CPU references of the GPU kernels).
-//! - [`geometry`]: Lie groups (`SO3`, `SE3`, `Sim3`) and the pinhole camera with distortion.
+//! - [`image`]: grayscale float images (from `relfusion-core`), pyramids and gradients (CPU
+//!   references of the GPU kernels).
+//! - [`geometry`]: Lie groups (`SO3`, `SE3`, `Sim3`) and the pinhole camera with distortion
+//!   (re-exported from `relfusion-core`).
 //! - [`frame`]: an undistorted frame with its pyramid, shared by every stage.
 //! - [`npy`]: minimal NumPy `.npy` float32 reader/writer for depth maps and benchmarks.
 //! - [`optim`]: the Levenberg–Marquardt schedule and loop, and the photometric residual model,
 //!   shared by tracking and the back end.
 //! - [`scale_shift`]: the robust eq. (3) scale/shift fit of one depth map to another.
 //! - [`gpu`]: the wgpu contexts (one per adapter) and the pyramid kernel's runner.
-//! - [`dataset`]: TUM RGB-D reader, trajectory files, the synthetic room renderer.
+//! - [`dataset`]: TUM RGB-D reader and trajectory files (from `relfusion-core`), the synthetic
+//!   room renderer.
 //! - [`mapping`]: the semi-dense inverse-depth filter of each keyframe, keyframe selection.
 //! - [`tracking`]: coarse-to-fine SE(3) direct image alignment against the keyframe.
 //! - [`graph`]: keyframe-to-keyframe Sim(3) constraints, the pose graph, the back end.
@@ -37,7 +40,6 @@ pub mod eval;
 pub mod export;
 pub mod frame;
 pub mod fusion;
-pub mod geometry;
 pub mod gpu;
 pub mod graph;
 pub mod image;
@@ -52,3 +54,5 @@ pub mod tracking;
 pub mod window;
 
 pub use error::{Error, Result};
+/// Lie groups and the camera model live in `relfusion-core`, shared with the client SDK.
+pub use relfusion_core::geometry;

@@ -84,7 +84,7 @@ pub fn read_f32(path: &Path) -> Result<ImageF32> {
         .chunks_exact(4)
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect();
-    ImageF32::from_vec(width, height, data)
+    ImageF32::from_vec(width, height, data).map_err(Into::into)
 }
 
 #[cfg(test)]

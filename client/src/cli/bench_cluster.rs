@@ -25,7 +25,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
-use relfusion_client::{Client, CreateSession, FramePolicy};
+use relfusion_sdk::{Client, CreateSession, FramePolicy};
 use serde_json::{Value, json};
 
 use super::bench_serve::{
@@ -284,7 +284,7 @@ async fn forwarding(
     let mut streams = Vec::new();
     for relayed in [false, true] {
         let nodes = clients.to_vec();
-        let pick = move |info: &relfusion_client::SessionInfo| {
+        let pick = move |info: &relfusion_sdk::SessionInfo| {
             let owner = node_index(info).ok()?;
             let i = if relayed {
                 (owner + 1) % nodes.len()
@@ -312,7 +312,7 @@ async fn forwarding(
 }
 
 /// The index of the node a session runs on (nodes are named `node-<i>`).
-fn node_index(info: &relfusion_client::SessionInfo) -> anyhow::Result<usize> {
+fn node_index(info: &relfusion_sdk::SessionInfo) -> anyhow::Result<usize> {
     info.node
         .as_deref()
         .and_then(|n| n.strip_prefix("node-"))

@@ -23,9 +23,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 use bytes::Bytes;
-use relfusion_client::link::{end_of_stream, frame_message};
-use relfusion_client::{Client, CreateSession, FramePolicy};
 use relfusion_proto::v1::server_message;
+use relfusion_sdk::message::{end_of_stream, frame_message};
+use relfusion_sdk::{Client, CreateSession, FramePolicy};
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::synth::{SynthConfig, render_sequence};
 use serde_json::{Value, json};
@@ -70,7 +70,7 @@ pub struct ServeArgs {
 
 /// The frames of a run, encoded, in memory.
 pub(super) struct Frames {
-    pub camera: relfusion_client::CameraJson,
+    pub camera: relfusion_sdk::CameraJson,
     pub items: Vec<(f64, Bytes)>,
     pub width: u32,
     pub height: u32,
@@ -181,7 +181,7 @@ pub(super) fn load_frames(
     }
     let bytes_mean = items.iter().map(|(_, b)| b.len() as f64).sum::<f64>() / items.len() as f64;
     Ok(Frames {
-        camera: relfusion_client::camera_json(&seq.camera),
+        camera: relfusion_sdk::camera_json(&seq.camera),
         width: seq.camera.width,
         height: seq.camera.height,
         items,
@@ -283,9 +283,9 @@ async fn zenoh_ingest(
         policy: FramePolicy::DropOldest,
         map: None,
     };
-    let identity = client.zenoh_identity();
+    let identity = relfusion_sdk::zenoh_transport::Identity::of(client);
     let rate =
-        relfusion_client::zenoh_transport::ingest_rate(endpoint, &identity, &req, &items).await?;
+        relfusion_sdk::zenoh_transport::ingest_rate(endpoint, &identity, &req, &items).await?;
     Ok(serde_json::to_value(rate)?)
 }
 
@@ -312,7 +312,7 @@ pub(super) async fn live_session(
 /// `via` picks for the created session (`None`: `client`; another node of a cluster).
 pub(super) async fn live_session_via(
     client: Client,
-    via: impl FnOnce(&relfusion_client::SessionInfo) -> Option<Client>,
+    via: impl FnOnce(&relfusion_sdk::SessionInfo) -> Option<Client>,
     frames: Arc<Frames>,
     fps: f64,
     req: CreateSession,
@@ -321,9 +321,9 @@ pub(super) async fn live_session_via(
     let opened = async {
         let info = client.create_session(&req).await?;
         let stream = via(&info).unwrap_or_else(|| client.clone());
-        let mut link = relfusion_client::ws::connect(&stream, &info.id).await?;
+        let mut link = relfusion_sdk::ws::connect(&stream, &info.id).await?;
         link.info = Some(info);
-        Ok::<_, relfusion_client::ClientError>(link)
+        Ok::<_, relfusion_sdk::ClientError>(link)
     };
     let mut link = match opened.await {
         Ok(link) => link,

@@ -2,7 +2,7 @@
 //! `relfusiond`: its URL (`http://` or `https://`; WebSockets follow as `ws://`/`wss://`),
 //! a CA to trust beyond the web's roots, and, when the server has auth on, a bearer token.
 
-use relfusion_client::Client;
+use relfusion_sdk::Client;
 
 /// Where relfusiond listens by default (its config's `listen`).
 pub const DEFAULT_SERVER: &str = "http://127.0.0.1:8780";

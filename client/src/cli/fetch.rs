@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use relfusion_client::fetch::fetch;
+use relfusion_sdk::fetch::fetch;
 use serde_json::json;
 
 use super::connect::{ConnectArgs, print_line, runtime};

@@ -14,10 +14,10 @@ mod with_rerun {
     use std::path::{Path, PathBuf};
 
     use anyhow::Context as _;
-    use relfusion_client::dataset_stream::StreamEvent;
     use relfusion_client::recording::{
         DepthRef, MeshBlockRef, Pose, Recording, RecordingCounts, RecordingError,
     };
+    use relfusion_sdk::dataset_stream::StreamEvent;
     use relfusion_slam::dataset::TumSequence;
     use relfusion_slam::pipeline::{Event, TrackingState};
 
@@ -238,7 +238,7 @@ mod with_rerun {
 mod without_rerun {
     use std::path::Path;
 
-    use relfusion_client::dataset_stream::StreamEvent;
+    use relfusion_sdk::dataset_stream::StreamEvent;
     use relfusion_slam::dataset::TumSequence;
     use relfusion_slam::pipeline::Event;
 

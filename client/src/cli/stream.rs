@@ -11,8 +11,8 @@ use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
-use relfusion_client::dataset_stream::{StreamEvent, StreamOptions, stream_dataset};
-use relfusion_client::{Client, FramePolicy, Pace, Transport};
+use relfusion_sdk::dataset_stream::{StreamEvent, StreamOptions, stream_dataset};
+use relfusion_sdk::{Client, FramePolicy, Pace, Transport};
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{StampedPose, parse_tum_trajectory};
 use relfusion_slam::eval::{AlignMode, ate};
@@ -93,11 +93,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         max_frames: args.frames,
         camera: None,
-        map: args.map.clone().map(|id| relfusion_client::MapStart {
+        map: args.map.clone().map(|id| relfusion_sdk::MapStart {
             id,
             mode: match args.map_mode {
-                super::run::MapMode::Localize => relfusion_client::MapMode::Localize,
-                super::run::MapMode::Extend => relfusion_client::MapMode::Extend,
+                super::run::MapMode::Localize => relfusion_sdk::MapMode::Localize,
+                super::run::MapMode::Extend => relfusion_sdk::MapMode::Extend,
             },
         }),
     };

@@ -13,8 +13,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use relfusion_client::SessionState;
-use relfusion_client::upload::{UploadOptions, UploadPlan, upload_dataset};
+use relfusion_sdk::SessionState;
+use relfusion_sdk::upload::{UploadOptions, UploadPlan, upload_dataset};
 use serde_json::json;
 
 use super::connect::{ConnectArgs, print_line, progress_bar, runtime};

@@ -342,9 +342,9 @@ fn extract_zip(archive: &Path, ex: &mut Extractor<'_>) -> Result<(), ApiError> {
 }
 
 /// A 400 for a dataset the pipeline cannot read (its message names files as the dataset does).
-fn dataset_error(e: relfusion_slam::Error) -> ApiError {
+fn dataset_error(e: relfusion_core::Error) -> ApiError {
     match e {
-        relfusion_slam::Error::Dataset(message) => {
+        relfusion_core::Error::Dataset(message) => {
             ApiError::bad_request(format!("uploaded dataset: {message}"))
         }
         other => ApiError::bad_request(format!("uploaded dataset: {other}")),

@@ -1,31 +1,13 @@
-//! Datasets: the TUM RGB-D folder layout (reader and trajectory files) and a synthetic
-//! textured-room renderer that writes the same layout with exact ground truth.
-//!
-//! Both sides share one on-disk convention (Sturm et al., "A Benchmark for the Evaluation of
-//! RGB-D SLAM Systems", IROS 2012): `rgb.txt` / `depth.txt` list `timestamp path` lines,
-//! depth is a 16-bit PNG holding metres × 5000 (0 = no measurement), and `groundtruth.txt`
-//! holds `t tx ty tz qx qy qz qw` camera-to-world poses (`world_from_camera`).
-//! `calibration.txt` (`fx fy cx cy [k1 k2 p1 p2 k3]`) is this project's addition for
-//! sequences that are not one of the three Freiburg cameras.
+//! Datasets: the TUM RGB-D folder layout (from `relfusion-core`: reader and trajectory files)
+//! and a synthetic textured-room renderer that writes the same layout with exact ground truth.
 
-pub mod folder;
 pub mod synth;
-pub mod trajectory;
-pub mod tum;
 
-pub use folder::SequenceFolder;
+pub use relfusion_core::dataset::{
+    DEPTH_SCALE, SequenceFolder, SequenceLimits, TumFrame, TumSequence, folder, preset,
+    shared_data_dir, trajectory, tum,
+};
 pub use synth::{Motion, Scene, SynthConfig, SynthSummary, render_frame, render_sequence};
-pub use tum::{SequenceLimits, TumFrame, TumSequence, preset};
-
-/// The shared real-data folder (sequences, models): `$RELFUSION_DATA`, else `../shared/data`
-/// beside the checkout. Data are never copied into the repository.
-pub fn shared_data_dir() -> std::path::PathBuf {
-    std::env::var_os("RELFUSION_DATA")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| {
-            std::path::PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))
-        })
-}
 
 /// For tests on real data: the shared sequence `name` (e.g. `7scenes_redkitchen_f0000-0299`),
 /// or `None`, with the reason printed, when the data folder is absent.
@@ -47,6 +29,3 @@ pub(crate) fn shared_frame(seq: &TumSequence, i: usize) -> crate::frame::Frame {
     crate::frame::Frame::new(i as u64, seq.frames[i].timestamp, seq.camera, &gray, None)
         .expect("frame")
 }
-
-/// TUM depth PNGs store metres × 5000 (TUM RGB-D file formats page).
-pub const DEPTH_SCALE: f64 = 5000.0;

@@ -542,7 +542,7 @@ pub fn densify_cpu(problem: &DensifyProblem, params: &DensifyParams) -> Result<I
             d[i] = (d[i] - step_size * (m[i] / denom)).max(params.min_idepth);
         }
     }
-    ImageF32::from_vec(problem.width, problem.height, d)
+    ImageF32::from_vec(problem.width, problem.height, d).map_err(Into::into)
 }
 
 /// A densification solver: the CPU reference ([`CpuDensifier`]) or its GPU twin

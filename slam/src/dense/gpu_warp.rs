@@ -221,7 +221,7 @@ impl InverseDepthWarp for GpuWarp {
         let data = self.ctx.read_mapped(&buffers.staging, |raw| {
             bytemuck::cast_slice::<u8, f32>(&raw[..4 * n]).to_vec()
         })?;
-        ImageF32::from_vec(w, h, data)
+        ImageF32::from_vec(w, h, data).map_err(Into::into)
     }
 }
 

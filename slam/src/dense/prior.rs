@@ -298,7 +298,7 @@ impl OnnxDepthPrior {
             .try_extract_tensor::<f32>()
             .map_err(|e| Error::Prior(format!("output `{}`: {e}", self.config.output)))?;
         let (oh, ow) = spatial_dims(shape)?;
-        ImageF32::from_vec(ow, oh, data.to_vec())
+        ImageF32::from_vec(ow, oh, data.to_vec()).map_err(Into::into)
     }
 }
 

@@ -66,7 +66,7 @@ pub fn box_downsample(src: &ImageF32, w: usize, h: usize) -> Result<ImageF32> {
         .zip(&count)
         .map(|(&s, &n)| (s / f64::from(n.max(1))) as f32)
         .collect();
-    ImageF32::from_vec(w, h, data)
+    ImageF32::from_vec(w, h, data).map_err(Into::into)
 }
 
 /// The semi-dense map at the working resolution: per working pixel, the inverse-variance

@@ -411,6 +411,7 @@ impl DenseStore {
     pub fn pinhole(&self) -> Result<PinholeCamera> {
         let (fx, fy, cx, cy) = self.camera;
         PinholeCamera::new(fx, fy, cx, cy, self.width as u32, self.height as u32)
+            .map_err(Into::into)
     }
 
     /// Reads the map `name` of `kf` (one of [`MAP_NAMES`]): `None` when it was not written

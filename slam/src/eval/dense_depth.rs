@@ -243,7 +243,9 @@ impl DenseRun {
             .iter()
             .map(|src| src.map_or(0.0, |j| full.data[j]))
             .collect();
-        ImageF32::from_vec(self.store.width, self.store.height, data).map(Some)
+        ImageF32::from_vec(self.store.width, self.store.height, data)
+            .map(Some)
+            .map_err(Into::into)
     }
 
     /// Depth in map units from one of `kf`'s inverse-depth maps (`s_kf / D`); multiply by

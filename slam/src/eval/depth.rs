@@ -123,7 +123,7 @@ pub fn read_depth_map(path: &Path, png_scale: f64) -> Result<ImageF32> {
                 .pixels()
                 .map(|p| (f64::from(p[0]) / png_scale) as f32)
                 .collect();
-            ImageF32::from_vec(w as usize, h as usize, data)
+            ImageF32::from_vec(w as usize, h as usize, data).map_err(Into::into)
         }
         _ => Err(Error::Config(format!(
             "{}: depth maps must be .npy (float32 metres) or 16-bit .png",

@@ -23,9 +23,10 @@ use crate::image::pyramid::Pyramid;
 fn residual_jacobians_match_numeric_differences() {
     let (w, h) = (160usize, 120usize);
     let camera = PinholeCamera::new(130.0, 130.0, 79.5, 59.5, w as u32, h as u32).expect("camera");
-    let host_pyr = Pyramid::build_cpu(&ImageF32::smooth_test_image(w, h, 0.0), 1).expect("pyramid");
+    let host_pyr =
+        Pyramid::build_cpu(&crate::image::smooth_test_image(w, h, 0.0), 1).expect("pyramid");
     let target_pyr =
-        Pyramid::build_cpu(&ImageF32::smooth_test_image(w, h, 0.4), 1).expect("pyramid");
+        Pyramid::build_cpu(&crate::image::smooth_test_image(w, h, 0.4), 1).expect("pyramid");
     let state = |xi: Vector6<f64>, affine| FrameState {
         world_from_camera: SE3::exp(&xi),
         affine,

@@ -304,5 +304,5 @@ fn normalise_mean(idepth: &ImageF32) -> Result<ImageF32> {
         .iter()
         .map(|&v| if v.is_finite() && v > 0.0 { v * k } else { 0.0 })
         .collect();
-    ImageF32::from_vec(idepth.width, idepth.height, data)
+    ImageF32::from_vec(idepth.width, idepth.height, data).map_err(Into::into)
 }

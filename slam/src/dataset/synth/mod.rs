@@ -86,7 +86,7 @@ impl SynthConfig {
         let f = REFERENCE_FOCAL * f64::from(self.width) / 640.0;
         let cx = (f64::from(self.width) - 1.0) / 2.0;
         let cy = (f64::from(self.height) - 1.0) / 2.0;
-        PinholeCamera::new(f, f, cx, cy, self.width, self.height)
+        PinholeCamera::new(f, f, cx, cy, self.width, self.height).map_err(Into::into)
     }
 
     /// The camera poses (camera-to-world) of all frames.

@@ -4,10 +4,10 @@ use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::geometry::testing::numeric_jacobian;
 use crate::geometry::{Matrix7, SO3, Sim3, Vector7};
 use crate::graph::pose_graph::{relative_residual, relative_residual_jacobians};
 use crate::graph::{Constraint, PoseGraph};
+use relfusion_core::geometry::testing::numeric_jacobian;
 
 fn random_sim3(rng: &mut ChaCha8Rng, rot: f64, trans: f64, log_scale: f64) -> Sim3 {
     let mut v = || rng.random_range(-1.0..1.0);

@@ -249,93 +249,8 @@ mod tests {
         #![proptest_config(ProptestConfig::with_cases(256))]
 
         #[test]
-        fn identity_and_inverse(a in arb_se3()) {
-            let i = SE3::identity();
-            prop_assert!(close(&(a * i).matrix(), &a.matrix(), 1e-14));
-            prop_assert!(close(&(i * a).matrix(), &a.matrix(), 1e-14));
-            prop_assert!(close(&(a * a.inverse()).matrix(), &Matrix4::identity(), 1e-13));
-        }
-
-        #[test]
-        fn associativity(a in arb_se3(), b in arb_se3(), c in arb_se3()) {
-            prop_assert!(close(&((a * b) * c).matrix(), &(a * (b * c)).matrix(), 1e-13));
-        }
-
-        #[test]
-        fn compose_matches_matrix(a in arb_se3(), b in arb_se3()) {
-            prop_assert!(close(&(a * b).matrix(), &(a.matrix() * b.matrix()), 1e-13));
-        }
-
-        #[test]
-        fn exp_log_round_trip(xi in arb_se3_tangent()) {
-            let t = SE3::exp(&xi);
-            let back = t.log();
-            prop_assert!(close(&SE3::exp(&back).matrix(), &t.matrix(), 1e-12));
-            if xi.fixed_rows::<3>(3).norm() < std::f64::consts::PI - 1e-6 {
-                prop_assert!((back - xi).norm() <= 1e-11 * (1.0 + xi.norm()), "{xi} -> {back}");
-            }
-        }
-
-        #[test]
-        fn log_exp_round_trip(a in arb_se3()) {
-            prop_assert!(close(&SE3::exp(&a.log()).matrix(), &a.matrix(), 1e-12));
-        }
-
-        #[test]
-        fn exp_matches_matrix_series(xi in arb_se3_tangent()) {
-            // exp(ξ^) as a matrix power series (ξ^ is nilpotent-free but bounded: 40 terms).
-            let m = SE3::hat(&xi);
-            let mut sum = Matrix4::identity();
-            let mut term = Matrix4::identity();
-            for k in 1..60 {
-                term = term * m / k as f64;
-                sum += term;
-            }
-            prop_assert!(close(&SE3::exp(&xi).matrix(), &sum, 1e-11));
-        }
-
-        #[test]
-        fn act_matches_matrix(a in arb_se3(), p in arb_point()) {
-            let h = a.matrix() * p.push(1.0);
-            prop_assert!((a.act(&p) - h.xyz()).norm() <= 1e-12 * (1.0 + p.norm() + h.norm()));
-            prop_assert!((a.inverse().act(&a.act(&p)) - p).norm() <= 1e-12 * (1.0 + h.norm()));
-        }
-
-        #[test]
         fn from_matrix_recovers(a in arb_se3()) {
             prop_assert!(close(&SE3::from_matrix(&a.matrix()).matrix(), &a.matrix(), 1e-13));
-        }
-
-        #[test]
-        fn hat_vee(xi in arb_se3_tangent()) {
-            prop_assert!((SE3::vee(&SE3::hat(&xi)) - xi).norm() <= 1e-15 * (1.0 + xi.norm()));
-        }
-
-        #[test]
-        fn adjoint_identity(a in arb_se3(), xi in arb_se3_tangent()) {
-            let lhs = a * SE3::exp(&xi) * a.inverse();
-            let rhs = SE3::exp(&(a.adjoint() * xi));
-            prop_assert!(close(&lhs.matrix(), &rhs.matrix(), 1e-11));
-        }
-
-        #[test]
-        fn ad_is_lie_bracket(x in arb_se3_tangent(), y in arb_se3_tangent()) {
-            let (hx, hy) = (SE3::hat(&x), SE3::hat(&y));
-            let bracket = SE3::vee(&(hx * hy - hy * hx));
-            prop_assert!((SE3::ad(&x) * y - bracket).norm() <= 1e-12 * (1.0 + bracket.norm()));
-        }
-
-        #[test]
-        fn right_jacobian_matches_numeric(xi in arb_se3_tangent_no_pi()) {
-            let t = SE3::exp(&xi);
-            let f = |d: &Vector6<f64>| (t.inverse() * SE3::exp(&(xi + d))).log();
-            let ana = SE3::right_jacobian(&xi);
-            let num = numeric_jacobian::<6, 6>(&f);
-            prop_assert!(close(&ana, &num, 1e-6), "{ana} vs {num}");
-            let g = |d: &Vector6<f64>| (t * SE3::exp(d)).log();
-            let inv = SE3::right_jacobian_inverse(&xi);
-            prop_assert!(close(&inv, &numeric_jacobian::<6, 6>(&g), 1e-6));
-            prop_assert!(close(&(inv * ana), &Matrix6::identity(), 1e-10));
         }
 
         #[test]
@@ -346,9 +261,7 @@ mod tests {
         }
 
         #[test]
-        fn act_jacobian_matches_numeric(a in arb_se3(), p in arb_point()) {
-            let f = |d: &Vector6<f64>| (a * SE3::exp(d)).act(&p);
-            prop_assert!(close(&a.act_jacobian(&p), &numeric_jacobian::<6, 3>(&f), 1e-6));
+        fn point_jacobian_matches_numeric(a in arb_se3(), p in arb_point()) {
             let g = |q: &Vector3<f64>| a.act(&(p + q));
             prop_assert!(close(&a.act_jacobian_wrt_point(), &numeric_jacobian::<3, 3>(&g), 1e-6));
         }

@@ -12,47 +12,8 @@ fn close<const R: usize, const C: usize>(
     (a - b).abs().max() <= tol * (1.0 + b.abs().max())
 }
 
-/// exp of a 4×4 matrix by scaling and squaring of its power series (independent reference).
-fn expm(m: &Matrix4<f64>) -> Matrix4<f64> {
-    let scaled = m / 256.0;
-    let mut sum = Matrix4::identity();
-    let mut term = Matrix4::identity();
-    for k in 1..30 {
-        term = term * scaled / k as f64;
-        sum += term;
-    }
-    for _ in 0..8 {
-        sum = sum * sum;
-    }
-    sum
-}
-
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(256))]
-
-    #[test]
-    fn identity_and_inverse(a in arb_sim3()) {
-        let i = Sim3::identity();
-        prop_assert!(close(&(a * i).matrix(), &a.matrix(), 1e-14));
-        prop_assert!(close(&(i * a).matrix(), &a.matrix(), 1e-14));
-        prop_assert!(close(&(a * a.inverse()).matrix(), &Matrix4::identity(), 1e-13));
-        prop_assert!(close(&(a.inverse() * a).matrix(), &Matrix4::identity(), 1e-13));
-    }
-
-    #[test]
-    fn associativity(a in arb_sim3(), b in arb_sim3(), c in arb_sim3()) {
-        prop_assert!(close(&((a * b) * c).matrix(), &(a * (b * c)).matrix(), 1e-13));
-    }
-
-    #[test]
-    fn compose_matches_matrix(a in arb_sim3(), b in arb_sim3()) {
-        prop_assert!(close(&(a * b).matrix(), &(a.matrix() * b.matrix()), 1e-13));
-    }
-
-    #[test]
-    fn exp_matches_matrix_exponential(xi in arb_sim3_tangent()) {
-        prop_assert!(close(&Sim3::exp(&xi).matrix(), &expm(&Sim3::hat(&xi)), 1e-11));
-    }
 
     #[test]
     fn w_matrix_matches_integral(phi in arb_rotation_vector(), sigma in arb_sigma()) {
@@ -62,28 +23,6 @@ proptest! {
             sigma.abs() + phi.norm(),
         );
         prop_assert!(close(&sim3_w_matrix(&phi, sigma), &reference, 1e-13));
-    }
-
-    #[test]
-    fn exp_log_round_trip(xi in arb_sim3_tangent()) {
-        let t = Sim3::exp(&xi);
-        let back = t.log();
-        prop_assert!(close(&Sim3::exp(&back).matrix(), &t.matrix(), 1e-12));
-        if xi.fixed_rows::<3>(3).norm() < std::f64::consts::PI - 1e-6 {
-            prop_assert!((back - xi).norm() <= 1e-11 * (1.0 + xi.norm()), "{xi} -> {back}");
-        }
-    }
-
-    #[test]
-    fn log_exp_round_trip(a in arb_sim3()) {
-        prop_assert!(close(&Sim3::exp(&a.log()).matrix(), &a.matrix(), 1e-12));
-    }
-
-    #[test]
-    fn act_matches_matrix(a in arb_sim3(), p in arb_point()) {
-        let h = a.matrix() * p.push(1.0);
-        prop_assert!((a.act(&p) - h.xyz()).norm() <= 1e-12 * (1.0 + h.norm()));
-        prop_assert!((a.inverse().act(&a.act(&p)) - p).norm() <= 1e-11 * (1.0 + p.norm()));
     }
 
     #[test]
@@ -98,40 +37,7 @@ proptest! {
     }
 
     #[test]
-    fn hat_vee(xi in arb_sim3_tangent()) {
-        prop_assert!((Sim3::vee(&Sim3::hat(&xi)) - xi).norm() <= 1e-15 * (1.0 + xi.norm()));
-    }
-
-    #[test]
-    fn ad_is_lie_bracket(x in arb_sim3_tangent(), y in arb_sim3_tangent()) {
-        let (hx, hy) = (Sim3::hat(&x), Sim3::hat(&y));
-        let bracket = Sim3::vee(&(hx * hy - hy * hx));
-        prop_assert!((Sim3::ad(&x) * y - bracket).norm() <= 1e-12 * (1.0 + bracket.norm()));
-    }
-
-    #[test]
-    fn adjoint_identity(a in arb_sim3(), xi in arb_sim3_tangent()) {
-        let lhs = a * Sim3::exp(&xi) * a.inverse();
-        let rhs = Sim3::exp(&(a.adjoint() * xi));
-        prop_assert!(close(&lhs.matrix(), &rhs.matrix(), 1e-10));
-    }
-
-    #[test]
-    fn right_jacobian_matches_numeric(xi in arb_sim3_tangent_no_pi()) {
-        let t = Sim3::exp(&xi);
-        let f = |d: &Vector7| (t.inverse() * Sim3::exp(&(xi + d))).log();
-        let ana = Sim3::right_jacobian(&xi);
-        let num = numeric_jacobian::<7, 7>(&f);
-        prop_assert!(close(&ana, &num, 1e-6), "{ana} vs {num}");
-        let g = |d: &Vector7| (t * Sim3::exp(d)).log();
-        let inv = Sim3::right_jacobian_inverse(&xi);
-        prop_assert!(close(&inv, &numeric_jacobian::<7, 7>(&g), 1e-6));
-    }
-
-    #[test]
-    fn act_jacobian_matches_numeric(a in arb_sim3(), p in arb_point()) {
-        let f = |d: &Vector7| (a * Sim3::exp(d)).act(&p);
-        prop_assert!(close(&a.act_jacobian(&p), &numeric_jacobian::<7, 3>(&f), 1e-6));
+    fn point_jacobian_matches_numeric(a in arb_sim3(), p in arb_point()) {
         let g = |q: &Vector3<f64>| a.act(&(p + q));
         prop_assert!(close(&a.act_jacobian_wrt_point(), &numeric_jacobian::<3, 3>(&g), 1e-6));
     }

@@ -58,6 +58,14 @@ pub struct Identity {
 }
 
 impl Identity {
+    /// The HTTP client's user and token.
+    pub fn of(client: &crate::api::Client) -> Self {
+        Identity {
+            user: client.user().map(str::to_owned),
+            token: client.token().map(str::to_owned),
+        }
+    }
+
     /// The tenant whose keys the client uses.
     pub fn tenant(&self) -> &str {
         self.user.as_deref().unwrap_or(PUBLIC_TENANT)

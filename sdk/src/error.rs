@@ -40,7 +40,7 @@ pub enum ClientError {
     },
     /// The local dataset is unusable (missing rgb.txt, unreadable calibration, ...).
     #[error(transparent)]
-    Dataset(#[from] relfusion_slam::Error),
+    Dataset(#[from] relfusion_core::Error),
     /// The server said something this client does not understand (bad protobuf, unexpected
     /// JSON shape, a stream that ended early).
     #[error("protocol: {0}")]

@@ -11,18 +11,20 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use relfusion_core::dataset::TumSequence;
+use relfusion_core::geometry::PinholeCamera;
 use relfusion_proto::v1::{
     KeyframeDepth, MeshUpdate, ServerMessage, Sim3Pose, TrackingState, server_message,
 };
-use relfusion_slam::dataset::TumSequence;
-use relfusion_slam::geometry::PinholeCamera;
 use serde::Serialize;
 use serde_json::Value;
 use tokio::sync::mpsc;
 
 use crate::api::{Client, CreateSession, FramePolicy, SessionInfo};
 use crate::error::ClientError;
-use crate::link::{SessionLink, Transport, end_of_stream, frame_message, open_session};
+use crate::link::SessionLink;
+use crate::message::{end_of_stream, frame_message};
+use crate::transport::{Transport, open_session};
 
 /// When each frame is sent.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]

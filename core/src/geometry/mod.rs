@@ -28,15 +28,19 @@ mod sim3;
 mod so3;
 mod undistort;
 
+#[cfg(test)]
+mod lie_tests;
+
 pub use camera::{Distortion, PinholeCamera};
 pub use se3::SE3;
 pub use sim3::{Matrix3x7, Matrix7, Sim3, Vector7, sim3_w_matrix};
 pub use so3::{SMALL_ANGLE, SO3};
 pub use undistort::UndistortMap;
 
-/// Random inputs and numeric differentiation shared by the group tests.
-#[cfg(test)]
-pub(crate) mod testing {
+/// Random inputs and numeric differentiation shared by the group tests (and, with the feature
+/// `testing`, by other crates' tests).
+#[cfg(any(test, feature = "testing"))]
+pub mod testing {
     use super::{SE3, SO3, Sim3, Vector7};
     use nalgebra::{SMatrix, SVector, Vector3, Vector6};
     use proptest::prelude::*;

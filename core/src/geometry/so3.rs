@@ -272,43 +272,6 @@ mod tests {
         #![proptest_config(ProptestConfig::with_cases(256))]
 
         #[test]
-        fn identity_and_inverse(a in arb_so3()) {
-            let i = SO3::identity();
-            prop_assert!(close3(&(a * i).matrix(), &a.matrix(), 1e-14));
-            prop_assert!(close3(&(i * a).matrix(), &a.matrix(), 1e-14));
-            prop_assert!(close3(&(a * a.inverse()).matrix(), &Matrix3::identity(), 1e-14));
-        }
-
-        #[test]
-        fn associativity(a in arb_so3(), b in arb_so3(), c in arb_so3()) {
-            prop_assert!(close3(&((a * b) * c).matrix(), &(a * (b * c)).matrix(), 1e-14));
-        }
-
-        #[test]
-        fn exp_log_round_trip(phi in arb_rotation_vector()) {
-            let r = SO3::exp(&phi);
-            let back = r.log();
-            // Near θ = π, φ and −φ·(2π−θ)/θ are the same rotation; compare as rotations, and
-            // as vectors when θ is not within 1e-6 of π.
-            prop_assert!(close3(&SO3::exp(&back).matrix(), &r.matrix(), 1e-13));
-            if phi.norm() < std::f64::consts::PI - 1e-6 {
-                prop_assert!((back - phi).norm() <= 1e-12 * (1.0 + phi.norm()),
-                    "{phi:?} -> {back:?}");
-            }
-        }
-
-        #[test]
-        fn log_exp_round_trip(a in arb_so3()) {
-            prop_assert!(close3(&SO3::exp(&a.log()).matrix(), &a.matrix(), 1e-13));
-            prop_assert!(a.log().norm() <= std::f64::consts::PI + 1e-12);
-        }
-
-        #[test]
-        fn act_matches_matrix(a in arb_so3(), p in arb_point()) {
-            prop_assert!((a.act(&p) - a.matrix() * p).norm() <= 1e-12 * (1.0 + p.norm()));
-        }
-
-        #[test]
         fn from_matrix_recovers(a in arb_so3()) {
             let b = SO3::from_matrix(&a.matrix());
             prop_assert!(close3(&b.matrix(), &a.matrix(), 1e-13));
@@ -320,35 +283,8 @@ mod tests {
         }
 
         #[test]
-        fn adjoint_identity(a in arb_so3(), phi in arb_rotation_vector()) {
-            let lhs = a * SO3::exp(&phi) * a.inverse();
-            let rhs = SO3::exp(&(a.adjoint() * phi));
-            prop_assert!(close3(&lhs.matrix(), &rhs.matrix(), 1e-12));
-        }
-
-        #[test]
-        fn hat_vee(phi in arb_point(), p in arb_point()) {
-            prop_assert!((SO3::vee(&SO3::hat(&phi)) - phi).norm() <= 1e-15 * (1.0 + phi.norm()));
+        fn hat_is_cross_product(phi in arb_point(), p in arb_point()) {
             prop_assert!((SO3::hat(&phi) * p - phi.cross(&p)).norm() <= 1e-12 * (1.0 + phi.norm() * p.norm()));
-        }
-
-        #[test]
-        fn right_jacobian_matches_numeric(phi in arb_rotation_vector_no_pi()) {
-            let f = |d: &Vector3<f64>| (SO3::exp(&phi).inverse() * SO3::exp(&(phi + d))).log();
-            let num = numeric_jacobian::<3, 3>(&f);
-            let ana = SO3::right_jacobian(&phi);
-            prop_assert!(close3(&ana, &num, 1e-6), "{ana} vs {num}");
-            let inv = SO3::right_jacobian_inverse(&phi);
-            prop_assert!(close3(&(inv * ana), &Matrix3::identity(), 1e-10));
-            let g = |d: &Vector3<f64>| (SO3::exp(&phi) * SO3::exp(d)).log();
-            prop_assert!(close3(&inv, &numeric_jacobian::<3, 3>(&g), 1e-6));
-        }
-
-        #[test]
-        fn act_jacobian_matches_numeric(a in arb_so3(), p in arb_point()) {
-            let f = |d: &Vector3<f64>| (a * SO3::exp(d)).act(&p);
-            let num = numeric_jacobian::<3, 3>(&f);
-            prop_assert!(close3(&a.act_jacobian(&p), &num, 1e-6));
         }
     }
 

@@ -7,11 +7,11 @@
 use std::time::Duration;
 
 use bytes::Bytes;
+use relfusion_core::geometry::PinholeCamera;
 pub use relfusion_proto::http::{
     CameraJson, CreateSession, CreatedSession, FrameAccepted, FramePolicy, MapInfo, MapList,
     MapMode, MapStart, Progress, SaveMap, SessionInfo, SessionKind, SessionList, SessionState,
 };
-use relfusion_slam::geometry::PinholeCamera;
 use reqwest::{Method, RequestBuilder, Response, StatusCode};
 use serde::de::DeserializeOwned;
 use serde_json::Value;
@@ -110,12 +110,9 @@ impl Client {
         self
     }
 
-    /// Who the client is on Zenoh (user, token).
-    pub fn zenoh_identity(&self) -> crate::zenoh_transport::Identity {
-        crate::zenoh_transport::Identity {
-            user: self.user.clone(),
-            token: self.token.clone(),
-        }
+    /// The token's name on the server, if given (Zenoh logs in with it).
+    pub fn user(&self) -> Option<&str> {
+        self.user.as_deref()
     }
 
     /// `base` joined with the relative `path` (no leading `/`).
@@ -198,10 +195,10 @@ impl Client {
         if let Some(fid) = frame_id {
             query.push(("frame_id", fid.to_string()));
         }
-        let content_type = match crate::link::sniff_encoding(&image) {
-            crate::link::Encoding::Jpeg => "image/jpeg",
-            crate::link::Encoding::Png => "image/png",
-            crate::link::Encoding::Unknown => "application/octet-stream",
+        let content_type = match crate::message::sniff_encoding(&image) {
+            crate::message::Encoding::Jpeg => "image/jpeg",
+            crate::message::Encoding::Png => "image/png",
+            crate::message::Encoding::Unknown => "application/octet-stream",
         };
         let rb = self
             .request(Method::POST, &session_path(id, "frames"))?

@@ -17,8 +17,8 @@ use std::io::{self, Write};
 use std::path::{Component, Path, PathBuf};
 
 use bytes::Bytes;
-use relfusion_slam::dataset::TumSequence;
-use relfusion_slam::geometry::PinholeCamera;
+use relfusion_core::dataset::TumSequence;
+use relfusion_core::geometry::PinholeCamera;
 use tokio::sync::mpsc;
 
 use crate::api::{Client, SessionInfo};
@@ -345,7 +345,7 @@ mod tests {
         tiny_dataset(&dir, true);
         let camera = PinholeCamera::new(30.0, 31.0, 8.0, 7.0, 16, 16)
             .expect("camera")
-            .with_distortion(relfusion_slam::geometry::Distortion::new(
+            .with_distortion(relfusion_core::geometry::Distortion::new(
                 0.1, -0.2, 0.0, 0.0, 0.3,
             ))
             .expect("distortion");

@@ -1,0 +1,96 @@
+//! Grayscale float images, the pixel type every tracking and dense kernel works on.
+//!
+//! Intensities stay in [0, 255] (not [0, 1]) because LSD-SLAM's photometric thresholds and the
+//! paper's σs = 76.5 (adaptive filter) are expressed in 8-bit units.
+
+use crate::{Error, Result};
+
+/// A row-major single-channel `f32` image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageF32 {
+    pub width: usize,
+    pub height: usize,
+    pub data: Vec<f32>,
+}
+
+impl ImageF32 {
+    /// A `width × height` image filled with `value`.
+    pub fn filled(width: usize, height: usize, value: f32) -> Self {
+        Self {
+            width,
+            height,
+            data: vec![value; width * height],
+        }
+    }
+
+    /// Wraps `data`; fails unless it holds exactly `width × height` pixels.
+    pub fn from_vec(width: usize, height: usize, data: Vec<f32>) -> Result<Self> {
+        if data.len() != width * height {
+            return Err(Error::Shape(format!(
+                "{} values for a {width}x{height} image",
+                data.len()
+            )));
+        }
+        Ok(Self {
+            width,
+            height,
+            data,
+        })
+    }
+
+    /// Fails unless `data` holds exactly `width × height` pixels (the fields are public, so a
+    /// hand-built image can be inconsistent; kernels check before indexing).
+    pub fn check_size(&self) -> Result<()> {
+        if self.data.len() != self.width * self.height {
+            return Err(Error::Shape(format!(
+                "image claims {}x{} but holds {} values",
+                self.width,
+                self.height,
+                self.data.len()
+            )));
+        }
+        Ok(())
+    }
+
+    /// Pixel at column `x`, row `y` (panics when out of bounds, like slice indexing).
+    #[inline]
+    pub fn at(&self, x: usize, y: usize) -> f32 {
+        self.data[y * self.width + x]
+    }
+
+    /// Mutable pixel at column `x`, row `y`.
+    #[inline]
+    pub fn at_mut(&mut self, x: usize, y: usize) -> &mut f32 {
+        &mut self.data[y * self.width + x]
+    }
+
+    /// Bilinear interpolation at a sub-pixel position; `None` outside `[0, w-1] × [0, h-1]`.
+    pub fn bilinear(&self, x: f32, y: f32) -> Option<f32> {
+        if !(x >= 0.0 && y >= 0.0 && x <= (self.width - 1) as f32 && y <= (self.height - 1) as f32)
+        {
+            return None;
+        }
+        let x0 = (x.floor() as usize).min(self.width.saturating_sub(2));
+        let y0 = (y.floor() as usize).min(self.height.saturating_sub(2));
+        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+        let x1 = (x0 + 1).min(self.width - 1);
+        let y1 = (y0 + 1).min(self.height - 1);
+        let top = self.at(x0, y0) * (1.0 - fx) + self.at(x1, y0) * fx;
+        let bottom = self.at(x0, y1) * (1.0 - fx) + self.at(x1, y1) * fx;
+        Some(top * (1.0 - fy) + bottom * fy)
+    }
+
+    /// Luma (ITU-R BT.601 weights, as OpenCV's `cvtColor` uses) of an 8-bit RGB image.
+    pub fn from_rgb8(rgb: &::image::RgbImage) -> Self {
+        let (w, h) = rgb.dimensions();
+        let data = rgb
+            .pixels()
+            .map(|p| 0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]))
+            .collect();
+        Self {
+            width: w as usize,
+            height: h as usize,
+            data,
+        }
+    }
+}
