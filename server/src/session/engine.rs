@@ -94,6 +94,15 @@ impl Engine {
         }
     }
 
+    /// What the pipeline's background threads finished since the last frame (nothing for a
+    /// localiser, which has none).
+    pub fn poll(&mut self) -> relfusion_slam::Result<Vec<Event>> {
+        match self {
+            Engine::Map(pipeline) => pipeline.poll(),
+            Engine::Localize { .. } => Ok(Vec::new()),
+        }
+    }
+
     /// The keyframes of the map an extending pipeline started from (timestamp and pose, by
     /// id); none otherwise.
     pub fn map_keyframes(&self) -> Vec<(f64, Sim3)> {

@@ -35,6 +35,10 @@ use super::types::{SessionKind, SessionState};
 use crate::gpu_pool::PoolClient;
 use crate::metrics::{Metrics, Stage};
 
+/// How long a live session's results (dense keyframes, mesh updates, moved keyframe poses)
+/// may wait while its camera pauses: the worker polls the pipeline this often without frames.
+const POLL_INTERVAL: Duration = Duration::from_millis(250);
+
 /// What a worker needs besides its session.
 #[derive(Debug)]
 pub(crate) struct WorkerEnv {
@@ -154,10 +158,15 @@ impl Runner<'_> {
         }
     }
 
-    /// Reports what the dense layer and the fusion produced (they run beside tracking, so
-    /// their events also come after the frames, from [`Pipeline::take_events`]).
-    fn emit_dense(&self, event: Event) {
+    /// Reports what the threads beside tracking produced: moved keyframe poses, dense
+    /// keyframes and mesh updates. They come with a frame, from a poll while the camera
+    /// pauses, or from the final optimisation. Frame events cannot come without a frame.
+    fn emit_background(&self, event: Event) {
         match event {
+            Event::KeyframePoses { poses } => {
+                self.session.update_keyframe_poses(&poses);
+                self.session.emit(self.keyframe_poses_event(&poses));
+            }
             Event::KeyframeDensified { keyframe, .. } => self.emit_densified(keyframe),
             Event::MeshUpdated { delta, .. } => {
                 let s = self.session;
@@ -203,7 +212,7 @@ impl Runner<'_> {
             if self.session.cancelled.load(Ordering::SeqCst) {
                 return Ok(Outcome::Cancelled);
             }
-            match queue.pop_timeout(window.min(Duration::from_millis(500))) {
+            match queue.pop_timeout(window.min(POLL_INTERVAL)) {
                 Pop::Item(frame) => {
                     self.env.metrics.frame_queue_depth.dec();
                     in_window += 1;
@@ -213,7 +222,7 @@ impl Runner<'_> {
                         return Ok(Outcome::Finished);
                     }
                 }
-                Pop::TimedOut => {}
+                Pop::TimedOut => self.poll()?,
                 Pop::Closed => {
                     return Ok(if self.session.cancelled.load(Ordering::SeqCst) {
                         Outcome::Cancelled
@@ -280,6 +289,16 @@ impl Runner<'_> {
         Ok(Outcome::Finished)
     }
 
+    /// While the camera pauses: what the pipeline's threads finished since the last frame
+    /// goes out now instead of with the next frame.
+    fn poll(&mut self) -> Result<(), String> {
+        let events = self.engine.poll().map_err(|e| format!("pipeline: {e}"))?;
+        for event in events {
+            self.emit_background(event);
+        }
+        Ok(())
+    }
+
     /// One frame through the pipeline; its events go to the subscribers.
     fn process(&mut self, frame: QueuedFrame) -> Result<(), String> {
         #[cfg(debug_assertions)]
@@ -338,13 +357,7 @@ impl Runner<'_> {
                     });
                     self.since_checkpoint += 1;
                 }
-                Event::KeyframePoses { poses } => {
-                    s.update_keyframe_poses(&poses);
-                    s.emit(self.keyframe_poses_event(&poses));
-                }
-                event @ (Event::KeyframeDensified { .. } | Event::MeshUpdated { .. }) => {
-                    self.emit_dense(event)
-                }
+                event => self.emit_background(event),
             }
         }
         let keyframes = s.counters.keyframes.load(Ordering::Relaxed);
@@ -473,7 +486,7 @@ impl Runner<'_> {
         // Keyframes the dense layer finished and fused while the session was finishing, and
         // the final mesh at the optimised poses.
         for event in events {
-            self.emit_dense(event);
+            self.emit_background(event);
         }
         s.update_keyframe_poses(&poses);
         s.emit(self.keyframe_poses_event(&poses));

@@ -257,12 +257,19 @@ impl Pipeline {
     /// keyframe poses whenever the pose graph moved them.
     pub fn push(&mut self, input: FrameInput) -> Result<Vec<Event>> {
         let mut events = self.push_frame(input)?;
+        events.append(&mut self.poll()?);
+        Ok(events)
+    }
+
+    /// What the threads beside tracking finished since the last call, without a frame: dense
+    /// keyframes, mesh updates and moved keyframe poses. A live caller polls while the camera
+    /// pauses, so that results do not wait for the next frame.
+    pub fn poll(&mut self) -> Result<Vec<Event>> {
         self.poll_dense()?;
         self.poll_fusion();
         self.report_keyframe_poses();
         self.update_mapping_stats();
-        events.append(&mut self.pending_events);
-        Ok(events)
+        Ok(std::mem::take(&mut self.pending_events))
     }
 
     /// Events produced since the last [`Pipeline::push`] outside a frame's processing: the

@@ -256,6 +256,33 @@ pub fn ws_next(socket: &mut Socket) -> Option<server_message::Message> {
     }
 }
 
+/// Sets how long a read on `socket` waits (a plain TCP socket; no TLS in these tests).
+pub fn set_ws_read_timeout(socket: &mut Socket, timeout: Duration) {
+    if let MaybeTlsStream::Plain(tcp) = socket.get_mut() {
+        tcp.set_read_timeout(Some(timeout)).expect("timeout");
+    }
+}
+
+/// The next message, or `None` when none came within the socket's read timeout.
+pub fn ws_try_next(socket: &mut Socket) -> Option<server_message::Message> {
+    match socket.read() {
+        Ok(tungstenite::Message::Binary(data)) => {
+            let message = ServerMessage::decode(data).expect("server sends ServerMessage");
+            Some(message.message.expect("a ServerMessage with a message"))
+        }
+        Ok(_) => None,
+        Err(tungstenite::Error::Io(e))
+            if matches!(
+                e.kind(),
+                std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+            ) =>
+        {
+            None
+        }
+        Err(e) => panic!("ws read: {e}"),
+    }
+}
+
 /// Reads `/events` on a thread until `finished`/`failed`; returns once the stream is open
 /// (the server has subscribed), so no event after this call is missed.
 pub fn follow_events(

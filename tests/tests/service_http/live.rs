@@ -155,3 +155,77 @@ fn live_session_reports_every_frame_over_sse_and_websocket() {
     );
     get(&server, &format!("/v1/sessions/{id}"), None).expect_error(404, "not_found", "deleted");
 }
+
+/// A camera that pauses after a keyframe still gets that keyframe's results: while no frame
+/// comes the worker polls the pipeline, so the mesh update and the optimised keyframe poses
+/// arrive during the pause instead of with the next frame (issue 36).
+#[test]
+fn results_arrive_while_the_camera_pauses() {
+    const FRAMES: usize = 150;
+    const KEYFRAMES_BEFORE_PAUSE: usize = 3;
+    const PAUSE: Duration = Duration::from_secs(3);
+    // Events of the last frame's own processing follow its pose within milliseconds; the
+    // worker polls only after a quarter second without frames.
+    const SAME_FRAME: Duration = Duration::from_millis(200);
+    let seq = TumSequence::open(&synth_sequence("http-pause", FRAMES, 13), None).expect("synth");
+    let server = spawn("pause", None, &[]);
+    let id = create_session(&server, &seq, None);
+    let mut socket = ws_connect(&server, &id, None).expect("websocket");
+
+    // Frames in lock step (each sent once the previous one's pose is back) until the
+    // session has made its keyframes, then the camera stops.
+    let mut keyframes = 0;
+    let mut sent = 0;
+    while keyframes < KEYFRAMES_BEFORE_PAUSE {
+        assert!(
+            sent < FRAMES,
+            "only {keyframes} keyframes in {FRAMES} frames"
+        );
+        ws_send(&mut socket, ws_frame(&seq, sent, frame_bytes(&seq, sent)));
+        loop {
+            match ws_next(&mut socket).expect("stream open") {
+                server_message::Message::Pose(p) if p.frame_id == sent as u64 => {
+                    keyframes += usize::from(p.is_keyframe);
+                    break;
+                }
+                server_message::Message::Error(e) => panic!("unexpected error: {e:?}"),
+                _ => {}
+            }
+        }
+        sent += 1;
+    }
+
+    let paused = Instant::now();
+    let (mut meshes, mut moved_poses) = (0, 0);
+    set_ws_read_timeout(&mut socket, Duration::from_millis(100));
+    while paused.elapsed() < PAUSE {
+        let Some(message) = ws_try_next(&mut socket) else {
+            continue;
+        };
+        if paused.elapsed() < SAME_FRAME {
+            continue;
+        }
+        match message {
+            server_message::Message::Mesh(m) if !m.changed_blocks.is_empty() => meshes += 1,
+            // No keyframe is made during the pause: a keyframe update without depth is the
+            // pose graph moving one.
+            server_message::Message::Keyframe(k) if k.depth.is_none() => moved_poses += 1,
+            server_message::Message::Pose(p) => panic!("a pose without a frame: {p:?}"),
+            _ => {}
+        }
+    }
+    assert!(meshes > 0, "no mesh update during the {PAUSE:?} pause");
+    assert!(
+        moved_poses > 0,
+        "no optimised keyframe pose during the {PAUSE:?} pause"
+    );
+
+    set_ws_read_timeout(&mut socket, Duration::from_secs(60));
+    ws_send(
+        &mut socket,
+        client_message::Message::EndOfStream(EndOfStream {}),
+    );
+    while ws_next(&mut socket).is_some() {}
+    let info = wait_finished(&server, &id, None);
+    assert_eq!(info["frames_processed"], sent as u64, "{info}");
+}
