@@ -338,14 +338,7 @@ pub async fn attach(
                     Err(_) => break,
                 },
                 _ = check.tick() => {
-                    let info = zenoh.info();
-                    let links = info.routers_zid().await.count() + info.peers_zid().await.count();
-                    if links > 0 {
-                        disconnected_since = None;
-                        continue;
-                    }
-                    let since = *disconnected_since.get_or_insert_with(Instant::now);
-                    if since.elapsed() < DISCONNECTED_LIMIT {
+                    if !lost_connection(&zenoh, &mut disconnected_since).await {
                         continue;
                     }
                     let _ = updates_tx
@@ -356,26 +349,12 @@ pub async fn attach(
                     break;
                 }
             };
-            let key = sample.key_expr().as_str().to_string();
-            let leaf = key.rsplit('/').next().unwrap_or_default();
-            let payload = sample.payload().to_bytes();
-            let update = match leaf {
-                POSES => ServerMessage::decode(payload.as_ref()).map_err(|e| e.to_string()),
-                MESH => MeshUpdate::decode(payload.as_ref())
-                    .map(|mesh| ServerMessage {
-                        message: Some(server_message::Message::Mesh(mesh)),
-                    })
-                    .map_err(|e| e.to_string()),
-                FINISHED => {
-                    if let Err(e) = SessionFinished::decode(payload.as_ref()) {
-                        tracing::warn!("undecodable {key}: {e}");
-                    }
-                    break;
-                }
-                _ => continue,
+            let key = sample.key_expr().as_str();
+            let update = match decode_update(key, sample.payload().to_bytes().as_ref()) {
+                Update::Message(update) => update,
+                Update::Finished => break,
+                Update::Other => continue,
             };
-            let update = update
-                .map_err(|e| ClientError::Protocol(format!("{key}: undecodable message ({e})")));
             if updates_tx.send(update).await.is_err() {
                 break;
             }
@@ -391,6 +370,52 @@ pub async fn attach(
         updates: updates_rx,
         tasks: TaskGuard(vec![writer, reader]),
     })
+}
+
+/// What one sample on a session's keys means to a client (one at a time, never stored: its
+/// size does not matter).
+#[allow(clippy::large_enum_variant)]
+enum Update {
+    Message(Result<ServerMessage, ClientError>),
+    /// The session finished: the stream is over.
+    Finished,
+    /// Not an update (another leaf of the session's key space).
+    Other,
+}
+
+/// Decodes a sample published on `key` (poses, mesh, finished).
+fn decode_update(key: &str, payload: &[u8]) -> Update {
+    let leaf = key.rsplit('/').next().unwrap_or_default();
+    let update = match leaf {
+        POSES => ServerMessage::decode(payload).map_err(|e| e.to_string()),
+        MESH => MeshUpdate::decode(payload)
+            .map(|mesh| ServerMessage {
+                message: Some(server_message::Message::Mesh(mesh)),
+            })
+            .map_err(|e| e.to_string()),
+        FINISHED => {
+            if let Err(e) = SessionFinished::decode(payload) {
+                tracing::warn!("undecodable {key}: {e}");
+            }
+            return Update::Finished;
+        }
+        _ => return Update::Other,
+    };
+    Update::Message(
+        update.map_err(|e| ClientError::Protocol(format!("{key}: undecodable message ({e})"))),
+    )
+}
+
+/// Whether `zenoh` has had no router or peer for [`DISCONNECTED_LIMIT`] (`since` keeps when
+/// the links went).
+async fn lost_connection(zenoh: &Session, since: &mut Option<Instant>) -> bool {
+    let info = zenoh.info();
+    let links = info.routers_zid().await.count() + info.peers_zid().await.count();
+    if links > 0 {
+        *since = None;
+        return false;
+    }
+    since.get_or_insert_with(Instant::now).elapsed() >= DISCONNECTED_LIMIT
 }
 
 /// What [`ingest_rate`] measured.

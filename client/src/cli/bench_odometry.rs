@@ -22,8 +22,8 @@ use relfusion_slam::odometry::{
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::image::ImageF32;
 
-use super::bench_accuracy::{load, median};
-use super::depth_probe::DepthProbe;
+use super::bench_accuracy::{Loaded, load, median};
+use super::depth_probe::{DepthProbe, ShapeSummary};
 
 #[derive(Debug, clap::Args)]
 pub struct OdometryArgs {
@@ -88,133 +88,25 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
         "shape range",
         "scale×"
     );
+    let fmt = |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
     for dataset in &args.datasets {
         let loaded = load(dataset, None)?;
-        let camera = loaded.seq.camera;
-        let undistort = camera
-            .distortion
-            .is_some()
-            .then(|| UndistortMap::new(&camera));
-        let frames = loaded
-            .frames
-            .iter()
-            .enumerate()
-            .map(|(i, f)| {
-                Frame::from_camera_rgb(
-                    i as u64,
-                    f.timestamp,
-                    &camera,
-                    undistort.as_ref(),
-                    f.rgb.clone(),
-                )
-                .map(Arc::new)
-            })
-            .collect::<Result<Vec<_>, _>>()?;
-        let path = loaded.path_length();
+        let frames = undistorted_frames(&loaded)?;
         let truth = args
             .truth_probe
             .then(|| truth_by_frame(&loaded.gt, &frames));
         let mut medians: [Vec<f64>; 5] = Default::default();
-        let fmt = |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
         for run in 0..args.runs {
-            let probes = Arc::new(Mutex::new(Vec::new()));
-            let observer = truth.clone().map(|truth| {
-                let probes = probes.clone();
-                WindowObserver(Arc::new(move |window: &SlidingWindow| {
-                    if let Some(p) = truth::probe(window, &|id| truth.get(&id).copied())
-                        && let Ok(mut probes) = probes.lock()
-                    {
-                        probes.push(p);
-                    }
-                }))
-            });
-            let mut odometry =
-                Odometry::start_observed(config.clone(), run as u64, args.threaded, observer)?;
-            let mut tracked = 0;
-            let mut keyframe_stamps = Vec::new();
-            let t0 = Instant::now();
-            let mut probe = DepthProbe::default();
-            let mut window_depth = WindowDepth::default();
-            let mut seen = 0;
-            // Probes the window whenever it has published a new keyframe.
-            let mut look = |odometry: &Odometry| -> anyhow::Result<()> {
-                let Some(window) = odometry.window().filter(|_| odometry.published() > seen) else {
-                    return Ok(());
-                };
-                seen = odometry.published();
-                let Some(&(id, _, (a, b))) = window.frames.last() else {
-                    return Ok(());
-                };
-                let timestamp = frames[id as usize].timestamp;
-                window_depth.measure(&mut probe, &loaded.seq, window, timestamp)?;
-                if args.keyframes {
-                    let sample = probe.samples.last().filter(|s| s.0 == timestamp);
-                    eprintln!(
-                        "kf frame {:>5} t {:>8.3} frames {} points {:>5} slope {:>6} scale {:>8} affine {:>6.3} {:>6.1}",
-                        id,
-                        timestamp - frames[0].timestamp,
-                        window.frames.len(),
-                        window.points.len(),
-                        sample
-                            .and_then(|s| s.1)
-                            .map_or_else(|| "-".into(), |v| format!("{v:.2}")),
-                        sample.map_or_else(|| "-".into(), |s| format!("{:.4}", s.2)),
-                        a,
-                        b,
-                    );
-                }
-                Ok(())
+            let sequence = Sequence {
+                path: dataset,
+                loaded: &loaded,
+                frames: &frames,
             };
-            let mut busy = std::time::Duration::ZERO;
-            for f in &frames {
-                if args.paced {
-                    let due = std::time::Duration::from_secs_f64(
-                        (f.timestamp - frames[0].timestamp).max(0.0),
-                    );
-                    std::thread::sleep(due.saturating_sub(t0.elapsed()));
-                }
-                let started = Instant::now();
-                let outcome = odometry.push(f.clone())?;
-                busy += started.elapsed();
-                tracked += usize::from(outcome.tracked);
-                if outcome.keyframe {
-                    keyframe_stamps.push(f.timestamp);
-                }
-                look(&odometry)?;
-            }
-            odometry.finish()?;
-            look(&odometry)?;
-            let wall = if args.paced { busy } else { t0.elapsed() };
-            let ms = 1e3 * wall.as_secs_f64() / frames.len().max(1) as f64;
-            let est: Vec<StampedPose> = odometry
-                .trajectory()
-                .into_iter()
-                .map(|(id, pose)| StampedPose {
-                    timestamp: frames[id as usize].timestamp,
-                    world_from_camera: pose,
-                })
-                .collect();
-            // The core is deterministic: every run's trajectory is the first's.
-            if let (Some(dir), 0) = (&args.save, run) {
-                std::fs::create_dir_all(dir)?;
-                let name = dataset
-                    .file_name()
-                    .map_or_else(|| "sequence".into(), |n| n.to_string_lossy().into_owned());
-                write_tum_trajectory(&dir.join(format!("{name}.txt")), &est)?;
-            }
-            let kf_est: Vec<StampedPose> = est
-                .iter()
-                .filter(|p| keyframe_stamps.contains(&p.timestamp))
-                .cloned()
-                .collect();
-            let drift = loaded.scale_drift(&est);
-            let traj = loaded.ate(&est);
-            let shape = probe.summary(frames.first().map_or(0.0, |f| f.timestamp));
-            let kf_ate = loaded.ate(&kf_est);
-            let share = traj.map(|a| 100.0 * a / path.max(1e-9));
-            for (column, value) in medians
-                .iter_mut()
-                .zip([traj, kf_ate, share, drift, Some(ms)])
+            let r = run_once(args, &config, &sequence, truth.clone(), run)?;
+            for (column, value) in
+                medians
+                    .iter_mut()
+                    .zip([r.ate, r.kf_ate, r.share, r.drift, Some(r.ms)])
             {
                 column.extend(value);
             }
@@ -222,21 +114,19 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8.1} {:>8} {:>11} {:>7}",
                 dataset.display().to_string(),
                 frames.len(),
-                tracked,
-                odometry.keyframe_count(),
-                fmt(traj, 4),
-                fmt(kf_ate, 4),
-                fmt(share, 2),
-                fmt(drift, 2),
-                ms,
-                fmt(shape.slope_after_1s, 2),
-                shape.range_text(),
-                fmt(shape.scale_ratio, 2),
+                r.tracked,
+                r.keyframes,
+                fmt(r.ate, 4),
+                fmt(r.kf_ate, 4),
+                fmt(r.share, 2),
+                fmt(r.drift, 2),
+                r.ms,
+                fmt(r.shape.slope_after_1s, 2),
+                r.shape.range_text(),
+                fmt(r.shape.scale_ratio, 2),
             );
-            if truth.is_some()
-                && let Ok(probes) = probes.lock()
-            {
-                print_truth_probes(&probes);
+            if truth.is_some() {
+                print_truth_probes(&r.probes);
             }
         }
         if args.runs > 1 {
@@ -259,6 +149,189 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// The sequence's frames, undistorted once for every run.
+fn undistorted_frames(loaded: &Loaded) -> anyhow::Result<Vec<Arc<Frame>>> {
+    let camera = loaded.seq.camera;
+    let undistort = camera
+        .distortion
+        .is_some()
+        .then(|| UndistortMap::new(&camera));
+    let frames = loaded
+        .frames
+        .iter()
+        .enumerate()
+        .map(|(i, f)| {
+            Frame::from_camera_rgb(
+                i as u64,
+                f.timestamp,
+                &camera,
+                undistort.as_ref(),
+                f.rgb.clone(),
+            )
+            .map(Arc::new)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(frames)
+}
+
+/// One sequence as the runs see it.
+struct Sequence<'a> {
+    path: &'a std::path::Path,
+    loaded: &'a Loaded,
+    frames: &'a [Arc<Frame>],
+}
+
+/// What one run measured.
+struct RunResult {
+    tracked: usize,
+    keyframes: usize,
+    ate: Option<f64>,
+    kf_ate: Option<f64>,
+    share: Option<f64>,
+    drift: Option<f64>,
+    ms: f64,
+    shape: ShapeSummary,
+    probes: Vec<TruthProbe>,
+}
+
+/// One run of the core over the sequence (seed `run`), with the window's depth probed after
+/// each keyframe and, given the truth, its energy probed against it.
+fn run_once(
+    args: &OdometryArgs,
+    config: &OdometryConfig,
+    sequence: &Sequence<'_>,
+    truth: Option<Arc<HashMap<u64, SE3>>>,
+    run: usize,
+) -> anyhow::Result<RunResult> {
+    let (loaded, frames) = (sequence.loaded, sequence.frames);
+    let probes = Arc::new(Mutex::new(Vec::new()));
+    let observer = truth.map(|truth| {
+        let probes = probes.clone();
+        WindowObserver(Arc::new(move |window: &SlidingWindow| {
+            if let Some(p) = truth::probe(window, &|id| truth.get(&id).copied())
+                && let Ok(mut probes) = probes.lock()
+            {
+                probes.push(p);
+            }
+        }))
+    });
+    let mut odometry =
+        Odometry::start_observed(config.clone(), run as u64, args.threaded, observer)?;
+    let mut tracked = 0;
+    let mut keyframe_stamps = Vec::new();
+    let t0 = Instant::now();
+    let mut watch = WindowWatch::default();
+    let mut busy = std::time::Duration::ZERO;
+    for f in frames {
+        if args.paced {
+            let due =
+                std::time::Duration::from_secs_f64((f.timestamp - frames[0].timestamp).max(0.0));
+            std::thread::sleep(due.saturating_sub(t0.elapsed()));
+        }
+        let started = Instant::now();
+        let outcome = odometry.push(f.clone())?;
+        busy += started.elapsed();
+        tracked += usize::from(outcome.tracked);
+        if outcome.keyframe {
+            keyframe_stamps.push(f.timestamp);
+        }
+        watch.look(&odometry, &loaded.seq, frames, args.keyframes)?;
+    }
+    odometry.finish()?;
+    watch.look(&odometry, &loaded.seq, frames, args.keyframes)?;
+    let wall = if args.paced { busy } else { t0.elapsed() };
+    let ms = 1e3 * wall.as_secs_f64() / frames.len().max(1) as f64;
+    let est: Vec<StampedPose> = odometry
+        .trajectory()
+        .into_iter()
+        .map(|(id, pose)| StampedPose {
+            timestamp: frames[id as usize].timestamp,
+            world_from_camera: pose,
+        })
+        .collect();
+    // The core is deterministic: every run's trajectory is the first's.
+    if let (Some(dir), 0) = (&args.save, run) {
+        std::fs::create_dir_all(dir)?;
+        let name = sequence
+            .path
+            .file_name()
+            .map_or_else(|| "sequence".into(), |n| n.to_string_lossy().into_owned());
+        write_tum_trajectory(&dir.join(format!("{name}.txt")), &est)?;
+    }
+    let kf_est: Vec<StampedPose> = est
+        .iter()
+        .filter(|p| keyframe_stamps.contains(&p.timestamp))
+        .cloned()
+        .collect();
+    let ate = loaded.ate(&est);
+    let probes = probes
+        .lock()
+        .map(|mut p| std::mem::take(&mut *p))
+        .unwrap_or_default();
+    Ok(RunResult {
+        tracked,
+        keyframes: odometry.keyframe_count(),
+        ate,
+        kf_ate: loaded.ate(&kf_est),
+        share: ate.map(|a| 100.0 * a / loaded.path_length().max(1e-9)),
+        drift: loaded.scale_drift(&est),
+        ms,
+        shape: watch
+            .probe
+            .summary(frames.first().map_or(0.0, |f| f.timestamp)),
+        probes,
+    })
+}
+
+/// The window's depth against the sensor's, probed whenever it has published a new keyframe.
+#[derive(Debug, Default)]
+struct WindowWatch {
+    probe: DepthProbe,
+    depth: WindowDepth,
+    seen: u64,
+}
+
+impl WindowWatch {
+    fn look(
+        &mut self,
+        odometry: &Odometry,
+        seq: &TumSequence,
+        frames: &[Arc<Frame>],
+        print: bool,
+    ) -> anyhow::Result<()> {
+        let Some(window) = odometry
+            .window()
+            .filter(|_| odometry.published() > self.seen)
+        else {
+            return Ok(());
+        };
+        self.seen = odometry.published();
+        let Some(&(id, _, (a, b))) = window.frames.last() else {
+            return Ok(());
+        };
+        let timestamp = frames[id as usize].timestamp;
+        self.depth
+            .measure(&mut self.probe, seq, window, timestamp)?;
+        if print {
+            let sample = self.probe.samples.last().filter(|s| s.0 == timestamp);
+            eprintln!(
+                "kf frame {:>5} t {:>8.3} frames {} points {:>5} slope {:>6} scale {:>8} affine {:>6.3} {:>6.1}",
+                id,
+                timestamp - frames[0].timestamp,
+                window.frames.len(),
+                window.points.len(),
+                sample
+                    .and_then(|s| s.1)
+                    .map_or_else(|| "-".into(), |v| format!("{v:.2}")),
+                sample.map_or_else(|| "-".into(), |s| format!("{:.4}", s.2)),
+                a,
+                b,
+            );
+        }
+        Ok(())
+    }
 }
 
 /// The sensor depth of the window's hosts, loaded once per host while it is in the window.

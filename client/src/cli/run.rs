@@ -129,39 +129,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let recording = recorder.map(|r| r.finish()).transpose()?;
     let (mut pipeline, wall_s, load_s) = (outcome.pipeline, outcome.wall_s, outcome.load_s);
 
-    write_trajectory(&args.out.join("trajectory.txt"), &pipeline.trajectory())?;
-    write_trajectory(
-        &args.out.join("keyframes.txt"),
-        &pipeline.keyframe_trajectory(),
-    )?;
-    write_points_ply(
-        &args.out.join("semidense.ply"),
-        &pipeline.semidense_points(),
-    )?;
-    if pipeline.config().dense.enabled {
-        write_points_ply(&args.out.join("dense.ply"), &pipeline.dense_points()?)?;
-        // The maps inside are shared (`Arc`): cloning a keyframe copies no pixels.
-        let dense: Vec<_> = pipeline
-            .dense_keyframes()
-            .into_iter()
-            .map(|(kf, pose)| ((*kf).clone(), pose))
-            .collect();
-        relfusion_slam::dense::store::write_dense_keyframes(&args.out.join("keyframes"), &dense)?;
-    }
-    let mesh = pipeline.mesh()?;
-    if let Some(mesh) = &mesh {
-        write_mesh_ply(&args.out.join("mesh.ply"), mesh)?;
-        write_mesh_glb(&args.out.join("mesh.glb"), mesh)?;
-    }
-    let fusion = pipeline.fusion_stats();
-    if let Some(fusion) = &fusion {
-        write_mesh_stats(&args.out, fusion)?;
-    }
-    let t_map = Instant::now();
-    let map_dir = args.out.join("map");
-    relfusion_slam::map::write_map(&map_dir, &pipeline.saved_map()?)
-        .with_context(|| format!("writing {}", map_dir.display()))?;
-    let map_save_s = t_map.elapsed().as_secs_f64();
+    let Written {
+        mesh,
+        fusion,
+        map_save_s,
+    } = write_results(&args.out, &mut pipeline)?;
     let stats = pipeline.stats();
     println!(
         "{}",
@@ -194,6 +166,50 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         })
     );
     Ok(())
+}
+
+/// What [`write_results`] wrote that the summary reports.
+struct Written {
+    mesh: Option<relfusion_slam::fusion::Mesh>,
+    fusion: Option<relfusion_slam::fusion::FusionStats>,
+    map_save_s: f64,
+}
+
+/// Writes a finished run into `out`: trajectory, keyframes, point clouds, the dense keyframes,
+/// the mesh and its statistics, and the map.
+fn write_results(out: &std::path::Path, pipeline: &mut Pipeline) -> anyhow::Result<Written> {
+    write_trajectory(&out.join("trajectory.txt"), &pipeline.trajectory())?;
+    write_trajectory(&out.join("keyframes.txt"), &pipeline.keyframe_trajectory())?;
+    write_points_ply(&out.join("semidense.ply"), &pipeline.semidense_points())?;
+    if pipeline.config().dense.enabled {
+        write_points_ply(&out.join("dense.ply"), &pipeline.dense_points()?)?;
+        // The maps inside are shared (`Arc`): cloning a keyframe copies no pixels.
+        let dense: Vec<_> = pipeline
+            .dense_keyframes()
+            .into_iter()
+            .map(|(kf, pose)| ((*kf).clone(), pose))
+            .collect();
+        relfusion_slam::dense::store::write_dense_keyframes(&out.join("keyframes"), &dense)?;
+    }
+    let mesh = pipeline.mesh()?;
+    if let Some(mesh) = &mesh {
+        write_mesh_ply(&out.join("mesh.ply"), mesh)?;
+        write_mesh_glb(&out.join("mesh.glb"), mesh)?;
+    }
+    let fusion = pipeline.fusion_stats();
+    if let Some(fusion) = &fusion {
+        write_mesh_stats(out, fusion)?;
+    }
+    let t_map = Instant::now();
+    let map_dir = out.join("map");
+    relfusion_slam::map::write_map(&map_dir, &pipeline.saved_map()?)
+        .with_context(|| format!("writing {}", map_dir.display()))?;
+    let map_save_s = t_map.elapsed().as_secs_f64();
+    Ok(Written {
+        mesh,
+        fusion,
+        map_save_s,
+    })
 }
 
 /// A finished run of the pipeline over a sequence.

@@ -72,35 +72,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(path) => load_config_json(path)?,
         None => Value::Null,
     };
-    let opts = StreamOptions {
-        pace: match (args.fps, args.fast) {
-            (Some(fps), _) => Pace::Fps(fps),
-            (None, true) => Pace::Fast,
-            (None, false) => Pace::Timestamps,
-        },
-        policy: if args.wait {
-            FramePolicy::Wait
-        } else {
-            FramePolicy::DropOldest
-        },
-        config,
-        model: args.model.clone(),
-        transport: match &args.zenoh {
-            Some(endpoint) => Transport::Zenoh {
-                endpoint: endpoint.clone(),
-            },
-            None => Transport::Http,
-        },
-        max_frames: args.frames,
-        camera: None,
-        map: args.map.clone().map(|id| relfusion_sdk::MapStart {
-            id,
-            mode: match args.map_mode {
-                super::run::MapMode::Localize => relfusion_sdk::MapMode::Localize,
-                super::run::MapMode::Extend => relfusion_sdk::MapMode::Extend,
-            },
-        }),
-    };
+    let opts = stream_options(&args, config);
     let seq = TumSequence::open(&args.dataset, None)
         .with_context(|| format!("opening {}", args.dataset.display()))?;
     let n = args.frames.unwrap_or(seq.len()).min(seq.len());
@@ -168,6 +140,39 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         anyhow::Ok(())
     })
+}
+
+/// The SDK's options for the command's flags.
+fn stream_options(args: &Args, config: Value) -> StreamOptions {
+    StreamOptions {
+        pace: match (args.fps, args.fast) {
+            (Some(fps), _) => Pace::Fps(fps),
+            (None, true) => Pace::Fast,
+            (None, false) => Pace::Timestamps,
+        },
+        policy: if args.wait {
+            FramePolicy::Wait
+        } else {
+            FramePolicy::DropOldest
+        },
+        config,
+        model: args.model.clone(),
+        transport: match &args.zenoh {
+            Some(endpoint) => Transport::Zenoh {
+                endpoint: endpoint.clone(),
+            },
+            None => Transport::Http,
+        },
+        max_frames: args.frames,
+        camera: None,
+        map: args.map.clone().map(|id| relfusion_sdk::MapStart {
+            id,
+            mode: match args.map_mode {
+                super::run::MapMode::Localize => relfusion_sdk::MapMode::Localize,
+                super::run::MapMode::Extend => relfusion_sdk::MapMode::Extend,
+            },
+        }),
+    }
 }
 
 /// ATE (Sim(3)-aligned) of the session's final trajectory against the dataset's ground truth;

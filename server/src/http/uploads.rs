@@ -32,6 +32,7 @@ use relfusion_proto::http::CreatedSession;
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 
+use crate::session::admission::UploadTicket;
 use crate::session::overrides::upload_config;
 use crate::session::types::checked_camera;
 use crate::session::{ArchiveKind, NewUpload};
@@ -137,6 +138,12 @@ impl UploadDeadline {
     }
 }
 
+fn too_large(limit: u64) -> ApiError {
+    ApiError::payload_too_large(format!(
+        "upload larger than limits.max_upload_bytes = {limit} bytes"
+    ))
+}
+
 fn disk_error(e: std::io::Error) -> ApiError {
     ApiError::internal(format!("storing the upload failed: {e}"))
 }
@@ -167,18 +174,13 @@ pub async fn upload(
     body: Body,
 ) -> Result<Response, ApiError> {
     let limit = state.config.limits.max_upload_bytes;
-    let too_large = || {
-        ApiError::payload_too_large(format!(
-            "upload larger than limits.max_upload_bytes = {limit} bytes"
-        ))
-    };
     // Refuse a declared oversize before reading anything.
     let declared = headers
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
     if declared.is_some_and(|n| n > limit) {
-        return Err(too_large());
+        return Err(too_large(limit));
     }
     let camera = params.camera()?;
     let config = params.config()?;
@@ -192,6 +194,37 @@ pub async fn upload(
             .and_then(|v| kind_from_content_type(v.split(';').next().unwrap_or_default().trim())),
     };
 
+    let (temp, received, head) = receive(&state, body).await?;
+    if received == 0 {
+        return Err(ApiError::bad_request(
+            "empty upload: send a .tar or .zip of a TUM-layout dataset",
+        ));
+    }
+    if kind.is_none() {
+        kind = sniff(&head);
+    }
+    let kind = kind.ok_or_else(|| {
+        ApiError::bad_request(
+            "unknown archive format: pass ?format=tar or ?format=zip (or a tar/zip Content-Type)",
+        )
+    })?;
+    let upload = NewUpload {
+        archive: temp.path(),
+        kind,
+        camera,
+        config,
+    };
+    store(&state, ticket, upload, received).await
+}
+
+/// The request body, streamed into a temporary file inside the data directory (deleted when
+/// dropped) under the size limit and the upload deadlines; the file, its size and its first
+/// 512 bytes (to recognise the format).
+async fn receive(
+    state: &AppState,
+    body: Body,
+) -> Result<(tempfile::NamedTempFile, u64, Vec<u8>), ApiError> {
+    let limit = state.config.limits.max_upload_bytes;
     // The manager's temp folder is inside the data directory and emptied at every start, so
     // a crash mid-upload leaves nothing behind for long.
     let tmp_dir = state.sessions.temp_dir();
@@ -229,7 +262,7 @@ pub async fn upload(
         })?;
         received += chunk.len() as u64;
         if received > limit {
-            return Err(too_large());
+            return Err(too_large(limit));
         }
         if head.len() < 512 {
             let take = (512 - head.len()).min(chunk.len());
@@ -239,25 +272,17 @@ pub async fn upload(
     }
     file.flush().await.map_err(disk_error)?;
     drop(file);
-    if received == 0 {
-        return Err(ApiError::bad_request(
-            "empty upload: send a .tar or .zip of a TUM-layout dataset",
-        ));
-    }
-    if kind.is_none() {
-        kind = sniff(&head);
-    }
-    let kind = kind.ok_or_else(|| {
-        ApiError::bad_request(
-            "unknown archive format: pass ?format=tar or ?format=zip (or a tar/zip Content-Type)",
-        )
-    })?;
-    let upload = NewUpload {
-        archive: temp.path(),
-        kind,
-        camera,
-        config,
-    };
+    Ok((temp, received, head))
+}
+
+/// Stores an upload as a session, here or, with a store the cluster shares, on the node
+/// placement chose (handed to it; run here when it does not answer).
+async fn store(
+    state: &AppState,
+    ticket: UploadTicket,
+    upload: NewUpload<'_>,
+    received: u64,
+) -> Result<Response, ApiError> {
     // With a shared store, the upload runs where placement says (stored here either way).
     let placed = if state.sessions.shares_store() {
         state.cluster.place()

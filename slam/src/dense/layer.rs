@@ -29,7 +29,7 @@ use super::two_view::{
 use super::{DenseCompute, DenseConfig, ScaleShift, densify, fit_scale_shift_robust, support};
 use crate::background::Service;
 use crate::frame::Frame;
-use crate::geometry::{Matrix7, Sim3};
+use crate::geometry::{Matrix7, PinholeCamera, Sim3};
 use crate::gpu::GpuContext;
 use crate::graph::KeyframeId;
 use crate::image::ImageF32;
@@ -171,47 +171,14 @@ impl DenseLayer {
 
     /// Densifies one keyframe.
     pub fn process(&mut self, job: DenseJob) -> Result<DenseOutput> {
-        let cfg = &self.config;
         let mut timings = DenseTimings::default();
         let frame = &job.frame;
         let full = &frame.pyramid.levels[0].image;
-        let (w, h) = working_size(full.width, full.height, cfg.width);
+        let (w, h) = working_size(full.width, full.height, self.config.width);
         let camera = working_camera(&frame.camera, w, h);
         let intensity = box_downsample(full, w, h)?;
         let (semidense, semidense_var) = downsample_depth(&job.depth, w, h)?;
-
-        // §III-B: the prior and its eq. (3) alignment.
-        let t = Instant::now();
-        let prior = match (&job.prior, &self.prior, frame.rgb.as_ref()) {
-            (Some(p), _, _) => Some(box_downsample(p, w, h)?),
-            (None, Some(model), Some(rgb)) => Some(box_downsample(&predict(model, rgb)?, w, h)?),
-            _ => None,
-        };
-        timings.prior_ms = ms(t);
-        let t = Instant::now();
-        let (align, align_error) = match &prior {
-            Some(p) => match fit_scale_shift_robust(p, &semidense, &cfg.align) {
-                Ok(fit) => (Some(fit), None),
-                Err(e) => (None, Some(e.to_string())),
-            },
-            None => (None, None),
-        };
-        let prior_aligned = match (&prior, &align) {
-            (Some(p), Some(fit)) => Some(clamped(fit, p, cfg.densify.min_idepth)),
-            _ => None,
-        };
-        timings.align_ms = ms(t);
-        let mode = if prior_aligned.is_some() {
-            DenseMode::Prior
-        } else {
-            DenseMode::NoModel
-        };
-        if let Some(reason) = &align_error {
-            tracing::warn!(keyframe = job.keyframe_id, %reason, "dense layer: prior not used");
-        } else if mode == DenseMode::NoModel && !self.no_model_reported {
-            self.no_model_reported = true;
-            tracing::info!("dense layer running without a depth model (no_model mode)");
-        }
+        let prior = self.aligned_prior(&job, &semidense, (w, h), &mut timings)?;
 
         // §III-C: the adaptive filter.
         let t = Instant::now();
@@ -219,89 +186,43 @@ impl DenseLayer {
             intensity: &intensity,
             semidense: &semidense,
             variance: &semidense_var,
-            prior: prior_aligned.as_ref(),
+            prior: prior.aligned.as_ref(),
         };
-        let (filtered, filtered_var) =
-            filter_semidense(&inputs, &cfg.filter, self.steps.filter.as_ref())?;
+        let filter_step = self.steps.filter.as_ref();
+        let (filtered, filtered_var) = filter_semidense(&inputs, &self.config.filter, filter_step)?;
         timings.filter_ms = ms(t);
 
-        // §III-D: densification.
         let t = Instant::now();
-        let problem = match &prior_aligned {
-            Some(p) => {
-                densify::DensifyProblem::with_prior(p, &filtered, &filtered_var, &cfg.densify)?
-            }
-            None => densify::DensifyProblem::without_prior(
-                &intensity,
-                &filtered,
-                &filtered_var,
-                &cfg.densify,
-            )?,
-        };
-        let dense = Arc::new(densify::densify(
-            &problem,
-            &cfg.densify,
-            self.steps.densify.as_ref(),
-        )?);
+        let dense = Arc::new(self.densify(&intensity, &prior, &filtered, &filtered_var)?);
         timings.densify_ms = ms(t);
 
-        // §III-E: two-view consistency with the previous densified keyframe.
         let t = Instant::now();
-        let pose_of = |id: KeyframeId| job.poses.iter().find(|(k, _)| *k == id).map(|(_, p)| *p);
-        let world_from_keyframe = pose_of(job.keyframe_id).ok_or_else(|| {
-            Error::Config(format!(
-                "dense job for keyframe {} has no pose",
-                job.keyframe_id
-            ))
-        })?;
-        let floor = dense_variance_floor(&filtered_var);
-        let mut variance = pose_variance(&dense, &camera, &job.pose_covariance);
-        merge_variances(&mut variance, &filtered, &filtered_var, floor);
-        let mut consistent_pixels = 0;
-        let mut refined_depth = None;
-        let previous = self
-            .previous
-            .as_ref()
-            .and_then(|p| pose_of(p.id).map(|pose| (p, pose)));
-        if let (true, Some((prev, world_from_prev))) = (cfg.two_view.enabled, previous) {
-            let result = two_view_consistency(
-                &TwoViewInputs {
-                    camera: &camera,
-                    prev_semi: &prev.filtered,
-                    prev_dense: &prev.dense,
-                    cur_semi: &filtered,
-                    cur_semi_var: &filtered_var,
-                    cur_dense: &dense,
-                    cur_from_prev: world_from_keyframe.inverse() * world_from_prev,
-                    pose_covariance: job.pose_covariance,
-                },
-                &cfg.two_view,
-                self.steps.warp.as_ref(),
-            )?;
-            consistent_pixels = result.consistent_semi + result.consistent_dense;
-            if consistent_pixels >= cfg.two_view.min_pixels {
-                let mut consistent_var = result.variance;
-                merge_variances(&mut consistent_var, &filtered, &filtered_var, floor);
-                let consistent =
-                    to_depth_map(&result.idepth, &consistent_var, full.width, full.height)?;
-                refined_depth = Some(Arc::new(keep_semidense(&job.depth, consistent)));
-            }
-        }
-        if let (true, Some(sensor)) = (cfg.two_view.ground_truth_depth, &frame.sensor_depth) {
-            match sensor_depth_map(&job.depth, sensor)? {
-                Some(map) => refined_depth = Some(Arc::new(map)),
-                None => tracing::warn!(
-                    keyframe = job.keyframe_id,
-                    "ground-truth refinement: too few semi-dense pixels with a sensor depth"
-                ),
-            }
-        }
+        let semi = Semidense {
+            full: &job.depth,
+            filtered: &filtered,
+            variance: &filtered_var,
+        };
+        let consistency = self.consistency(&job, &camera, &semi, &dense)?;
         timings.two_view_ms = ms(t);
+        let Consistency {
+            world_from_keyframe,
+            mut variance,
+            consistent_pixels,
+            refined_depth,
+        } = consistency;
         // The published variance (what the fusion weighs by) also grows away from the
         // semi-dense support; the back end's constraints above keep the paper's V_c.
-        support::grow_with_distance(&mut variance, &dense, &filtered, cfg.support_variance);
+        let growth = self.config.support_variance;
+        support::grow_with_distance(&mut variance, &dense, &filtered, growth);
 
-        let stages = cfg.keep_stages.then(|| {
+        let mode = prior.mode();
+        let AlignedPrior {
+            raw: prior,
+            fit: align,
+            error: align_error,
+            aligned: prior_aligned,
+        } = prior;
+        let stages = self.config.keep_stages.then(|| {
             Arc::new(DenseStages {
                 intensity,
                 prior,
@@ -335,6 +256,173 @@ impl DenseLayer {
             refined_depth,
         })
     }
+
+    /// §III-B: the prior at the working size (given with the job, else predicted) and its
+    /// eq. (3) alignment onto the semi-dense map.
+    fn aligned_prior(
+        &mut self,
+        job: &DenseJob,
+        semidense: &ImageF32,
+        (w, h): (usize, usize),
+        timings: &mut DenseTimings,
+    ) -> Result<AlignedPrior> {
+        let cfg = &self.config;
+        let t = Instant::now();
+        let raw = match (&job.prior, &self.prior, job.frame.rgb.as_ref()) {
+            (Some(p), _, _) => Some(box_downsample(p, w, h)?),
+            (None, Some(model), Some(rgb)) => Some(box_downsample(&predict(model, rgb)?, w, h)?),
+            _ => None,
+        };
+        timings.prior_ms = ms(t);
+        let t = Instant::now();
+        let (fit, error) = match &raw {
+            Some(p) => match fit_scale_shift_robust(p, semidense, &cfg.align) {
+                Ok(fit) => (Some(fit), None),
+                Err(e) => (None, Some(e.to_string())),
+            },
+            None => (None, None),
+        };
+        let aligned = match (&raw, &fit) {
+            (Some(p), Some(fit)) => Some(clamped(fit, p, cfg.densify.min_idepth)),
+            _ => None,
+        };
+        timings.align_ms = ms(t);
+        let prior = AlignedPrior {
+            raw,
+            fit,
+            error,
+            aligned,
+        };
+        if let Some(reason) = &prior.error {
+            tracing::warn!(keyframe = job.keyframe_id, %reason, "dense layer: prior not used");
+        } else if prior.mode() == DenseMode::NoModel && !self.no_model_reported {
+            self.no_model_reported = true;
+            tracing::info!("dense layer running without a depth model (no_model mode)");
+        }
+        Ok(prior)
+    }
+
+    /// §III-D: densification, from the aligned prior or, without one, from the image.
+    fn densify(
+        &self,
+        intensity: &ImageF32,
+        prior: &AlignedPrior,
+        filtered: &ImageF32,
+        filtered_var: &ImageF32,
+    ) -> Result<ImageF32> {
+        let params = &self.config.densify;
+        let problem = match &prior.aligned {
+            Some(p) => densify::DensifyProblem::with_prior(p, filtered, filtered_var, params)?,
+            None => {
+                densify::DensifyProblem::without_prior(intensity, filtered, filtered_var, params)?
+            }
+        };
+        densify::densify(&problem, params, self.steps.densify.as_ref())
+    }
+
+    /// §III-E: the keyframe's variance from its pose uncertainty, and its two-view consistency
+    /// with the previous densified keyframe (or, as the baseline, the sensor's depth).
+    fn consistency(
+        &self,
+        job: &DenseJob,
+        camera: &PinholeCamera,
+        semi: &Semidense<'_>,
+        dense: &ImageF32,
+    ) -> Result<Consistency> {
+        let cfg = &self.config;
+        let pose_of = |id: KeyframeId| job.poses.iter().find(|(k, _)| *k == id).map(|(_, p)| *p);
+        let world_from_keyframe = pose_of(job.keyframe_id).ok_or_else(|| {
+            Error::Config(format!(
+                "dense job for keyframe {} has no pose",
+                job.keyframe_id
+            ))
+        })?;
+        let floor = dense_variance_floor(semi.variance);
+        let mut variance = pose_variance(dense, camera, &job.pose_covariance);
+        merge_variances(&mut variance, semi.filtered, semi.variance, floor);
+        let mut consistent_pixels = 0;
+        let mut refined_depth = None;
+        let previous = self
+            .previous
+            .as_ref()
+            .and_then(|p| pose_of(p.id).map(|pose| (p, pose)));
+        if let (true, Some((prev, world_from_prev))) = (cfg.two_view.enabled, previous) {
+            let result = two_view_consistency(
+                &TwoViewInputs {
+                    camera,
+                    prev_semi: &prev.filtered,
+                    prev_dense: &prev.dense,
+                    cur_semi: semi.filtered,
+                    cur_semi_var: semi.variance,
+                    cur_dense: dense,
+                    cur_from_prev: world_from_keyframe.inverse() * world_from_prev,
+                    pose_covariance: job.pose_covariance,
+                },
+                &cfg.two_view,
+                self.steps.warp.as_ref(),
+            )?;
+            consistent_pixels = result.consistent_semi + result.consistent_dense;
+            if consistent_pixels >= cfg.two_view.min_pixels {
+                let mut consistent_var = result.variance;
+                merge_variances(&mut consistent_var, semi.filtered, semi.variance, floor);
+                let full = &job.frame.pyramid.levels[0].image;
+                let consistent =
+                    to_depth_map(&result.idepth, &consistent_var, full.width, full.height)?;
+                refined_depth = Some(Arc::new(keep_semidense(semi.full, consistent)));
+            }
+        }
+        if let (true, Some(sensor)) = (cfg.two_view.ground_truth_depth, &job.frame.sensor_depth) {
+            match sensor_depth_map(semi.full, sensor)? {
+                Some(map) => refined_depth = Some(Arc::new(map)),
+                None => tracing::warn!(
+                    keyframe = job.keyframe_id,
+                    "ground-truth refinement: too few semi-dense pixels with a sensor depth"
+                ),
+            }
+        }
+        Ok(Consistency {
+            world_from_keyframe,
+            variance,
+            consistent_pixels,
+            refined_depth,
+        })
+    }
+}
+
+/// The prior of one keyframe at the working size: as predicted, its eq. (3) fit (or why
+/// there is none) and the aligned, clamped result.
+struct AlignedPrior {
+    raw: Option<ImageF32>,
+    fit: Option<ScaleShift>,
+    error: Option<String>,
+    aligned: Option<ImageF32>,
+}
+
+impl AlignedPrior {
+    fn mode(&self) -> DenseMode {
+        if self.aligned.is_some() {
+            DenseMode::Prior
+        } else {
+            DenseMode::NoModel
+        }
+    }
+}
+
+/// A keyframe's semi-dense depth: the full-resolution map and, at the working size, its
+/// filtered inverse depth and variance.
+struct Semidense<'a> {
+    full: &'a DepthMap,
+    filtered: &'a ImageF32,
+    variance: &'a ImageF32,
+}
+
+/// What §III-E gives a keyframe: its pose, the variance of its dense depth, and the
+/// two-view consistent depth when enough pixels agree.
+struct Consistency {
+    world_from_keyframe: Sim3,
+    variance: ImageF32,
+    consistent_pixels: usize,
+    refined_depth: Option<Arc<DepthMap>>,
 }
 
 /// The layer as a background service: one keyframe per job, its answer as the reply.

@@ -216,54 +216,19 @@ impl PyramidKernel {
         Ok(pyramid)
     }
 
-    /// Records one compute pass: for each level `L`, downsample `L−1 → L` (if `L > 0`), then the
-    /// gradients of `L`. wgpu orders dispatches within a pass (each is its own usage scope), so
-    /// level `L` is complete before anything reads it.
-    fn record(
+    /// The bind groups of the pass in dispatch order: per level, its downsampling (from level
+    /// 1 on) then its gradients, each with its uniform slot.
+    fn bind_groups(
         &self,
-        ctx: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        device: &wgpu::Device,
         pyramid: &GpuPyramid,
-        timer: Option<&PassTimer>,
-    ) -> Result<()> {
-        let device = ctx.device();
-        // One uniform slot per dispatch, each at an offset the device accepts for bindings.
-        let stride = u64::from(ctx.limits().min_uniform_buffer_offset_alignment).max(32);
+        uniform_buffer: &wgpu::Buffer,
+        stride: u64,
+    ) -> Vec<wgpu::BindGroup> {
         let n = pyramid.levels.len();
-        let mut uniforms = vec![0u8; 2 * n * stride as usize];
-        for (l, level) in pyramid.levels.iter().enumerate() {
-            let g = GradientParams {
-                offset: level.offset,
-                width: level.width,
-                height: level.height,
-                _pad0: 0,
-            };
-            let at = 2 * l * stride as usize;
-            uniforms[at..at + 16].copy_from_slice(bytemuck::bytes_of(&g));
-            if l > 0 {
-                let src = pyramid.levels[l - 1];
-                let d = DownsampleParams {
-                    src_offset: src.offset,
-                    src_width: src.width,
-                    src_height: src.height,
-                    dst_offset: level.offset,
-                    dst_width: level.width,
-                    dst_height: level.height,
-                    _pad0: 0,
-                    _pad1: 0,
-                };
-                let at = (2 * l + 1) * stride as usize;
-                uniforms[at..at + 32].copy_from_slice(bytemuck::bytes_of(&d));
-            }
-        }
-        let uniform_buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("pyramid params"),
-            contents: &uniforms,
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
         let slot = |index: usize, size: u64| {
             wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                buffer: &uniform_buffer,
+                buffer: uniform_buffer,
                 offset: index as u64 * stride,
                 size: NonZeroU64::new(size),
             })
@@ -315,6 +280,29 @@ impl PyramidKernel {
                 ],
             }));
         }
+        groups
+    }
+
+    /// Records one compute pass: for each level `L`, downsample `L−1 → L` (if `L > 0`), then the
+    /// gradients of `L`. wgpu orders dispatches within a pass (each is its own usage scope), so
+    /// level `L` is complete before anything reads it.
+    fn record(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        pyramid: &GpuPyramid,
+        timer: Option<&PassTimer>,
+    ) -> Result<()> {
+        let device = ctx.device();
+        // One uniform slot per dispatch, each at an offset the device accepts for bindings.
+        let stride = u64::from(ctx.limits().min_uniform_buffer_offset_alignment).max(32);
+        let uniforms = level_params(pyramid, stride as usize);
+        let uniform_buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("pyramid params"),
+            contents: &uniforms,
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let groups = self.bind_groups(device, pyramid, &uniform_buffer, stride);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("pyramid"),
             timestamp_writes: timer.map(PassTimer::writes),
@@ -343,6 +331,39 @@ impl PyramidKernel {
         }
         Ok(())
     }
+}
+
+/// The uniform parameters of every dispatch, each in its own `stride`-aligned slot: slot
+/// `2L` the gradients of level `L`, slot `2L + 1` its downsampling from `L − 1`.
+fn level_params(pyramid: &GpuPyramid, stride: usize) -> Vec<u8> {
+    let n = pyramid.levels.len();
+    let mut uniforms = vec![0u8; 2 * n * stride];
+    for (l, level) in pyramid.levels.iter().enumerate() {
+        let g = GradientParams {
+            offset: level.offset,
+            width: level.width,
+            height: level.height,
+            _pad0: 0,
+        };
+        let at = 2 * l * stride;
+        uniforms[at..at + 16].copy_from_slice(bytemuck::bytes_of(&g));
+        if l > 0 {
+            let src = pyramid.levels[l - 1];
+            let d = DownsampleParams {
+                src_offset: src.offset,
+                src_width: src.width,
+                src_height: src.height,
+                dst_offset: level.offset,
+                dst_width: level.width,
+                dst_height: level.height,
+                _pad0: 0,
+                _pad1: 0,
+            };
+            let at = (2 * l + 1) * stride;
+            uniforms[at..at + 32].copy_from_slice(bytemuck::bytes_of(&d));
+        }
+    }
+    uniforms
 }
 
 /// Creates the four level buffers, after checking the sizes against the device limits.

@@ -239,11 +239,78 @@ impl<'a> StereoPair<'a> {
         epl: Vector2<f32>,
         min_idepth: f32,
         prior_idepth: f32,
-        mut max_idepth: f32,
+        max_idepth: f32,
         cfg: &MappingConfig,
     ) -> Result<StereoMatch, StereoFailure> {
-        let (w, h) = (self.width, self.height);
         let ray = self.k.ray(u, v);
+        let (rescale, reference) = self.reference_samples(u, v, epl, &ray, prior_idepth)?;
+        let Segment {
+            far,
+            close,
+            inc,
+            epl_length,
+        } = self.segment(&ray, min_idepth, max_idepth, cfg)?;
+        let best = self.scan(far, close, inc, &reference, cfg)?;
+        let mut best_pos = far + inc * best.index as f32;
+        let mut best_err = best.err;
+        let mut subpixel = false;
+        if cfg.use_subpixel_stereo
+            && let Some((shift, err)) = best.subpixel()
+        {
+            best_pos += inc * shift;
+            best_err = err;
+            subpixel = true;
+        }
+
+        // Squared intensity gradient along the line, in the frame's pixel units.
+        let sample_dist = cfg.gradient_sample_dist * rescale;
+        let grad_along = reference
+            .windows(2)
+            .map(|p| (p[1] - p[0]) * (p[1] - p[0]))
+            .sum::<f32>()
+            / (sample_dist * sample_dist);
+        // LSD's allowance: strongly textured patches may match with a larger SSD.
+        if best_err > cfg.max_error_stereo + grad_along.sqrt() * 20.0 {
+            return Err(StereoFailure::NotFound);
+        }
+
+        let (idepth, alpha) = self.idepth_from_match(&ray, best_pos, inc);
+        if !(idepth.is_finite() && alpha.is_finite()) {
+            return Err(StereoFailure::Arithmetic);
+        }
+        if idepth < 0.0 && !cfg.allow_negative_idepths {
+            return Err(StereoFailure::Ambiguous);
+        }
+
+        // eq. (6): photometric disparity error σ²_I/g_p² (with LSD's constants: 4 squared
+        // differences in `grad_along`, noise counted in both images).
+        let photo = 4.0 * cfg.camera_pixel_noise2 / (grad_along + DIVISION_EPS);
+        // eq. (5): geometric disparity error σ_l²/⟨g, l⟩² for the normalised gradient g and
+        // epipolar direction l in the keyframe.
+        let geo = self.geometric_disparity_var(u, v, epl);
+        // Discretisation: a quarter/half step depending on the sub-pixel refinement.
+        let disc = if subpixel { 0.05 } else { 0.5 } * sample_dist * sample_dist;
+        let var = alpha * alpha * (disc + geo + photo);
+        Ok(StereoMatch {
+            idepth,
+            var,
+            epl_length,
+            error: best_err,
+        })
+    }
+
+    /// The keyframe's 5 samples around (u, v) along `epl`, spread by the depth ratio between
+    /// the images at `prior_idepth` so that they correspond to unit steps in the frame; that
+    /// ratio and the samples.
+    fn reference_samples(
+        &self,
+        u: f32,
+        v: f32,
+        epl: Vector2<f32>,
+        ray: &Vector3<f32>,
+        prior_idepth: f32,
+    ) -> Result<(f32, [f32; 5]), StereoFailure> {
+        let (w, h) = (self.width, self.height);
         let p_inf = self.k_r * ray;
         let p_real = p_inf / prior_idepth + self.k_t;
         // Depth in the frame over depth in the keyframe: the keyframe samples are spread by it
@@ -267,7 +334,20 @@ impl<'a> StereoPair<'a> {
             let s = (i as f32 - 2.0) * rescale;
             interp(kf, u + s * epl.x, v + s * epl.y)
         });
+        Ok((rescale, reference))
+    }
 
+    /// The segment of the frame's epipolar line between the inverse depths, far → close,
+    /// cropped, padded and clipped to the image as LSD-SLAM does, with its step.
+    fn segment(
+        &self,
+        ray: &Vector3<f32>,
+        min_idepth: f32,
+        mut max_idepth: f32,
+        cfg: &MappingConfig,
+    ) -> Result<Segment, StereoFailure> {
+        let (w, h) = (self.width, self.height);
+        let p_inf = self.k_r * ray;
         // Segment endpoints in the frame: far (min_idepth) → close (max_idepth).
         let mut p_close = p_inf + self.k_t * max_idepth;
         if p_close.z < 0.001 {
@@ -323,53 +403,11 @@ impl<'a> StereoPair<'a> {
                 return Err(StereoFailure::OutOfBounds);
             }
         }
-
-        let best = self.scan(far, close, inc, &reference, cfg)?;
-        let mut best_pos = far + inc * best.index as f32;
-        let mut best_err = best.err;
-        let mut subpixel = false;
-        if cfg.use_subpixel_stereo
-            && let Some((shift, err)) = best.subpixel()
-        {
-            best_pos += inc * shift;
-            best_err = err;
-            subpixel = true;
-        }
-
-        // Squared intensity gradient along the line, in the frame's pixel units.
-        let sample_dist = cfg.gradient_sample_dist * rescale;
-        let grad_along = reference
-            .windows(2)
-            .map(|p| (p[1] - p[0]) * (p[1] - p[0]))
-            .sum::<f32>()
-            / (sample_dist * sample_dist);
-        // LSD's allowance: strongly textured patches may match with a larger SSD.
-        if best_err > cfg.max_error_stereo + grad_along.sqrt() * 20.0 {
-            return Err(StereoFailure::NotFound);
-        }
-
-        let (idepth, alpha) = self.idepth_from_match(&ray, best_pos, inc);
-        if !(idepth.is_finite() && alpha.is_finite()) {
-            return Err(StereoFailure::Arithmetic);
-        }
-        if idepth < 0.0 && !cfg.allow_negative_idepths {
-            return Err(StereoFailure::Ambiguous);
-        }
-
-        // eq. (6): photometric disparity error σ²_I/g_p² (with LSD's constants: 4 squared
-        // differences in `grad_along`, noise counted in both images).
-        let photo = 4.0 * cfg.camera_pixel_noise2 / (grad_along + DIVISION_EPS);
-        // eq. (5): geometric disparity error σ_l²/⟨g, l⟩² for the normalised gradient g and
-        // epipolar direction l in the keyframe.
-        let geo = self.geometric_disparity_var(u, v, epl);
-        // Discretisation: a quarter/half step depending on the sub-pixel refinement.
-        let disc = if subpixel { 0.05 } else { 0.5 } * sample_dist * sample_dist;
-        let var = alpha * alpha * (disc + geo + photo);
-        Ok(StereoMatch {
-            idepth,
-            var,
+        Ok(Segment {
+            far,
+            close,
+            inc,
             epl_length,
-            error: best_err,
         })
     }
 
@@ -536,3 +574,12 @@ impl BestMatch {
 #[cfg(test)]
 #[path = "stereo_tests.rs"]
 mod tests;
+
+/// A stretch of the frame's epipolar line to scan: its ends, one step along it (pixels) and
+/// the uncropped length between the interval's inverse depths.
+struct Segment {
+    far: Vector2<f32>,
+    close: Vector2<f32>,
+    inc: Vector2<f32>,
+    epl_length: f32,
+}

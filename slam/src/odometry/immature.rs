@@ -167,71 +167,22 @@ impl ImmaturePoint {
     }
 
     fn search(&mut self, config: &TraceConfig, frame: &TraceTarget<'_>) -> TraceStatus {
-        let TraceTarget {
-            host_camera,
-            level: target,
-            camera,
-            target_from_host,
-            affine,
-        } = *frame;
-        let (w, h) = (target.width() as f64, target.height() as f64);
-        let margin = 4.0;
-        let inside = |u: &Vector2<f64>| {
-            u.x > margin && u.y > margin && u.x < w - margin - 1.0 && u.y < h - margin - 1.0
+        let line = match self.epipolar_line(config, frame) {
+            Ok(line) => line,
+            Err(status) => return status,
         };
-        let pr = target_from_host
-            .rotation
-            .act(&host_camera.unproject(&self.uv, 1.0));
-        let t = target_from_host.translation;
-        let project = |p: Vector3<f64>| (p.z > 1e-6).then(|| camera.project(&p));
-        let Some(u_min) = project(pr + t * self.idepth_min) else {
-            return TraceStatus::OutOfBounds;
-        };
-        if !inside(&u_min) {
-            return TraceStatus::OutOfBounds;
-        }
-        let max_search = config.max_pixel_search * (w + h);
-        let (dir, dist) = if self.idepth_max.is_finite() {
-            let Some(u_max) = project(pr + t * self.idepth_max) else {
-                return TraceStatus::OutOfBounds;
-            };
-            let d = u_max - u_min;
-            let full = d.norm();
-            let dir = d.try_normalize(1e-12);
-            (dir, full.min(max_search))
-        } else {
-            // Unbounded: search the longest allowed stretch from the far end.
-            let Some(u_near) = project(pr + t * (self.idepth_min + 0.01)) else {
-                return TraceStatus::OutOfBounds;
-            };
-            ((u_near - u_min).try_normalize(1e-12), max_search)
-        };
-        let Some(dir) = dir else {
-            return TraceStatus::BadCondition;
-        };
-        // How well the line's direction is measured by the host pattern's gradients.
-        let perp = Vector2::new(-dir.y, dir.x);
-        let (a, b) = self.gradient.iter().fold((0.0, 0.0), |(a, b), g| {
-            (a + g.dot(&dir).powi(2), b + g.dot(&perp).powi(2))
-        });
-        let error_in_pixel = (0.2 + 0.2 * (a + b) / a.max(1e-12)).min(10.0);
-        if self.idepth_max.is_finite() && dist < 1.5
-            || (self.idepth_max.is_finite() && 2.0 * error_in_pixel > dist)
-        {
-            return TraceStatus::Skipped;
-        }
         // Discrete search, one pixel per step.
-        let steps = dist.floor() as usize + 1;
-        let mut energies = Vec::with_capacity(steps);
-        for i in 0..steps {
-            let u = u_min + dir * i as f64;
-            energies.push(if inside(&u) {
-                self.energy(config, target, u, affine)
-                    .unwrap_or(f64::INFINITY)
-            } else {
-                f64::INFINITY
-            });
-        }
+        let energies: Vec<f64> = (0..line.steps())
+            .map(|i| {
+                let u = line.at(i as f64);
+                if line.inside(&u) {
+                    self.energy(config, frame.level, u, frame.affine)
+                        .unwrap_or(f64::INFINITY)
+                } else {
+                    f64::INFINITY
+                }
+            })
+            .collect();
         let Some((best_i, &best)) = energies
             .iter()
             .enumerate()
@@ -248,12 +199,86 @@ impl ImmaturePoint {
             .filter(|(i, _)| i.abs_diff(best_i) > 2)
             .map(|(_, e)| *e)
             .fold(f64::INFINITY, f64::min);
-        // Refine along the line (Gauss–Newton on the step length).
-        let mut s = best_i as f64;
-        let mut energy = best;
+        let (s, energy) = self.refine_along(config, frame, &line, best_i as f64, best);
+        if energy > config.outlier_energy {
+            self.outliers += 1;
+            return TraceStatus::Outlier;
+        }
+        self.quality = second / energy.max(1e-9);
+        self.narrow_to(frame, &line, s)
+    }
+
+    /// The stretch of the frame's epipolar line that the interval maps to, from its far end,
+    /// and how well the host pattern's gradients measure along it; or why there is nothing
+    /// to search.
+    fn epipolar_line(
+        &self,
+        config: &TraceConfig,
+        frame: &TraceTarget<'_>,
+    ) -> Result<EpipolarLine, TraceStatus> {
+        let target = frame.level;
+        let (w, h) = (target.width() as f64, target.height() as f64);
+        let ray = frame
+            .target_from_host
+            .rotation
+            .act(&frame.host_camera.unproject(&self.uv, 1.0));
+        let t = frame.target_from_host.translation;
+        let project = |p: Vector3<f64>| (p.z > 1e-6).then(|| frame.camera.project(&p));
+        let mut line = EpipolarLine {
+            ray,
+            t,
+            u_min: project(ray + t * self.idepth_min).ok_or(TraceStatus::OutOfBounds)?,
+            dir: Vector2::zeros(),
+            dist: 0.0,
+            error_in_pixel: 0.0,
+            size: (w, h),
+        };
+        if !line.inside(&line.u_min) {
+            return Err(TraceStatus::OutOfBounds);
+        }
+        let max_search = config.max_pixel_search * (w + h);
+        let (dir, dist) = if self.idepth_max.is_finite() {
+            let u_max = project(ray + t * self.idepth_max).ok_or(TraceStatus::OutOfBounds)?;
+            let d = u_max - line.u_min;
+            (d.try_normalize(1e-12), d.norm().min(max_search))
+        } else {
+            // Unbounded: search the longest allowed stretch from the far end.
+            let u_near =
+                project(ray + t * (self.idepth_min + 0.01)).ok_or(TraceStatus::OutOfBounds)?;
+            ((u_near - line.u_min).try_normalize(1e-12), max_search)
+        };
+        let dir = dir.ok_or(TraceStatus::BadCondition)?;
+        // How well the line's direction is measured by the host pattern's gradients.
+        let perp = Vector2::new(-dir.y, dir.x);
+        let (a, b) = self.gradient.iter().fold((0.0, 0.0), |(a, b), g| {
+            (a + g.dot(&dir).powi(2), b + g.dot(&perp).powi(2))
+        });
+        let error_in_pixel = (0.2 + 0.2 * (a + b) / a.max(1e-12)).min(10.0);
+        if self.idepth_max.is_finite() && dist < 1.5
+            || (self.idepth_max.is_finite() && 2.0 * error_in_pixel > dist)
+        {
+            return Err(TraceStatus::Skipped);
+        }
+        line.dir = dir;
+        line.dist = dist;
+        line.error_in_pixel = error_in_pixel;
+        Ok(line)
+    }
+
+    /// Gauss–Newton on the step length along the line from step `s` (energy `energy`); the
+    /// best step and its energy.
+    fn refine_along(
+        &self,
+        config: &TraceConfig,
+        frame: &TraceTarget<'_>,
+        line: &EpipolarLine,
+        mut s: f64,
+        mut energy: f64,
+    ) -> (f64, f64) {
+        let (target, dir) = (frame.level, line.dir);
         for _ in 0..config.refine_iterations {
-            let u = u_min + dir * s;
-            let (e, b_h, b_t) = affine;
+            let u = line.at(s);
+            let (e, b_h, b_t) = frame.affine;
             let (mut hs, mut gs) = (0.0, 0.0);
             for (k, (ox, oy)) in PATTERN.iter().enumerate() {
                 let (x, y) = ((u.x + ox) as f32, (u.y + oy) as f32);
@@ -278,9 +303,10 @@ impl ImmaturePoint {
                 break;
             }
             let candidate = s - (gs / hs).clamp(-0.5, 0.5);
-            let u_c = u_min + dir * candidate;
-            match inside(&u_c)
-                .then(|| self.energy(config, target, u_c, affine))
+            let u_c = line.at(candidate);
+            match line
+                .inside(&u_c)
+                .then(|| self.energy(config, target, u_c, frame.affine))
                 .flatten()
             {
                 Some(e) if e < energy => {
@@ -290,14 +316,15 @@ impl ImmaturePoint {
                 _ => break,
             }
         }
-        if energy > config.outlier_energy {
-            self.outliers += 1;
-            return TraceStatus::Outlier;
-        }
-        self.quality = second / energy.max(1e-9);
-        // The interval: the inverse depths at the match ± its uncertainty along the line.
+        (s, energy)
+    }
+
+    /// The interval: the inverse depths at the match (step `s`) ± its uncertainty along the
+    /// line.
+    fn narrow_to(&mut self, frame: &TraceTarget<'_>, line: &EpipolarLine, s: f64) -> TraceStatus {
+        let (camera, dir, pr, t) = (frame.camera, line.dir, line.ray, line.t);
         let idepth_at = |s: f64| {
-            let u = u_min + dir * s;
+            let u = line.at(s);
             // Solve along the axis the line moves most in.
             if dir.x.abs() > dir.y.abs() {
                 let q = (u.x - camera.cx) / camera.fx;
@@ -307,6 +334,7 @@ impl ImmaturePoint {
                 (pr.y - q * pr.z) / (q * t.z - t.y)
             }
         };
+        let error_in_pixel = line.error_in_pixel;
         let (d1, d2) = (idepth_at(s - error_in_pixel), idepth_at(s + error_in_pixel));
         let (lo, hi) = (d1.min(d2), d1.max(d2));
         if !(lo.is_finite() && hi.is_finite()) || hi <= 0.0 {
@@ -321,5 +349,40 @@ impl ImmaturePoint {
         } else {
             TraceStatus::Good
         }
+    }
+}
+
+/// The stretch of a frame's epipolar line one trace searches.
+struct EpipolarLine {
+    /// The host pixel's ray rotated into the frame, and the frame's translation from the host:
+    /// the point at inverse depth d is `ray + t·d` (up to scale).
+    ray: Vector3<f64>,
+    t: Vector3<f64>,
+    /// The far end (the interval's smallest inverse depth) in frame pixels.
+    u_min: Vector2<f64>,
+    /// Unit direction towards the near end, and the length searched.
+    dir: Vector2<f64>,
+    dist: f64,
+    /// The match's uncertainty along the line (pixels).
+    error_in_pixel: f64,
+    /// The frame's size.
+    size: (f64, f64),
+}
+
+impl EpipolarLine {
+    /// Pixels this far from the border are searched.
+    const MARGIN: f64 = 4.0;
+
+    fn at(&self, s: f64) -> Vector2<f64> {
+        self.u_min + self.dir * s
+    }
+
+    fn steps(&self) -> usize {
+        self.dist.floor() as usize + 1
+    }
+
+    fn inside(&self, u: &Vector2<f64>) -> bool {
+        let ((w, h), m) = (self.size, Self::MARGIN);
+        u.x > m && u.y > m && u.x < w - m - 1.0 && u.y < h - m - 1.0
     }
 }
