@@ -10,13 +10,29 @@
 
 use std::collections::HashMap;
 
+use serde::{Deserialize, Serialize};
+
 use axum::extract::Query;
 use axum::http::header::AUTHORIZATION;
 use axum::http::{HeaderMap, Uri};
 
 use crate::ApiError;
 use crate::config::AuthConfig;
-use crate::session::Owner;
+
+/// Who owns a session: the name of the bearer token that created it (`None` when auth is off).
+/// A token sees only its own sessions.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct Owner(pub Option<String>);
+
+impl Owner {
+    /// The owner's Zenoh tenant (`relfusion/tenants/<tenant>/…`): its token name, or the
+    /// public tenant when auth is off.
+    pub fn tenant(&self) -> &str {
+        self.0
+            .as_deref()
+            .unwrap_or(relfusion_proto::zenoh_keys::PUBLIC_TENANT)
+    }
+}
 
 /// The token of an `Authorization` value `Bearer <token>` (any case of the scheme), or `None`
 /// when it names another scheme or no token.

@@ -3,14 +3,79 @@
 //! No math happens here: only re-packing.
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use relfusion_proto::http::CameraJson;
 use relfusion_proto::v1;
 use relfusion_slam::dataset::trajectory::{format_tum_trajectory, stamped_se3};
 use relfusion_slam::export::ColoredPoint;
-use relfusion_slam::geometry::{PinholeCamera, SO3, Sim3};
+use relfusion_slam::geometry::{Distortion, PinholeCamera, SO3, Sim3};
 use relfusion_slam::pipeline::TrackingState;
 
 use crate::ApiError;
-use crate::session::types::checked_camera;
+
+/// Smallest and largest accepted image side: below 16 pixels the 5-level pyramid has no
+/// pixels left; the area is bounded separately (`limits.max_image_pixels`).
+pub const IMAGE_SIDE_RANGE: std::ops::RangeInclusive<u32> = 16..=8192;
+
+/// The one camera check of the service edge (HTTP JSON, protobuf, stored metadata): finite
+/// values, `fx, fy > 0`, sides within [`IMAGE_SIDE_RANGE`], a finite distortion.
+pub fn checked_camera(
+    [fx, fy, cx, cy]: [f64; 4],
+    width: u32,
+    height: u32,
+    distortion: Option<[f64; 5]>,
+) -> Result<PinholeCamera, ApiError> {
+    for (name, side) in [("width", width), ("height", height)] {
+        if !IMAGE_SIDE_RANGE.contains(&side) {
+            return Err(ApiError::bad_request(format!(
+                "camera.{name} must be within {}..={} pixels, got {side}",
+                IMAGE_SIDE_RANGE.start(),
+                IMAGE_SIDE_RANGE.end()
+            )));
+        }
+    }
+    let camera = PinholeCamera::new(fx, fy, cx, cy, width, height)
+        .map_err(|e| ApiError::bad_request(format!("camera: {e}")))?;
+    match distortion {
+        Some([k1, k2, p1, p2, k3]) => camera
+            .with_distortion(Distortion::new(k1, k2, p1, p2, k3))
+            .map_err(|e| ApiError::bad_request(format!("camera: {e}"))),
+        None => Ok(camera),
+    }
+}
+
+/// The validated camera of the API's JSON ([`checked_camera`]).
+pub fn camera_from_json(c: &CameraJson) -> Result<PinholeCamera, ApiError> {
+    checked_camera([c.fx, c.fy, c.cx, c.cy], c.width, c.height, c.distortion)
+}
+
+/// The JSON form of `camera`.
+pub fn camera_json(camera: &PinholeCamera) -> CameraJson {
+    CameraJson {
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        width: camera.width,
+        height: camera.height,
+        distortion: camera.distortion.map(|d| [d.k1, d.k2, d.p1, d.p2, d.k3]),
+    }
+}
+
+/// Serde of a [`PinholeCamera`] in the [`CameraJson`] layout, validated on the way in (the
+/// stored session metadata).
+pub mod camera_as_json {
+    use super::{CameraJson, PinholeCamera, camera_from_json, camera_json};
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(camera: &PinholeCamera, s: S) -> Result<S::Ok, S::Error> {
+        camera_json(camera).serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<PinholeCamera, D::Error> {
+        camera_from_json(&CameraJson::deserialize(d)?)
+            .map_err(|e| serde::de::Error::custom(e.message))
+    }
+}
 
 /// `Sim3` → protobuf `Sim3Pose`.
 pub fn sim3_to_proto(pose: &Sim3) -> v1::Sim3Pose {

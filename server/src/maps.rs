@@ -16,7 +16,8 @@ use relfusion_slam::geometry::PinholeCamera;
 use serde::{Deserialize, Serialize};
 
 use crate::ApiError;
-use crate::session::types::{Owner, camera_json};
+use crate::auth::Owner;
+use crate::convert::camera_json;
 use crate::storage::ObjectStore;
 
 /// Version of `meta.json`.
@@ -34,7 +35,7 @@ struct MapMeta {
     session: String,
     created_unix: u64,
     keyframes: u64,
-    #[serde(with = "crate::session::types::camera_as_json")]
+    #[serde(with = "crate::convert::camera_as_json")]
     camera: PinholeCamera,
     bytes: u64,
     format_version: u32,
@@ -216,7 +217,7 @@ impl MapStore {
         let _place = self.reserve(owner)?;
         let source = crate::folders::fetch(
             self.store.as_ref(),
-            &crate::session::persist::result_key(session, "map"),
+            &crate::storage::result_key(session, "map"),
         )
         .map_err(|e| ApiError::internal(format!("reading session {session}'s map: {e}")))?;
         let map = relfusion_slam::map::read_map(source.path(), None)
@@ -235,7 +236,7 @@ impl MapStore {
             owner: owner.clone(),
             name,
             session: session.to_string(),
-            created_unix: crate::session::manager::now_unix(),
+            created_unix: crate::storage::now_unix(),
             keyframes: map.keyframes.len() as u64,
             camera: map.camera,
             bytes,

@@ -265,7 +265,7 @@ pub(crate) async fn answer_push(cluster: Arc<Cluster>, query: zenoh::query::Quer
             .payload()
             .map(|p| p.to_bytes().into_owned())
             .unwrap_or_default();
-        crate::http::stream_ws::handle(&session, payload.into()).await?;
+        session.apply_encoded(&payload).await?;
         Ok(Vec::new())
     }
     .await;

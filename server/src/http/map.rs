@@ -84,9 +84,10 @@ pub async fn map_snapshot(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let session = state.sessions.get(&id, &owner)?;
-    let snapshot = tokio::task::spawn_blocking(move || crate::zenoh_api::map::snapshot(&session))
-        .await
-        .map_err(|e| ApiError::internal(format!("building the map failed: {e}")))??;
+    let snapshot =
+        tokio::task::spawn_blocking(move || crate::session::snapshot::snapshot(&session))
+            .await
+            .map_err(|e| ApiError::internal(format!("building the map failed: {e}")))??;
     let wants_json = headers
         .get(header::ACCEPT)
         .and_then(|v| v.to_str().ok())

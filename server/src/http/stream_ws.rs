@@ -24,9 +24,7 @@ use axum::response::Response;
 use futures_util::stream::{SplitSink, SplitStream};
 use futures_util::{SinkExt, StreamExt};
 use relfusion_proto::Message as _;
-use relfusion_proto::v1::{
-    self, ClientMessage, ErrorCode, ServerMessage, client_message, server_message,
-};
+use relfusion_proto::v1::{self, ErrorCode, ServerMessage, server_message};
 use tokio::sync::broadcast::{self, error::RecvError};
 use tokio::sync::mpsc;
 
@@ -156,7 +154,7 @@ async fn serve(
     let receiving = session.clone();
     let mut receive_task = tokio::spawn(receive_loop(stream, reply_tx, heard, move |data| {
         let session = receiving.clone();
-        async move { handle(&session, data).await }
+        async move { session.apply_encoded(&data).await }
     }));
     tokio::select! {
         _ = &mut send_task => {
@@ -309,29 +307,5 @@ pub(super) async fn receive_loop<F, Fut>(
         {
             break;
         }
-    }
-}
-
-/// One client message for `session` (also what a stream through another node hands over).
-pub(crate) async fn handle(session: &Session, data: Bytes) -> Result<(), ApiError> {
-    let message = ClientMessage::decode(data).map_err(|e| {
-        ApiError::bad_request(format!(
-            "malformed message: not a protobuf relfusion.v1.ClientMessage ({e})"
-        ))
-    })?;
-    match message.message {
-        Some(client_message::Message::Frame(frame)) => {
-            session.push_proto_frame(frame).await?;
-            Ok(())
-        }
-        Some(client_message::Message::EndOfStream(_)) => {
-            session.end_of_stream();
-            Ok(())
-        }
-        // The session was configured when it was created; a repeated config changes nothing.
-        Some(client_message::Message::Config(_)) => Ok(()),
-        None => Err(ApiError::bad_request(
-            "empty ClientMessage: set one of frame, end_of_stream",
-        )),
     }
 }

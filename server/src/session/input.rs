@@ -4,6 +4,9 @@
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
+use relfusion_proto::Message as _;
+use relfusion_proto::v1::{ClientMessage, client_message};
+
 use super::decode::decode_frame;
 use super::events::SessionEvent;
 use super::handle::Session;
@@ -27,6 +30,37 @@ pub struct QueuedFrame {
 }
 
 impl Session {
+    /// A protobuf `ClientMessage` as it arrived (WebSocket, or a stream relayed through
+    /// another node): decoded, then [`Session::apply`]ed.
+    pub async fn apply_encoded(&self, data: &[u8]) -> Result<(), ApiError> {
+        let message = ClientMessage::decode(data).map_err(|e| {
+            ApiError::bad_request(format!(
+                "malformed message: not a protobuf relfusion.v1.ClientMessage ({e})"
+            ))
+        })?;
+        self.apply(message).await
+    }
+
+    /// One client message acting on the session: the one place a client's message takes
+    /// effect, whatever its transport (WebSocket, Zenoh, a relay through another node).
+    pub async fn apply(&self, message: ClientMessage) -> Result<(), ApiError> {
+        match message.message {
+            Some(client_message::Message::Frame(frame)) => {
+                self.push_proto_frame(frame).await?;
+                Ok(())
+            }
+            Some(client_message::Message::EndOfStream(_)) => {
+                self.end_of_stream();
+                Ok(())
+            }
+            // The session was configured when it was created; a repeated config changes nothing.
+            Some(client_message::Message::Config(_)) => Ok(()),
+            None => Err(ApiError::bad_request(
+                "empty ClientMessage: set one of frame, end_of_stream",
+            )),
+        }
+    }
+
     /// [`Session::push_frame`] for a protobuf `Frame` (WebSocket, Zenoh): the frame may
     /// repeat the session camera but not change it (the pipeline has one camera), and every
     /// error names the frame.

@@ -28,6 +28,7 @@ pub mod overrides;
 pub mod persist;
 pub mod prior;
 pub mod queue;
+pub mod snapshot;
 pub mod track;
 pub mod types;
 pub mod upload;

@@ -29,11 +29,7 @@ pub fn meta_key(id: &str) -> String {
     format!("sessions/{id}/meta.json")
 }
 
-/// Key of one result file (`trajectory.txt`, `keyframes.txt`, `pointcloud.ply`, `mesh.ply`,
-/// `mesh.glb`, `summary.json`).
-pub fn result_key(id: &str, name: &str) -> String {
-    format!("sessions/{id}/results/{name}")
-}
+pub use crate::storage::result_key;
 
 /// Key of an upload's extracted archive.
 pub fn upload_key(id: &str) -> String {

@@ -3,8 +3,8 @@
 //! `relfusion_proto::http`) and the pipeline's types.
 
 use relfusion_proto::http::MapStart;
-use relfusion_slam::geometry::{Distortion, PinholeCamera, Sim3};
-use serde::{Deserialize, Serialize};
+use relfusion_slam::geometry::{PinholeCamera, Sim3};
+use serde::Serialize;
 
 pub use relfusion_proto::http::{
     CameraJson, CreateSession, FramePolicy, PoseJson, Progress, SessionInfo, SessionKind,
@@ -12,6 +12,10 @@ pub use relfusion_proto::http::{
 };
 
 use crate::ApiError;
+pub use crate::auth::Owner;
+pub use crate::convert::{
+    IMAGE_SIDE_RANGE, camera_as_json, camera_from_json, camera_json, checked_camera,
+};
 
 /// A session id: `s-` and 24 random hex digits.
 pub type SessionId = String;
@@ -24,86 +28,6 @@ pub fn valid_session_id(id: &str) -> bool {
         && id[2..]
             .bytes()
             .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
-}
-
-/// Who owns a session: the name of the bearer token that created it (`None` when auth is off).
-/// A token sees only its own sessions.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
-pub struct Owner(pub Option<String>);
-
-impl Owner {
-    /// The owner's Zenoh tenant (`relfusion/tenants/<tenant>/…`): its token name, or the
-    /// public tenant when auth is off.
-    pub fn tenant(&self) -> &str {
-        self.0
-            .as_deref()
-            .unwrap_or(relfusion_proto::zenoh_keys::PUBLIC_TENANT)
-    }
-}
-
-/// Smallest and largest accepted image side: below 16 pixels the 5-level pyramid has no
-/// pixels left; the area is bounded separately (`limits.max_image_pixels`).
-pub const IMAGE_SIDE_RANGE: std::ops::RangeInclusive<u32> = 16..=8192;
-
-/// The one camera check of the service edge (HTTP JSON, protobuf, stored metadata): finite
-/// values, `fx, fy > 0`, sides within [`IMAGE_SIDE_RANGE`], a finite distortion.
-pub fn checked_camera(
-    [fx, fy, cx, cy]: [f64; 4],
-    width: u32,
-    height: u32,
-    distortion: Option<[f64; 5]>,
-) -> Result<PinholeCamera, ApiError> {
-    for (name, side) in [("width", width), ("height", height)] {
-        if !IMAGE_SIDE_RANGE.contains(&side) {
-            return Err(ApiError::bad_request(format!(
-                "camera.{name} must be within {}..={} pixels, got {side}",
-                IMAGE_SIDE_RANGE.start(),
-                IMAGE_SIDE_RANGE.end()
-            )));
-        }
-    }
-    let camera = PinholeCamera::new(fx, fy, cx, cy, width, height)
-        .map_err(|e| ApiError::bad_request(format!("camera: {e}")))?;
-    match distortion {
-        Some([k1, k2, p1, p2, k3]) => camera
-            .with_distortion(Distortion::new(k1, k2, p1, p2, k3))
-            .map_err(|e| ApiError::bad_request(format!("camera: {e}"))),
-        None => Ok(camera),
-    }
-}
-
-/// The validated camera of the API's JSON ([`checked_camera`]).
-pub fn camera_from_json(c: &CameraJson) -> Result<PinholeCamera, ApiError> {
-    checked_camera([c.fx, c.fy, c.cx, c.cy], c.width, c.height, c.distortion)
-}
-
-/// The JSON form of `camera`.
-pub fn camera_json(camera: &PinholeCamera) -> CameraJson {
-    CameraJson {
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-        width: camera.width,
-        height: camera.height,
-        distortion: camera.distortion.map(|d| [d.k1, d.k2, d.p1, d.p2, d.k3]),
-    }
-}
-
-/// Serde of a [`PinholeCamera`] in the [`CameraJson`] layout, validated on the way in (the
-/// stored session metadata).
-pub mod camera_as_json {
-    use super::{CameraJson, PinholeCamera, camera_from_json, camera_json};
-    use serde::{Deserialize, Deserializer, Serialize, Serializer};
-
-    pub fn serialize<S: Serializer>(camera: &PinholeCamera, s: S) -> Result<S::Ok, S::Error> {
-        camera_json(camera).serialize(s)
-    }
-
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<PinholeCamera, D::Error> {
-        camera_from_json(&CameraJson::deserialize(d)?)
-            .map_err(|e| serde::de::Error::custom(e.message))
-    }
 }
 
 /// A live session's creation request, parsed once at the edge (HTTP [`CreateSession`] or

@@ -242,6 +242,18 @@ impl ObjectStore for FsStore {
     }
 }
 
+/// The key of a session's result `name` (`sessions/<id>/results/<name>`).
+pub fn result_key(id: &str, name: &str) -> String {
+    format!("sessions/{id}/results/{name}")
+}
+
+/// Seconds since the epoch: the clock of stored metadata (creation and end times).
+pub fn now_unix() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -23,7 +23,7 @@ use std::sync::Arc;
 
 use relfusion_proto::Message as _;
 use relfusion_proto::v1::server_message::Message;
-use relfusion_proto::v1::{Frame, SessionFinished};
+use relfusion_proto::v1::{ClientMessage, EndOfStream, Frame, SessionFinished, client_message};
 use relfusion_proto::zenoh_keys::{
     END, FINISHED, FRAMES, MESH, POSES, session_key, session_wildcard,
 };
@@ -137,8 +137,9 @@ async fn handle(shared: &Shared, session: &Session, sample: &Sample) -> Result<(
             push(shared, session, frame).await
         }
         END => {
-            session.end_of_stream();
-            Ok(())
+            session
+                .apply(client(client_message::Message::EndOfStream(EndOfStream {})))
+                .await
         }
         // Other keys of the session (another node's updates, say) are not ours to consume.
         _ => Ok(()),
@@ -146,8 +147,11 @@ async fn handle(shared: &Shared, session: &Session, sample: &Sample) -> Result<(
 }
 
 async fn push(shared: &Shared, session: &Session, frame: Frame) -> Result<(), ApiError> {
-    match session.push_proto_frame(frame).await {
-        Ok(_) => {
+    match session
+        .apply(client(client_message::Message::Frame(frame)))
+        .await
+    {
+        Ok(()) => {
             bump(&shared.stats.frames_accepted);
             Ok(())
         }
@@ -228,11 +232,18 @@ async fn publish_updates(
 pub fn finished_message(info: &SessionInfo) -> SessionFinished {
     SessionFinished {
         session_id: info.id.clone(),
-        state: super::map::state_name(info.state),
+        state: crate::session::snapshot::state_name(info.state),
         error: info.error.clone().unwrap_or_default(),
         frames_received: info.frames_received,
         frames_processed: info.frames_processed,
         frames_dropped: info.frames_dropped,
         keyframes: info.keyframes,
+    }
+}
+
+/// A client message of `message` (Zenoh carries the frame and the end on keys of their own).
+fn client(message: client_message::Message) -> ClientMessage {
+    ClientMessage {
+        message: Some(message),
     }
 }

@@ -88,11 +88,7 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-pub(crate) fn now_unix() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs())
-}
+pub(crate) use crate::storage::now_unix;
 
 /// A fresh unguessable id: `s-` and 24 hex digits (96 bits) from the thread's CSPRNG.
 fn new_id() -> SessionId {
