@@ -371,38 +371,7 @@ impl GpuDensifier {
         };
         write(&res.terms, &terms, TERM_LAYERS);
         write(&res.states[0], &state, STATE_LAYERS);
-        let mut flags = 0;
-        if params.terms.charbonnier {
-            flags |= FLAG_CHARBONNIER;
-        }
-        if p.cnn_weight.iter().any(|&c| c != 0.0) {
-            flags |= FLAG_CNN_DEPTH;
-        }
-        let stride = res.stride as usize;
-        let mut uniforms = vec![0u8; params.iterations * stride];
-        for t in 0..params.iterations {
-            let (step_size, bias2_sqrt) = adam_step_constants(params, t + 1);
-            let slot = DensifyAdamParams {
-                width: w as u32,
-                height: h as u32,
-                row_quads: row_quads(w) as u32,
-                flags,
-                step_size,
-                bias2_sqrt,
-                beta1: params.beta1,
-                beta2: params.beta2,
-                adam_epsilon: params.adam_epsilon,
-                semi_scale: p.semi_scale,
-                grad_scale: p.grad_scale,
-                alpha: params.alpha,
-                epsilon: params.epsilon,
-                min_idepth: params.min_idepth,
-                _pad0: 0,
-                _pad1: 0,
-            };
-            uniforms[t * stride..t * stride + PARAMS_SIZE as usize]
-                .copy_from_slice(bytemuck::bytes_of(&slot));
-        }
+        let uniforms = iteration_uniforms(p, params, res.stride as usize);
         queue.write_buffer(&res.uniforms, 0, &uniforms);
     }
 
@@ -411,29 +380,9 @@ impl GpuDensifier {
     fn allocate(&self, width: usize, height: usize, iterations: usize) -> Result<Resources> {
         let ctx = &self.ctx;
         let device = ctx.device();
-        let limits = ctx.limits();
         let rq = row_quads(width);
-        let max_side = limits.max_texture_dimension_2d as usize;
-        if rq > max_side || height > max_side {
-            return Err(Error::Gpu(format!(
-                "densify: a {width}x{height} map needs {rq}x{height} textures; the device \
-                 allows {max_side}x{max_side}"
-            )));
-        }
-        let max_groups = limits.max_compute_workgroups_per_dimension as usize;
-        if invocations(width, height).div_ceil(WORKGROUP as usize) > max_groups {
-            return Err(Error::Gpu(format!(
-                "densify: {width}x{height} needs more workgroups than the device allows \
-                 ({max_groups})"
-            )));
-        }
-        let stride = u64::from(limits.min_uniform_buffer_offset_alignment).max(PARAMS_SIZE);
+        let stride = uniform_stride(ctx.limits(), width, height, iterations)?;
         let uniform_bytes = stride * iterations as u64;
-        if uniform_bytes > limits.max_buffer_size {
-            return Err(Error::Gpu(format!(
-                "densify: {iterations} iterations need {uniform_bytes} B of uniforms"
-            )));
-        }
         let texture = |label: &str, layers: u32| {
             device.create_texture(&wgpu::TextureDescriptor {
                 label: Some(label),
@@ -509,6 +458,77 @@ impl GpuDensifier {
             groups,
         })
     }
+}
+
+/// Every iteration's uniform slot (Adam's step constants of iteration `t + 1`), `stride` bytes
+/// apart.
+fn iteration_uniforms(p: &DensifyProblem, params: &DensifyParams, stride: usize) -> Vec<u8> {
+    let w = p.width;
+    let mut flags = 0;
+    if params.terms.charbonnier {
+        flags |= FLAG_CHARBONNIER;
+    }
+    if p.cnn_weight.iter().any(|&c| c != 0.0) {
+        flags |= FLAG_CNN_DEPTH;
+    }
+    let mut uniforms = vec![0u8; params.iterations * stride];
+    for t in 0..params.iterations {
+        let (step_size, bias2_sqrt) = adam_step_constants(params, t + 1);
+        let slot = DensifyAdamParams {
+            width: w as u32,
+            height: p.height as u32,
+            row_quads: row_quads(w) as u32,
+            flags,
+            step_size,
+            bias2_sqrt,
+            beta1: params.beta1,
+            beta2: params.beta2,
+            adam_epsilon: params.adam_epsilon,
+            semi_scale: p.semi_scale,
+            grad_scale: p.grad_scale,
+            alpha: params.alpha,
+            epsilon: params.epsilon,
+            min_idepth: params.min_idepth,
+            _pad0: 0,
+            _pad1: 0,
+        };
+        uniforms[t * stride..t * stride + PARAMS_SIZE as usize]
+            .copy_from_slice(bytemuck::bytes_of(&slot));
+    }
+    uniforms
+}
+
+/// The uniform slot stride of a `width × height` problem of `iterations` iterations, after
+/// checking its textures, workgroups and uniforms against the device's limits.
+fn uniform_stride(
+    limits: &wgpu::Limits,
+    width: usize,
+    height: usize,
+    iterations: usize,
+) -> Result<u64> {
+    let rq = row_quads(width);
+    let max_side = limits.max_texture_dimension_2d as usize;
+    if rq > max_side || height > max_side {
+        return Err(Error::Gpu(format!(
+            "densify: a {width}x{height} map needs {rq}x{height} textures; the device \
+             allows {max_side}x{max_side}"
+        )));
+    }
+    let max_groups = limits.max_compute_workgroups_per_dimension as usize;
+    if invocations(width, height).div_ceil(WORKGROUP as usize) > max_groups {
+        return Err(Error::Gpu(format!(
+            "densify: {width}x{height} needs more workgroups than the device allows \
+             ({max_groups})"
+        )));
+    }
+    let stride = u64::from(limits.min_uniform_buffer_offset_alignment).max(PARAMS_SIZE);
+    let uniform_bytes = stride * iterations as u64;
+    if uniform_bytes > limits.max_buffer_size {
+        return Err(Error::Gpu(format!(
+            "densify: {iterations} iterations need {uniform_bytes} B of uniforms"
+        )));
+    }
+    Ok(stride)
 }
 
 fn texture_entry(binding: u32, view: &wgpu::TextureView) -> wgpu::BindGroupEntry<'_> {

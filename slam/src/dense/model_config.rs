@@ -376,11 +376,24 @@ pub fn recognise(
     sha256: &str,
     file_name: &str,
 ) -> Option<(ModelConfig, Recognition)> {
-    let first_input = sig.inputs.first()?;
-    let first_output = sig.outputs.first()?;
-    let base = |name: &str, w: u32, h: u32, output: &str, kind: OutputKind| ModelConfig {
+    if let Some(config) = recognise_by_hash(sig, sha256) {
+        return Some((config, Recognition::Sha256));
+    }
+    recognise_by_signature(sig, file_name).map(|config| (config, Recognition::Signature))
+}
+
+/// The defaults of a model config: the signature's first input, stretched to `w × h`, RGB/255
+/// with no mean/std, one output of `kind`.
+fn base_config(
+    input: &str,
+    name: &str,
+    (w, h): (u32, u32),
+    output: &str,
+    kind: OutputKind,
+) -> ModelConfig {
+    ModelConfig {
         name: name.into(),
-        input: first_input.name.clone(),
+        input: input.into(),
         input_width: w,
         input_height: h,
         multiple_of: None,
@@ -392,96 +405,105 @@ pub fn recognise(
         output_kind: kind,
         resize: ResizeMode::Stretch,
         intra_threads: default_threads(),
-    };
-    let pydnet = || {
-        base(
-            "pydnet_pp_matterport_448x640",
-            640,
-            448,
-            "depth_half",
-            OutputKind::Depth,
-        )
-    };
+    }
+}
+
+fn pydnet_config(input: &str) -> ModelConfig {
+    base_config(
+        input,
+        "pydnet_pp_matterport_448x640",
+        (640, 448),
+        "depth_half",
+        OutputKind::Depth,
+    )
+}
+
+/// The released files recognised by their hash.
+fn recognise_by_hash(sig: &ModelSignature, sha256: &str) -> Option<ModelConfig> {
+    let input = &sig.inputs.first()?.name;
+    let first_output = &sig.outputs.first()?.name;
     if sha256.eq_ignore_ascii_case(PYDNET_PP_SHA256) {
-        return Some((pydnet(), Recognition::Sha256));
+        return Some(pydnet_config(input));
     }
     if sha256.eq_ignore_ascii_case(MIDAS_V21_SMALL_RELEASE_SHA256) {
-        let config = base(
+        return Some(base_config(
+            input,
             "midas_v21_small_256",
-            256,
-            256,
-            &first_output.name,
+            (256, 256),
+            first_output,
             OutputKind::InverseDepth,
-        );
-        return Some((config, Recognition::Sha256));
+        ));
     }
+    None
+}
+
+/// The exports recognised by their inputs, outputs and shapes (and DPT by its file name).
+fn recognise_by_signature(sig: &ModelSignature, file_name: &str) -> Option<ModelConfig> {
+    let first_input = sig.inputs.first()?;
+    let first_output = &sig.outputs.first()?.name;
+    let input = &first_input.name;
     let input_shape = first_input.shape.as_deref().unwrap_or(&[]);
     let has_output = |n: &str| sig.output(n).is_some();
-    if first_input.name == "image" && input_shape == [1, 3, 448, 640] && has_output("depth_half") {
-        return Some((pydnet(), Recognition::Signature));
+    if input == "image" && input_shape == [1, 3, 448, 640] && has_output("depth_half") {
+        return Some(pydnet_config(input));
     }
     let single = sig.inputs.len() == 1 && sig.outputs.len() == 1;
     let da_output = ["predicted_depth", "depth"]
         .into_iter()
         .find(|n| has_output(n));
     if single
-        && matches!(first_input.name.as_str(), "pixel_values" | "image")
+        && matches!(input.as_str(), "pixel_values" | "image")
         && let Some(output) = da_output
         && input_shape.len() == 4
     {
-        let (h, w) = (input_shape[2], input_shape[3]);
-        let mut config = if h > 0 && w > 0 {
-            if h % 14 != 0 || w % 14 != 0 {
-                return None;
-            }
-            base(
-                "depth_anything_v2",
-                w as u32,
-                h as u32,
-                output,
-                OutputKind::InverseDepth,
-            )
-        } else {
-            let mut c = base(
-                "depth_anything_v2",
-                518,
-                518,
-                output,
-                OutputKind::InverseDepth,
-            );
-            c.resize = ResizeMode::KeepAspect;
-            c
-        };
-        config.multiple_of = Some(14);
-        config.mean = IMAGENET_MEAN;
-        config.std = IMAGENET_STD;
-        return Some((config, Recognition::Signature));
+        return depth_anything_config(input, output, (input_shape[2], input_shape[3]));
     }
-    if single && input_shape == [1, 3, 256, 256] {
-        let mut config = base(
-            "midas_v21_small_256",
-            256,
-            256,
-            &first_output.name,
+    let (name, side, mean, std) = if single && input_shape == [1, 3, 256, 256] {
+        ("midas_v21_small_256", 256, IMAGENET_MEAN, IMAGENET_STD)
+    } else if single
+        && input_shape == [1, 3, 384, 384]
+        && file_name.to_ascii_lowercase().contains("dpt")
+    {
+        ("dpt_hybrid_384", 384, [0.5; 3], [0.5; 3])
+    } else {
+        return None;
+    };
+    let mut config = base_config(
+        input,
+        name,
+        (side, side),
+        first_output,
+        OutputKind::InverseDepth,
+    );
+    config.mean = mean;
+    config.std = std;
+    Some(config)
+}
+
+/// Depth Anything V2 at its input's fixed size (`h × w`, multiples of 14, else not this
+/// model), or at 518 keeping the aspect when the size is dynamic.
+fn depth_anything_config(input: &str, output: &str, (h, w): (i64, i64)) -> Option<ModelConfig> {
+    let name = "depth_anything_v2";
+    let mut config = if h > 0 && w > 0 {
+        if h % 14 != 0 || w % 14 != 0 {
+            return None;
+        }
+        base_config(
+            input,
+            name,
+            (w as u32, h as u32),
+            output,
             OutputKind::InverseDepth,
-        );
-        config.mean = IMAGENET_MEAN;
-        config.std = IMAGENET_STD;
-        return Some((config, Recognition::Signature));
-    }
-    if single && input_shape == [1, 3, 384, 384] && file_name.to_ascii_lowercase().contains("dpt") {
-        let mut config = base(
-            "dpt_hybrid_384",
-            384,
-            384,
-            &first_output.name,
-            OutputKind::InverseDepth,
-        );
-        config.mean = [0.5; 3];
-        config.std = [0.5; 3];
-        return Some((config, Recognition::Signature));
-    }
-    None
+        )
+    } else {
+        let mut c = base_config(input, name, (518, 518), output, OutputKind::InverseDepth);
+        c.resize = ResizeMode::KeepAspect;
+        c
+    };
+    config.multiple_of = Some(14);
+    config.mean = IMAGENET_MEAN;
+    config.std = IMAGENET_STD;
+    Some(config)
 }
 
 #[cfg(test)]

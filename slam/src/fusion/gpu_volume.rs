@@ -227,43 +227,7 @@ impl GpuVoxels {
         if blocks.is_empty() {
             return Ok(());
         }
-        let limits = self.ctx.limits();
-        let binding = limits
-            .max_storage_buffer_binding_size
-            .min(limits.max_buffer_size);
-        let pixels = view.pixels();
-        let list_bytes = 16 * blocks.len() as u64;
-        if 4 * pixels as u64 > binding || list_bytes > binding {
-            return Err(Error::Gpu(format!(
-                "{} blocks or a {}x{} map exceed the device's {binding}-byte storage binding",
-                blocks.len(),
-                view.width,
-                view.height
-            )));
-        }
-        let block_count = u32::try_from(blocks.len())
-            .map_err(|_| Error::Gpu(format!("{} blocks in one integration", blocks.len())))?;
-        let groups = u64::from(block_count) * (BLOCK_VOXELS as u64 / u64::from(WORKGROUP));
-        let (gx, gy) = dispatch_size(groups, limits.max_compute_workgroups_per_dimension)
-            .ok_or_else(|| {
-                Error::Gpu(format!(
-                    "{block_count} blocks need more workgroups than the device allows"
-                ))
-            })?;
-
-        if self.pixels.as_ref().is_none_or(|b| b.pixels != pixels) {
-            let storage = |label: &str| self.ctx.storage_buffer(label, 4 * pixels as u64);
-            self.pixels = Some(PixelBuffers {
-                pixels,
-                depth: storage("tsdf_integrate depth"),
-                weight: storage("tsdf_integrate weight"),
-                color: storage("tsdf_integrate color"),
-            });
-        }
-        if self.blocks.as_ref().is_none_or(|b| b.size() < list_bytes) {
-            let size = list_bytes.next_power_of_two().min(binding.max(list_bytes));
-            self.blocks = Some(self.ctx.storage_buffer("tsdf_integrate blocks", size));
-        }
+        let (block_count, (gx, gy)) = self.prepare_inputs(blocks.len(), view)?;
         let (Some(px), Some(list)) = (self.pixels.as_ref(), self.blocks.as_ref()) else {
             return Err(Error::Gpu("tsdf_integrate input buffers missing".into()));
         };
@@ -324,6 +288,46 @@ impl GpuVoxels {
             }
             queue.submit([encoder.finish()]);
         })
+    }
+
+    /// Checks an integration of `blocks` blocks and `view` against the device's limits and
+    /// sizes the cached input buffers for it; the block count and the dispatch size.
+    fn prepare_inputs(&mut self, blocks: usize, view: &DepthView) -> Result<(u32, (u32, u32))> {
+        let limits = self.ctx.limits();
+        let binding = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        let pixels = view.pixels();
+        let list_bytes = 16 * blocks as u64;
+        if 4 * pixels as u64 > binding || list_bytes > binding {
+            return Err(Error::Gpu(format!(
+                "{blocks} blocks or a {}x{} map exceed the device's {binding}-byte storage binding",
+                view.width, view.height
+            )));
+        }
+        let block_count = u32::try_from(blocks)
+            .map_err(|_| Error::Gpu(format!("{blocks} blocks in one integration")))?;
+        let groups = u64::from(block_count) * (BLOCK_VOXELS as u64 / u64::from(WORKGROUP));
+        let dispatch = dispatch_size(groups, limits.max_compute_workgroups_per_dimension)
+            .ok_or_else(|| {
+                Error::Gpu(format!(
+                    "{block_count} blocks need more workgroups than the device allows"
+                ))
+            })?;
+        if self.pixels.as_ref().is_none_or(|b| b.pixels != pixels) {
+            let storage = |label: &str| self.ctx.storage_buffer(label, 4 * pixels as u64);
+            self.pixels = Some(PixelBuffers {
+                pixels,
+                depth: storage("tsdf_integrate depth"),
+                weight: storage("tsdf_integrate weight"),
+                color: storage("tsdf_integrate color"),
+            });
+        }
+        if self.blocks.as_ref().is_none_or(|b| b.size() < list_bytes) {
+            let size = list_bytes.next_power_of_two().min(binding.max(list_bytes));
+            self.blocks = Some(self.ctx.storage_buffer("tsdf_integrate blocks", size));
+        }
+        Ok((block_count, dispatch))
     }
 
     /// GPU memory held: the pool and the cached input buffers.

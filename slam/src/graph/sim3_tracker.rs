@@ -238,9 +238,22 @@ impl Sim3Tracker {
             last = Some((level, eval));
         }
 
-        let Some((level, eval)) = last else {
-            return self.diverged(pose, reference, finest, None);
-        };
+        match last {
+            Some((level, eval)) => self.result(pose, reference, level, &eval),
+            None => self.diverged(pose, reference, finest, None),
+        }
+    }
+
+    /// The result from the finest level's last evaluation: the pose, its information, the
+    /// residuals and the quality checks.
+    fn result(
+        &self,
+        pose: Sim3,
+        reference: &KeyframeLevels,
+        level: usize,
+        eval: &Evaluation,
+    ) -> Sim3TrackResult {
+        let cfg = &self.config;
         let total_points = reference.levels[level].points.len().max(1) as f64;
         let good_ratio = eval.good as f64 / (eval.good + eval.bad).max(1) as f64;
         let information = eval.hessian;

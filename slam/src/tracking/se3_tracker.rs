@@ -185,34 +185,48 @@ impl SE3Tracker {
             }
 
             if level == cfg.min_level {
-                let buffers = &self.current;
-                let good = buffers.good as f32;
-                let total = (buffers.good + buffers.bad) as f32;
-                let good_ratio = if total > 0.0 { good / total } else { 0.0 };
                 let used = points.len().div_ceil(point_step);
-                let point_usage = if points.is_empty() {
-                    0.0
-                } else {
-                    (buffers.usage / used as f64) as f32
-                };
-                let (h_left, _) = normal_equations(buffers);
-                let correlation = buffers.correlation();
-                return TrackingResult {
-                    frame_from_keyframe: pose,
-                    good: good / pixels > cfg.min_good_per_all
-                        && good_ratio > cfg.min_good_per_good_bad
-                        && correlation > cfg.min_correlation
-                        && last_cost.is_finite(),
-                    residual: last_cost as f32,
-                    good_ratio,
-                    point_usage,
-                    iterations,
-                    correlation,
-                    information: left_to_right_information(&pose, &h_left),
-                };
+                return self.result(pose, last_cost, iterations, (used, pixels));
             }
         }
         TrackingResult::lost(initial_frame_from_keyframe, iterations)
+    }
+
+    /// The result at the finest level from its last evaluation: the pose with its cost,
+    /// iterations, and the quality checks over the `used` points that stand for `pixels`
+    /// pixels.
+    fn result(
+        &self,
+        pose: SE3,
+        last_cost: f64,
+        iterations: usize,
+        (used, pixels): (usize, f32),
+    ) -> TrackingResult {
+        let cfg = &self.config;
+        let buffers = &self.current;
+        let good = buffers.good as f32;
+        let total = (buffers.good + buffers.bad) as f32;
+        let good_ratio = if total > 0.0 { good / total } else { 0.0 };
+        let point_usage = if used == 0 {
+            0.0
+        } else {
+            (buffers.usage / used as f64) as f32
+        };
+        let (h_left, _) = normal_equations(buffers);
+        let correlation = buffers.correlation();
+        TrackingResult {
+            frame_from_keyframe: pose,
+            good: good / pixels > cfg.min_good_per_all
+                && good_ratio > cfg.min_good_per_good_bad
+                && correlation > cfg.min_correlation
+                && last_cost.is_finite(),
+            residual: last_cost as f32,
+            good_ratio,
+            point_usage,
+            iterations,
+            correlation,
+            information: left_to_right_information(&pose, &h_left),
+        }
     }
 
     /// Relocalisation / keyframe re-activation helper: tracks `frame` against every candidate

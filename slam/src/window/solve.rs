@@ -192,6 +192,64 @@ pub struct SolveReport {
     pub residuals: usize,
 }
 
+/// The normal equations of the free keyframes (`fixed..fixed + nfree`) with the depths
+/// eliminated by the Schur complement, and LM damping `lambda` on every diagonal.
+fn reduced_system(
+    h: &DMatrix<f64>,
+    b: &DVector<f64>,
+    systems: &[PointSystem],
+    (fixed, nfree): (usize, usize),
+    lambda: f64,
+) -> (DMatrix<f64>, DVector<f64>) {
+    let off = fixed * KF_PARAMS;
+    let m = nfree * KF_PARAMS;
+    let mut hr = h.view((off, off), (m, m)).into_owned();
+    let mut br = b.rows(off, m).into_owned();
+    for i in 0..m {
+        hr[(i, i)] *= 1.0 + lambda;
+        hr[(i, i)] += 1e-9;
+    }
+    for sys in systems {
+        let hdd = sys.h_dd * (1.0 + lambda);
+        if hdd <= 1e-12 {
+            continue;
+        }
+        let free: Vec<&(usize, Vector8)> =
+            sys.coupling.iter().filter(|(k, _)| *k >= fixed).collect();
+        for (k, ck) in &free {
+            let ok = (k - fixed) * KF_PARAMS;
+            let mut bk = br.rows_mut(ok, KF_PARAMS);
+            bk -= ck * (sys.b_d / hdd);
+            for (l, cl) in &free {
+                let ol = (l - fixed) * KF_PARAMS;
+                let mut block = hr.view_mut((ok, ol), (KF_PARAMS, KF_PARAMS));
+                block -= ck * cl.transpose() / hdd;
+            }
+        }
+    }
+    (hr, br)
+}
+
+/// Each point's inverse-depth step from the keyframes' steps (back substitution), applied to
+/// `points`.
+fn back_substitute(
+    points: &mut [Point],
+    systems: &[PointSystem],
+    step_of: &dyn Fn(usize) -> Vector8,
+    lambda: f64,
+) {
+    for (p, sys) in points.iter_mut().zip(systems) {
+        let hdd = sys.h_dd * (1.0 + lambda);
+        if hdd <= 1e-12 {
+            continue;
+        }
+        let coupled: f64 = sys.coupling.iter().map(|(k, c)| c.dot(&step_of(*k))).sum();
+        let step = -(sys.b_d + coupled) / hdd;
+        // Keep the inverse depth positive: at most halve or double it per step.
+        p.idepth = (p.idepth + step).clamp(0.5 * p.idepth, 2.0 * p.idepth);
+    }
+}
+
 /// Minimises the window's photometric cost over the poses and affine brightness of the views
 /// `fixed..` and the inverse depths of `points`. `views` and `points` are updated in place.
 pub fn optimize(
@@ -216,36 +274,10 @@ pub fn optimize(
     for _ in 0..config.iterations {
         report.iterations += 1;
         let (h, b, systems) = normal_equations(config, points, views);
-        let off = fixed * KF_PARAMS;
-        let m = nfree * KF_PARAMS;
         let mut accepted = false;
         for _ in 0..6 {
-            // Schur complement over the depths, with LM damping on every diagonal.
-            let mut hr = h.view((off, off), (m, m)).into_owned();
-            let mut br = b.rows(off, m).into_owned();
-            for i in 0..m {
-                hr[(i, i)] *= 1.0 + lambda;
-                hr[(i, i)] += 1e-9;
-            }
-            for sys in &systems {
-                let hdd = sys.h_dd * (1.0 + lambda);
-                if hdd <= 1e-12 {
-                    continue;
-                }
-                let free: Vec<&(usize, Vector8)> =
-                    sys.coupling.iter().filter(|(k, _)| *k >= fixed).collect();
-                for (k, ck) in &free {
-                    let ok = (k - fixed) * KF_PARAMS;
-                    let mut bk = br.rows_mut(ok, KF_PARAMS);
-                    bk -= ck * (sys.b_d / hdd);
-                    for (l, cl) in &free {
-                        let ol = (l - fixed) * KF_PARAMS;
-                        let mut block = hr.view_mut((ok, ol), (KF_PARAMS, KF_PARAMS));
-                        block -= ck * cl.transpose() / hdd;
-                    }
-                }
-            }
-            let Some(chol) = hr.clone().cholesky() else {
+            let (hr, br) = reduced_system(&h, &b, &systems, (fixed, nfree), lambda);
+            let Some(chol) = hr.cholesky() else {
                 lambda *= 10.0;
                 continue;
             };
@@ -265,16 +297,7 @@ pub fn optimize(
                 v.affine = affine;
             }
             let mut trial_points = points.to_vec();
-            for (p, sys) in trial_points.iter_mut().zip(&systems) {
-                let hdd = sys.h_dd * (1.0 + lambda);
-                if hdd <= 1e-12 {
-                    continue;
-                }
-                let coupled: f64 = sys.coupling.iter().map(|(k, c)| c.dot(&step_of(*k))).sum();
-                let step = -(sys.b_d + coupled) / hdd;
-                // Keep the inverse depth positive: at most halve or double it per step.
-                p.idepth = (p.idepth + step).clamp(0.5 * p.idepth, 2.0 * p.idepth);
-            }
+            back_substitute(&mut trial_points, &systems, &step_of, lambda);
             let (trial, _, _) = cost(config, &trial_points, &trial_views);
             if trial < current {
                 views.copy_from_slice(&trial_views);
