@@ -45,6 +45,7 @@ pub mod graph;
 pub mod image;
 pub mod map;
 pub mod mapping;
+pub mod metric_scale;
 pub mod npy;
 pub mod odometry;
 pub mod optim;

@@ -332,6 +332,7 @@ fn configured_model_runs_end_to_end() {
         std: [1.0, 1.0, 0.5],
         output: "y".into(),
         output_kind: OutputKind::InverseDepth,
+        metric: false,
         resize: ResizeMode::Stretch,
         intra_threads: 1,
     };

@@ -303,12 +303,14 @@ fn four_sessions_at_twice_the_processing_rate() {
     // 59 MiB with 4 keyframes, 146 MiB with 13), and the fusion ~4.5 MiB more (voxel blocks,
     // the depth kept for re-integration, the mesh; 269 → 317 MiB with 11 keyframes, a copy of
     // the mesh in the session record on top). Bound: the idle process + 16 MiB per
-    // keyframe + 32 MiB per session (queue, thread stack, pipeline buffers, HTTP buffers).
+    // keyframe + 48 MiB per session (queue, thread stack, pipeline buffers, HTTP buffers, the
+    // mesh deltas the 250 ms poll sends while frames wait; 32 MiB was exceeded by 4 MiB in
+    // 1.5 GiB once, 2026-11-29, 81 keyframes). Unbounded queues would add hundreds of MiB.
     let keyframes: u64 = finals
         .iter()
         .map(|f| f["keyframes"].as_u64().unwrap_or(0))
         .sum();
-    let bound_kib = idle_rss + keyframes * 16 * 1024 + SESSIONS as u64 * 32 * 1024;
+    let bound_kib = idle_rss + keyframes * 16 * 1024 + SESSIONS as u64 * 48 * 1024;
     eprintln!(
         "{total_accepted} frames offered, {total_processed} processed, {keyframes} keyframes; \
          VmRSS bound {} MiB",

@@ -8,8 +8,9 @@
 //! 60-frame windows, [`relfusion_slam::eval::scale_drift`]), the wall time per frame and the
 //! probes of the keyframes' semi-dense depth against the sensor's ([`super::depth_probe`]:
 //! depth-shape slope 1 s after the start, its range, the depth scale's drift), so that the
-//! cause of a bad trajectory stays visible (issue 35); then one aggregate line over the
-//! sequences.
+//! cause of a bad trajectory stays visible (issue 35); with a metric prior (issue 39) also the
+//! ATE after a rigid SE(3) alignment (no scale) and the Sim(3) alignment's scale (1 = metres);
+//! then one aggregate line over the sequences.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -17,7 +18,9 @@ use std::time::Instant;
 use anyhow::Context as _;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{StampedPose, stamped_se3};
-use relfusion_slam::eval::{AlignMode, DEFAULT_MAX_DT, associate_poses, ate, scale_drift};
+use relfusion_slam::eval::{
+    AlignMode, AteResult, DEFAULT_MAX_DT, associate_poses, ate, scale_drift,
+};
 use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
 use serde::Serialize;
@@ -70,6 +73,12 @@ pub struct RunFigures {
     pub ms_per_frame: f64,
     /// The keyframes' semi-dense depth against the sensor's (issue 35's probes).
     pub depth: ShapeSummary,
+    /// `"metric"` when a metric prior anchored the scale, else `"arbitrary"`.
+    pub scale: &'static str,
+    /// With a metric scale: the trajectory's ATE after a rigid (SE(3)) alignment, no scale.
+    pub ate_se3_m: Option<f64>,
+    /// The scale of the trajectory's Sim(3) alignment (1 = metric).
+    pub sim3_scale: Option<f64>,
 }
 
 /// Median and worst of a figure over the threaded runs.
@@ -80,6 +89,20 @@ pub struct Spread {
 }
 
 impl Spread {
+    /// Median and the value farthest from 1 (in ratio) of scale factors; `None` when empty.
+    fn of_scale(values: impl Iterator<Item = f64>) -> Option<Self> {
+        let mut v: Vec<f64> = values.collect();
+        v.sort_by(f64::total_cmp);
+        let worst = v
+            .iter()
+            .copied()
+            .max_by(|a, b| a.ln().abs().total_cmp(&b.ln().abs()))?;
+        Some(Self {
+            median: v[v.len() / 2],
+            worst,
+        })
+    }
+
     /// `None` when no run has the figure; a run without it (no alignment possible) counts as
     /// infinitely bad.
     fn of(values: impl Iterator<Item = Option<f64>>) -> Option<Self> {
@@ -112,6 +135,10 @@ pub struct SequenceFigures {
     pub shape_range: Option<(f64, f64)>,
     /// Largest over smallest keyframe depth scale against the sensor's, median and worst.
     pub depth_scale_ratio: Option<Spread>,
+    /// Over the threaded runs with a metric scale: SE(3)-aligned ATE, and the Sim(3)
+    /// alignment's scale (median and farthest from 1).
+    pub ate_se3_m: Option<Spread>,
+    pub sim3_scale: Option<Spread>,
     pub deterministic: Option<RunFigures>,
     pub runs: Vec<RunFigures>,
 }
@@ -182,7 +209,12 @@ impl Loaded {
 
     /// ATE (Sim(3)-aligned RMSE) of `est` against the ground truth.
     pub fn ate(&self, est: &[StampedPose]) -> Option<f64> {
-        ate(&self.gt, est, AlignMode::Sim3).ok().map(|r| r.rmse)
+        self.ate_aligned(est, AlignMode::Sim3).map(|r| r.rmse)
+    }
+
+    /// The ATE of `est` after the alignment `mode`, with the alignment.
+    pub fn ate_aligned(&self, est: &[StampedPose], mode: AlignMode) -> Option<AteResult> {
+        ate(&self.gt, est, mode).ok()
     }
 
     /// Scale drift of `est` over [`SCALE_WINDOW`]-pose windows.
@@ -267,6 +299,8 @@ fn sequence(
             .filter_map(|r| r.depth.slope_range)
             .reduce(|(a, b), (c, d)| (a.min(c), b.max(d))),
         depth_scale_ratio: Spread::of(runs.iter().map(|r| r.depth.scale_ratio)),
+        ate_se3_m: Spread::of(runs.iter().map(|r| r.ate_se3_m)),
+        sim3_scale: Spread::of_scale(runs.iter().filter_map(|r| r.sim3_scale)),
         deterministic,
         runs,
     })
@@ -286,6 +320,11 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
     let ate_of = |poses: &[(f64, Sim3)]| loaded.ate(&stamped_se3(poses));
     let drift = loaded.scale_drift(&stamped_se3(&trajectory));
     let stats = pipeline.stats();
+    let metric = stats.scale == "metric";
+    let sim3 = loaded.ate_aligned(&stamped_se3(&trajectory), AlignMode::Sim3);
+    let se3 = metric
+        .then(|| loaded.ate_aligned(&stamped_se3(&trajectory), AlignMode::Se3))
+        .flatten();
     let mut probe = DepthProbe::default();
     for (_, frame, depth) in pipeline.keyframe_depths() {
         if let Some(sensor) = loaded.seq.load_depth(frame.id as usize)? {
@@ -303,6 +342,9 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
         scale_drift: drift,
         ms_per_frame: 1e3 * frames_s / loaded.frames.len().max(1) as f64,
         depth: probe.summary(start),
+        scale: stats.scale,
+        ate_se3_m: se3.map(|r| r.rmse),
+        sim3_scale: metric.then(|| sim3.map(|r| r.scale)).flatten(),
     })
 }
 
@@ -355,6 +397,15 @@ fn print_row(f: &SequenceFigures) {
             .map_or_else(|| "-".into(), |(a, b)| format!("{a:.2}–{b:.2}")),
         fmt_spread(f.depth_scale_ratio, 2),
     );
+    if f.ate_se3_m.is_some() || f.sim3_scale.is_some() {
+        println!(
+            "  metric: ATE traj SE(3) median/worst {} m (det {}) | Sim(3) scale median/farthest {} (det {})",
+            fmt_spread(f.ate_se3_m, 4),
+            fmt_m(det.and_then(|d| d.ate_se3_m)),
+            fmt_spread(f.sim3_scale, 3),
+            fmt_m(det.and_then(|d| d.sim3_scale)),
+        );
+    }
 }
 
 /// One line over all sequences: the mean of the per-sequence medians (each sequence weighs the

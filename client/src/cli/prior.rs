@@ -5,7 +5,8 @@
 //! `1/gt ≈ a·p + b` over the pixels with ground truth deeper than 0.1 m (plain least squares,
 //! so frames whose prediction is inverted are scored, not skipped), convert back to depth
 //! `d = 1/(a·p + b)` and take the paper's percentage of correct depth (relative error < 10 %,
-//! over the valid ground-truth pixels). The figure is the mean over frames.
+//! over the valid ground-truth pixels). The figure is the mean over frames. A metric model is
+//! also scored as it is, its metres against the sensor's with nothing fitted.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -51,7 +52,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let n = args.frames.unwrap_or(seq.len()).min(seq.len());
     anyhow::ensure!(n > 0, "no frames to evaluate in {}", args.dataset.display());
 
+    let metric = prior.describe().metric;
     let (mut percents, mut millis, mut inverted, mut skipped) = (Vec::new(), Vec::new(), 0, 0);
+    let mut unaligned = Vec::new();
     for i in 0..n {
         let Some(gt) = seq.load_depth(i)? else {
             skipped += 1;
@@ -80,6 +83,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             DEFAULT_DEPTH_THRESHOLD,
         )?;
         percents.push(acc.percent);
+        if metric {
+            let mut depth = inv.clone();
+            for v in &mut depth.data {
+                *v = if *v > 0.0 { 1.0 / *v } else { 0.0 };
+            }
+            let raw = percent_correct_depth(&depth, &gt, 1.0, DEFAULT_DEPTH_THRESHOLD)?;
+            unaligned.push(raw.percent);
+        }
     }
     anyhow::ensure!(
         !percents.is_empty(),
@@ -99,6 +110,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "input": format!("{}x{}", config.input_width, config.input_height),
         "output": config.output,
         "output_kind": config.output_kind,
+        "metric": config.metric,
         "dataset": args.dataset,
         "frames": percents.len(),
         "frames_skipped": skipped,
@@ -106,6 +118,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "threshold": DEFAULT_DEPTH_THRESHOLD,
         "percent_correct_depth_mean": mean(&percents),
         "percent_correct_depth_median": median(&mut percents.clone()),
+        // A metric model's metres taken as they are, with no scale or shift fitted.
+        "percent_correct_depth_unaligned_mean": metric.then(|| mean(&unaligned)),
         "ms_per_frame_mean": mean(&millis),
         "ms_per_frame_median": median(&mut millis),
     });

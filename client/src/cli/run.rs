@@ -153,6 +153,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "mapping_ms_per_frame": 1e3 * stats.mapping_s / n.max(1) as f64,
             "frames_batched": stats.frames_batched,
             "dense_mode": stats.dense_mode,
+            "scale": stats.scale,
             "keyframes_densified": stats.keyframes_densified,
             "keyframes_not_densified": stats.keyframes_not_densified,
             "depth_refinements": stats.depth_refinements,

@@ -59,6 +59,7 @@ impl Engine {
             localizer: Box::new(localizer),
             stats: Stats {
                 dense_mode: "off",
+                scale: "arbitrary",
                 ..Stats::default()
             },
         })

@@ -416,6 +416,7 @@ impl Runner<'_> {
                 "keyframes_densified": stats.keyframes_densified,
                 "keyframes_not_densified": stats.keyframes_not_densified,
                 "dense_mode": stats.dense_mode,
+                "scale": stats.scale,
                 "keyframes_fused": stats.keyframes_fused,
                 "mesh_revision": stats.mesh_revision,
             }),

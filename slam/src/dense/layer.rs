@@ -34,6 +34,7 @@ use crate::gpu::GpuContext;
 use crate::graph::KeyframeId;
 use crate::image::ImageF32;
 use crate::mapping::DepthMap;
+use crate::metric_scale::{self, ScaleObservation};
 use crate::{Error, Result};
 
 /// A depth prior shared by the tracking thread (first-keyframe initialisation, hole filling)
@@ -65,6 +66,9 @@ pub struct DenseOutput {
     /// `Backend::update_keyframe_depth` (None when the check was off, had no previous keyframe
     /// or kept fewer than `two_view.min_pixels`).
     pub refined_depth: Option<Arc<DepthMap>>,
+    /// With a metric prior: the keyframe's scale as the prior sees it on its semi-dense pixels
+    /// (for the pose graph's unary scale factor, `backend.metric_scale`).
+    pub scale: Option<ScaleObservation>,
 }
 
 /// What the previous densified keyframe leaves for the next two-view check.
@@ -121,6 +125,8 @@ pub struct DenseLayer {
     steps: Steps,
     previous: Option<Previous>,
     no_model_reported: bool,
+    /// The prior predicts metres (its model config says `metric`).
+    metric: bool,
 }
 
 impl DenseLayer {
@@ -155,12 +161,14 @@ impl DenseLayer {
                  depth with edge-aware smoothness"
             );
         }
+        let metric = prior.as_ref().is_some_and(is_metric);
         Ok(Self {
             config,
             prior,
             steps,
             previous: None,
             no_model_reported: false,
+            metric,
         })
     }
 
@@ -179,6 +187,10 @@ impl DenseLayer {
         let intensity = box_downsample(full, w, h)?;
         let (semidense, semidense_var) = downsample_depth(&job.depth, w, h)?;
         let prior = self.aligned_prior(&job, &semidense, (w, h), &mut timings)?;
+        let scale = match (&prior.raw, self.metric) {
+            (Some(raw), true) => metric_scale::observe(&semidense, raw),
+            _ => None,
+        };
 
         // §III-C: the adaptive filter.
         let t = Instant::now();
@@ -254,6 +266,7 @@ impl DenseLayer {
                 stages,
             }),
             refined_depth,
+            scale,
         })
     }
 
@@ -444,6 +457,11 @@ impl Service for DenseLayer {
             Err(Error::Config(format!("dense layer: {error}"))),
         ))
     }
+}
+
+/// Whether the prior predicts metres (a poisoned lock reads as relative).
+pub fn is_metric(prior: &SharedPrior) -> bool {
+    prior.lock().is_ok_and(|p| p.describe().metric)
 }
 
 /// Runs the shared depth prior on one image (the raw relative inverse depth).

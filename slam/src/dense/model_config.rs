@@ -29,6 +29,11 @@ use crate::{Error, Result};
 pub const PYDNET_PP_SHA256: &str =
     "92110c96b3d5781ab5fd2b3901451053cb13c130c6df04fdec88d53f41f81f36";
 
+/// sha256 of `fastdepth_224x224_op13.onnx`, the official FastDepth weights (NYU Depth v2,
+/// metric depth) of the shared test data (shared data README §5).
+pub const FASTDEPTH_NYU_SHA256: &str =
+    "5e1be63dd3f659297a5b9f0c3f7312652735ad8d59fccf485bc95e5cb2440bba";
+
 /// sha256 of `model-small.onnx` from the MiDaS `v2_1` GitHub release (MiDaS v2.1 small, 256×256).
 pub const MIDAS_V21_SMALL_RELEASE_SHA256: &str =
     "2d8c6cb8f415229daf1eb041024208e2608c9f98e17c81cc7c6ecb449c56fd58";
@@ -53,10 +58,21 @@ pub enum Layout {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum OutputKind {
-    /// Depth-like values (larger = farther), e.g. PyDNet; the runtime takes `1 / value`.
+    /// Depth-like values (larger = farther), e.g. PyDNet, FastDepth (metres); the runtime takes
+    /// `1 / value`.
     Depth,
-    /// Relative inverse depth / disparity (larger = nearer), e.g. MiDaS, Depth Anything.
+    /// Inverse depth (larger = nearer), e.g. MiDaS, Depth Anything.
     InverseDepth,
+    /// Disparity (larger = nearer; inverse depth up to a scale the model does not know, e.g.
+    /// a stereo-trained network): read as relative inverse depth.
+    Disparity,
+}
+
+impl OutputKind {
+    /// Whether values grow with distance (the runtime then takes `1 / value`).
+    pub fn grows_with_distance(self) -> bool {
+        self == Self::Depth
+    }
 }
 
 /// How the camera image is brought to the network input size.
@@ -107,6 +123,12 @@ pub struct ModelConfig {
     pub output: String,
     /// Whether the output is depth-like or inverse depth.
     pub output_kind: OutputKind,
+    /// Whether the output is in metres (a metric network such as FastDepth, Depth Anything
+    /// metric, UniDepth) rather than up to an unknown scale and shift (MiDaS-style). A metric
+    /// prior anchors the map's scale (`backend.metric_scale`); a relative one never does.
+    /// Default false.
+    #[serde(default)]
+    pub metric: bool,
     /// Default: [`ResizeMode::Stretch`].
     #[serde(default)]
     pub resize: ResizeMode,
@@ -240,6 +262,13 @@ impl ModelConfig {
         if self.intra_threads == 0 {
             return bad("intra_threads must be at least 1".into());
         }
+        if self.metric && self.output_kind == OutputKind::Disparity {
+            return bad(
+                "a disparity output has no metric scale: say output_kind = \"depth\" or \
+                 \"inverse_depth\" for a metric model"
+                    .into(),
+            );
+        }
         if let Some(m) = self.multiple_of {
             if m == 0 {
                 return bad("multiple_of must be at least 1".into());
@@ -362,7 +391,8 @@ pub enum Recognition {
 /// Known models, recognised from the ONNX file itself: first by sha256, then by the
 /// names and shapes of its inputs and outputs (`file_name` disambiguates the one case where
 /// shapes alone cannot: DPT-Hybrid vs other 384×384 MiDaS models). `None` means "unknown:
-/// pass a config".
+/// pass a config". Only FastDepth is metric: a model recognised by its shapes alone is never
+/// taken for metric unless it is FastDepth's exact layout.
 ///
 /// | model | how | input | normalisation | output |
 /// |---|---|---|---|---|
@@ -370,6 +400,7 @@ pub enum Recognition {
 /// | MiDaS v2.1 small, official `model-small.onnx` | sha256 | 256×256 | RGB/255 (mean/std are inside the released graph, see MiDaS `tf/make_onnx_model.py`) | first output, inverse depth |
 /// | MiDaS v2.1 small, torch.hub export | one input `[1,3,256,256]`, one output | 256×256 | ImageNet mean/std | inverse depth |
 /// | DPT-Hybrid 384 | one input `[1,3,384,384]`, one output, file name contains `dpt` | 384×384 | mean = std = 0.5 | inverse depth |
+/// | FastDepth NYU (shared data) | sha256, or input `image` `[1,3,H,W]` (H, W multiples of 32 or dynamic) + output `depth` `[1,1,H,W]` | 224×224 | RGB/255 | `depth`, **metric** depth → 1/x |
 /// | Depth Anything V2 (fabio-sim / onnx-community exports) | input `pixel_values` or `image`, output `predicted_depth` or `depth` | 518 (keep aspect, multiple of 14, when dynamic) | ImageNet mean/std | inverse depth |
 pub fn recognise(
     sig: &ModelSignature,
@@ -403,6 +434,7 @@ fn base_config(
         std: default_std(),
         output: output.into(),
         output_kind: kind,
+        metric: false,
         resize: ResizeMode::Stretch,
         intra_threads: default_threads(),
     }
@@ -418,12 +450,29 @@ fn pydnet_config(input: &str) -> ModelConfig {
     )
 }
 
+/// FastDepth (Wofk et al. ICRA 2019, NYU Depth v2): RGB/255 stretched to 224×224 (other
+/// sizes are worse, shared data README §5), output `depth` in metres.
+fn fastdepth_config(input: &str, output: &str) -> ModelConfig {
+    let mut config = base_config(
+        input,
+        "fastdepth_nyu_224",
+        (224, 224),
+        output,
+        OutputKind::Depth,
+    );
+    config.metric = true;
+    config
+}
+
 /// The released files recognised by their hash.
 fn recognise_by_hash(sig: &ModelSignature, sha256: &str) -> Option<ModelConfig> {
     let input = &sig.inputs.first()?.name;
     let first_output = &sig.outputs.first()?.name;
     if sha256.eq_ignore_ascii_case(PYDNET_PP_SHA256) {
         return Some(pydnet_config(input));
+    }
+    if sha256.eq_ignore_ascii_case(FASTDEPTH_NYU_SHA256) {
+        return Some(fastdepth_config(input, first_output));
     }
     if sha256.eq_ignore_ascii_case(MIDAS_V21_SMALL_RELEASE_SHA256) {
         return Some(base_config(
@@ -448,6 +497,19 @@ fn recognise_by_signature(sig: &ModelSignature, file_name: &str) -> Option<Model
         return Some(pydnet_config(input));
     }
     let single = sig.inputs.len() == 1 && sig.outputs.len() == 1;
+    // FastDepth's `depth` keeps a channel axis (`[1, 1, H, W]`); Depth Anything's exports drop
+    // it (`[N, H, W]`), so the rank tells the two `image` → `depth` models apart.
+    let output_shape = sig.outputs.first()?.shape.as_deref().unwrap_or(&[]);
+    if single
+        && input == "image"
+        && has_output("depth")
+        && output_shape.len() == 4
+        && output_shape[1] == 1
+        && input_shape.len() == 4
+        && input_shape[2..].iter().all(|&d| d < 0 || d % 32 == 0)
+    {
+        return Some(fastdepth_config(input, "depth"));
+    }
     let da_output = ["predicted_depth", "depth"]
         .into_iter()
         .find(|n| has_output(n));
@@ -507,159 +569,5 @@ fn depth_anything_config(input: &str, output: &str, (h, w): (i64, i64)) -> Optio
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn tensor(name: &str, shape: &[i64]) -> TensorInfo {
-        TensorInfo {
-            name: name.into(),
-            shape: Some(shape.to_vec()),
-            is_f32: true,
-        }
-    }
-
-    fn pydnet_sig() -> ModelSignature {
-        ModelSignature {
-            inputs: vec![tensor("image", &[1, 3, 448, 640])],
-            outputs: vec![
-                tensor("depth_half", &[1, 1, 448, 640]),
-                tensor("depth_quarter", &[1, 1, 448, 640]),
-                tensor("depth_eighth", &[1, 1, 448, 640]),
-            ],
-        }
-    }
-
-    #[test]
-    fn dense_config_parses_toml_and_json_with_defaults() {
-        let toml = r#"
-            name = "m"
-            input = "x"
-            input_width = 256
-            input_height = 256
-            mean = [0.485, 0.456, 0.406]
-            std = [0.229, 0.224, 0.225]
-            output = "y"
-            output_kind = "inverse_depth"
-        "#;
-        let c = ModelConfig::from_toml(toml).expect("valid toml");
-        assert_eq!(c.layout, Layout::Nchw);
-        assert_eq!(c.resize, ResizeMode::Stretch);
-        assert_eq!(c.intra_threads, 2);
-        assert!((c.scale - 1.0 / 255.0).abs() < 1e-9);
-        assert_eq!(c.std, IMAGENET_STD);
-        let json = serde_json::to_string(&c).expect("serialise");
-        assert_eq!(ModelConfig::from_json(&json).expect("valid json"), c);
-    }
-
-    #[test]
-    fn dense_config_rejects_unknown_fields_and_bad_values() {
-        let base = "name='m'\ninput='x'\ninput_width=8\ninput_height=8\noutput='y'\n\
-                    output_kind='depth'\n";
-        assert!(ModelConfig::from_toml(base).is_ok());
-        assert!(ModelConfig::from_toml(&format!("{base}stdd=[1,1,1]\n")).is_err());
-        assert!(ModelConfig::from_toml(&format!("{base}std=[1,0,1]\n")).is_err());
-        assert!(ModelConfig::from_toml(&format!("{base}intra_threads=0\n")).is_err());
-        assert!(ModelConfig::from_toml(&format!("{base}multiple_of=3\n")).is_err());
-        assert!(ModelConfig::from_toml(&base.replace("'depth'", "'disparity'")).is_err());
-    }
-
-    #[test]
-    fn dense_recognises_pydnet_by_sha_and_signature() {
-        let (c, how) = recognise(&pydnet_sig(), PYDNET_PP_SHA256, "x.onnx").expect("known");
-        assert_eq!(how, Recognition::Sha256);
-        assert_eq!(
-            (c.input.as_str(), c.output.as_str()),
-            ("image", "depth_half")
-        );
-        assert_eq!((c.input_width, c.input_height), (640, 448));
-        assert_eq!(c.output_kind, OutputKind::Depth);
-        c.validate(&pydnet_sig()).expect("its own config fits");
-        let (_, how) = recognise(&pydnet_sig(), "00", "x.onnx").expect("known by shape");
-        assert_eq!(how, Recognition::Signature);
-    }
-
-    #[test]
-    fn dense_recognises_midas_depth_anything_and_dpt() {
-        let midas = ModelSignature {
-            inputs: vec![tensor("0", &[1, 3, 256, 256])],
-            outputs: vec![tensor("797", &[1, 256, 256])],
-        };
-        let (c, _) = recognise(&midas, "00", "m.onnx").expect("midas");
-        assert_eq!(c.output, "797");
-        assert_eq!(c.mean, IMAGENET_MEAN);
-        c.validate(&midas).expect("fits");
-        let (c, how) = recognise(&midas, MIDAS_V21_SMALL_RELEASE_SHA256, "m.onnx").expect("midas");
-        assert_eq!(how, Recognition::Sha256);
-        assert_eq!(c.mean, [0.0; 3], "the release graph normalises internally");
-
-        let da = ModelSignature {
-            inputs: vec![tensor("pixel_values", &[-1, 3, -1, -1])],
-            outputs: vec![tensor("predicted_depth", &[-1, -1, -1])],
-        };
-        let (c, _) = recognise(&da, "00", "model.onnx").expect("depth anything");
-        assert_eq!(
-            (c.resize, c.multiple_of),
-            (ResizeMode::KeepAspect, Some(14))
-        );
-        c.validate(&da).expect("fits");
-
-        let dpt = ModelSignature {
-            inputs: vec![tensor("input", &[1, 3, 384, 384])],
-            outputs: vec![tensor("output", &[1, 384, 384])],
-        };
-        assert!(
-            recognise(&dpt, "00", "model.onnx").is_none(),
-            "384 alone is ambiguous"
-        );
-        let (c, _) = recognise(&dpt, "00", "dpt_hybrid_384.onnx").expect("dpt");
-        assert_eq!(c.std, [0.5; 3]);
-    }
-
-    #[test]
-    fn dense_validate_names_the_mismatch() {
-        let sig = pydnet_sig();
-        let (good, _) = recognise(&sig, PYDNET_PP_SHA256, "").expect("known");
-        let err = |c: ModelConfig| c.validate(&sig).expect_err("must not fit").to_string();
-        let e = err(ModelConfig {
-            input_width: 256,
-            input_height: 256,
-            ..good.clone()
-        });
-        assert!(e.contains("256x256") && e.contains("640x448"), "{e}");
-        let e = err(ModelConfig {
-            input: "pixel_values".into(),
-            ..good.clone()
-        });
-        assert!(
-            e.contains("no input `pixel_values`") && e.contains("`image`"),
-            "{e}"
-        );
-        let e = err(ModelConfig {
-            output: "depth".into(),
-            ..good.clone()
-        });
-        assert!(
-            e.contains("no output `depth`") && e.contains("depth_half"),
-            "{e}"
-        );
-        let e = err(ModelConfig {
-            layout: Layout::Nhwc,
-            ..good.clone()
-        });
-        assert!(e.contains("channels"), "{e}");
-        let e = err(ModelConfig {
-            resize: ResizeMode::KeepAspect,
-            ..good
-        });
-        assert!(e.contains("dynamic"), "{e}");
-    }
-
-    #[test]
-    fn dense_unknown_signature_is_not_recognised() {
-        let sig = ModelSignature {
-            inputs: vec![tensor("x", &[1, 3, 100, 100])],
-            outputs: vec![tensor("y", &[1, 1, 100, 100])],
-        };
-        assert!(recognise(&sig, "00", "anything.onnx").is_none());
-    }
-}
+#[path = "model_config_tests.rs"]
+mod tests;

@@ -4,7 +4,7 @@
 //! The paper uses MiDaS v2.1 (inverse depth up to scale and shift). Any MiDaS-style ONNX model
 //! can be used: known ones are recognised from the file ([`super::model_config::recognise`]),
 //! others need a [`ModelConfig`]. Models that predict depth rather than inverse depth (the
-//! PyDNet++ stand-in of the shared test data) are inverted (`1 / pred`) so that every prior
+//! PyDNet++ stand-in of the shared test data, FastDepth's metres) are inverted (`1 / pred`) so that every prior
 //! hands the dense layer the same quantity; eq. (3)'s affine correction is only meaningful in
 //! inverse-depth space, where the scale- and shift-invariant training of MiDaS lives.
 //!
@@ -319,7 +319,7 @@ impl DepthPrior for OnnxDepthPrior {
         let mut map = resize_bilinear(&raw.data, raw.width, raw.height, 1, w, h);
         for v in &mut map {
             *v = match self.config.output_kind {
-                OutputKind::InverseDepth if v.is_finite() => *v,
+                OutputKind::InverseDepth | OutputKind::Disparity if v.is_finite() => *v,
                 OutputKind::Depth if v.is_finite() && *v > 0.0 => 1.0 / *v,
                 _ => 0.0,
             };
@@ -510,6 +510,7 @@ mod tests {
             std: [0.5, 0.5, 2.0],
             output: "y".into(),
             output_kind: OutputKind::InverseDepth,
+            metric: false,
             resize,
             intra_threads: 2,
         }

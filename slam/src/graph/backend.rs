@@ -26,6 +26,7 @@ use nalgebra::Matrix6;
 
 use crate::geometry::{Matrix7, Sim3};
 use crate::mapping::DepthMap;
+use crate::metric_scale::ScaleObservation;
 use crate::{Error, Result};
 
 /// The tracking estimate of a new keyframe relative to the keyframe it was tracked against.
@@ -143,6 +144,8 @@ pub struct Backend {
     /// The window's edge of each consecutive pair `(newer, older)` it optimised, as in the
     /// graph (replaced by the next window over the same pair).
     window_edges: HashMap<(KeyframeId, KeyframeId), Constraint>,
+    /// A scale factor changed since the last optimisation.
+    scale_observed: bool,
 }
 
 impl Backend {
@@ -157,6 +160,7 @@ impl Backend {
             pending: Vec::new(),
             refresh: Vec::new(),
             window_edges: HashMap::new(),
+            scale_observed: false,
         })
     }
 
@@ -270,8 +274,26 @@ impl Backend {
         Ok(())
     }
 
+    /// A metric prior observed keyframe `id`'s scale: it becomes (or replaces) the vertex's
+    /// unary scale factor ([`super::config::MetricScaleConfig::factor`]; ignored when too few
+    /// pixels voted or `metric_scale.enabled` is off), and the next [`Backend::process`]
+    /// optimises.
+    pub fn observe_scale(&mut self, id: KeyframeId, obs: &ScaleObservation) -> Result<()> {
+        let config = &self.config.metric_scale;
+        if !config.enabled {
+            return Ok(());
+        }
+        let Some(factor) = config.factor(obs) else {
+            return Ok(());
+        };
+        self.graph.set_scale_prior(id, Some(factor))?;
+        self.scale_observed = true;
+        Ok(())
+    }
+
     /// Searches constraints for every pending keyframe (in arrival order), re-estimates those of
-    /// keyframes whose depth was updated, and optimises the graph when edges changed.
+    /// keyframes whose depth was updated, and optimises the graph when edges or scale factors
+    /// changed.
     /// Deterministic: same inputs, same outputs.
     pub fn process(&mut self) -> Result<ProcessReport> {
         let mut report = ProcessReport::default();
@@ -284,6 +306,7 @@ impl Backend {
         for id in std::mem::take(&mut self.refresh) {
             added |= self.refresh_constraints(id, &mut report)?;
         }
+        added |= std::mem::take(&mut self.scale_observed);
         if added {
             report.optimize = Some(
                 self.graph

@@ -107,6 +107,9 @@ pub struct BackendConfig {
     /// the commands hold shared maps the graph keeps anyway.
     pub channel_capacity: usize,
 
+    /// Unary scale factors from a metric depth prior (issue 39); unused with a relative prior.
+    pub metric_scale: MetricScaleConfig,
+
     // ---------------------------------------------------------------- window
     /// The windowed photometric bundle adjustment of the latest keyframes
     /// ([`crate::window`]), whose result enters the pose graph as edges.
@@ -140,6 +143,7 @@ impl Default for BackendConfig {
             max_optimization_iterations: 100,
             pose_graph_huber: Some(5.0 * (6000.0f64 * 1.5).sqrt()),
             channel_capacity: 256,
+            metric_scale: MetricScaleConfig::default(),
             window: crate::window::WindowConfig::default(),
         }
     }
@@ -191,6 +195,72 @@ impl BackendConfig {
                 "backend: channel_capacity must be ≥ 1".into(),
             ));
         }
+        self.metric_scale.validate()?;
         self.window.validate()
+    }
+}
+
+/// How a metric depth prior (a model config with `metric = true`, e.g. FastDepth) anchors the
+/// map's scale: the first keyframe's depth is taken in metres, and every densified keyframe's
+/// observed scale ([`crate::metric_scale::observe`]) enters the pose graph as a weak unary
+/// factor on its vertex's scale ([`super::ScalePrior`]), as CNN-SLAM lets a network's depth
+/// hold a monocular map's scale. User setting: `enabled`; the rest is expert level.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MetricScaleConfig {
+    /// Anchor the scale when the prior is metric. Default true (a relative prior never does).
+    pub enabled: bool,
+    /// Fewest semi-dense pixels that must vote before a keyframe's scale is observed.
+    /// Default 500: fewer cover too little of the image to average the network's local
+    /// errors.
+    pub min_pixels: usize,
+    /// Floor of the factor's σ (natural log of the scale). Default 0.1: a metric network's
+    /// per-image scale is rarely better than 10 % (FastDepth on 7-Scenes: 41 % of pixels
+    /// within 10 % with no alignment, shared data README §5), however tight the votes.
+    pub min_sigma: f64,
+    /// Multiplier on the votes' robust spread to give the factor's σ. Default 1: the spread
+    /// of one pixel's vote, not of their mean (a network's scale error is shared by the whole
+    /// image, see [`crate::metric_scale`]).
+    pub sigma_factor: f64,
+    /// Huber width of the factor in units of σ. Default 2: a keyframe whose prior is off by
+    /// more than 2σ pulls with a constant force instead of a growing one.
+    pub huber: f64,
+}
+
+impl Default for MetricScaleConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            min_pixels: 500,
+            min_sigma: 0.1,
+            sigma_factor: 1.0,
+            huber: 2.0,
+        }
+    }
+}
+
+impl MetricScaleConfig {
+    /// The pose-graph factor of an observation, `None` when too few pixels voted.
+    pub fn factor(&self, obs: &crate::metric_scale::ScaleObservation) -> Option<super::ScalePrior> {
+        (obs.pixels >= self.min_pixels && obs.log_scale.is_finite()).then(|| super::ScalePrior {
+            log_scale: obs.log_scale,
+            sigma: (self.sigma_factor * obs.log_spread).max(self.min_sigma),
+            huber: self.huber,
+        })
+    }
+
+    fn validate(&self) -> Result<()> {
+        for (name, v) in [
+            ("min_sigma", self.min_sigma),
+            ("sigma_factor", self.sigma_factor),
+            ("huber", self.huber),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(Error::Config(format!(
+                    "backend.metric_scale.{name} must be > 0, got {v}"
+                )));
+            }
+        }
+        Ok(())
     }
 }

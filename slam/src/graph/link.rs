@@ -23,6 +23,11 @@ pub enum BackendCommand {
         id: KeyframeId,
         depth: Arc<DepthMap>,
     },
+    /// A metric prior's observation of a keyframe's scale ([`Backend::observe_scale`]).
+    ObserveScale {
+        id: KeyframeId,
+        observation: crate::metric_scale::ScaleObservation,
+    },
     /// Process pending keyframes, then optimise the whole graph even without new edges.
     Optimize,
 }
@@ -52,6 +57,9 @@ impl Service for BackendService {
                 BackendCommand::AddKeyframe(k) => self.backend.add_keyframe(*k),
                 BackendCommand::UpdateDepth { id, depth } => {
                     self.backend.update_keyframe_depth(id, depth)
+                }
+                BackendCommand::ObserveScale { id, observation } => {
+                    self.backend.observe_scale(id, &observation)
                 }
                 BackendCommand::Optimize => {
                     optimize = true;

@@ -31,7 +31,7 @@ pub type KeyframeId = usize;
 pub use backend::{Backend, NewKeyframe, ParentEdge, ProcessReport};
 pub use config::BackendConfig;
 pub use link::{BackendCommand, BackendLink};
-pub use pose_graph::{Constraint, OptimizeReport, PoseGraph};
+pub use pose_graph::{Constraint, OptimizeReport, PoseGraph, ScalePrior};
 pub use search::{Keyframe, ReciprocalCheck, Thumbnail, reciprocal_consistency, reciprocal_test};
 pub use sim3_tracker::{Sim3TrackResult, Sim3Tracker};
 

@@ -17,6 +17,11 @@
 //! The cost is `½ Σ ρ(rᵀ Ω r)` with g2o's Huber kernel ρ on the squared Mahalanobis norm. The
 //! first vertex is held fixed (it fixes the 7-DoF gauge of a monocular map). The normal
 //! equations are solved by the block-sparse Cholesky of [`super::cholesky`].
+//!
+//! A vertex may also carry a unary [`ScalePrior`] (a metric depth prior's observation of its
+//! scale, issue 39): `r = (ln s_i − ln m_i)/σ_i`. A right increment multiplies the scale by
+//! `exp(δσ)`, so `∂r/∂δ = e_σᵀ/σ_i`, exactly. A fixed vertex with such a factor keeps only its
+//! rotation and translation: the scale factors, not one keyframe, then fix the scale gauge.
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -37,6 +42,22 @@ pub struct Constraint {
     /// Information (inverse covariance) of a right perturbation of `to_from_from`, tangent
     /// order (ρ, φ, σ).
     pub information: Matrix7,
+}
+
+/// A unary factor on one vertex's scale: `ln s ≈ log_scale` with standard deviation `sigma`,
+/// under a Huber kernel of width `huber` (in units of σ).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ScalePrior {
+    pub log_scale: f64,
+    pub sigma: f64,
+    pub huber: f64,
+}
+
+impl ScalePrior {
+    /// The normalised residual `(ln s − log_scale)/σ` at `pose`.
+    fn residual(&self, pose: &Sim3) -> f64 {
+        (pose.scale.ln() - self.log_scale) / self.sigma
+    }
 }
 
 /// One keyframe pose of the graph.
@@ -86,6 +107,8 @@ pub fn relative_residual_jacobians(
 pub struct PoseGraph {
     vertices: BTreeMap<KeyframeId, Vertex>,
     edges: Vec<Constraint>,
+    /// Unary scale factors, by vertex.
+    scale_priors: BTreeMap<KeyframeId, ScalePrior>,
     /// Huber width on `sqrt(rᵀΩr)`; `None` = plain least squares.
     huber: Option<f64>,
 }
@@ -108,6 +131,7 @@ impl PoseGraph {
         Self {
             vertices: BTreeMap::new(),
             edges: Vec::new(),
+            scale_priors: BTreeMap::new(),
             huber,
         }
     }
@@ -147,6 +171,34 @@ impl PoseGraph {
         }
         self.edges.push(constraint);
         Ok(())
+    }
+
+    /// Sets (or, with `None`, removes) the unary scale factor of vertex `id`; `sigma` and
+    /// `huber` must be positive and finite.
+    pub fn set_scale_prior(&mut self, id: KeyframeId, prior: Option<ScalePrior>) -> Result<()> {
+        if !self.vertices.contains_key(&id) {
+            return Err(unknown(id));
+        }
+        match prior {
+            Some(p) => {
+                let positive = |v: f64| v.is_finite() && v > 0.0;
+                if !(p.log_scale.is_finite() && positive(p.sigma) && positive(p.huber)) {
+                    return Err(Error::Backend(format!(
+                        "pose graph: scale prior of keyframe {id} is not finite and positive: {p:?}"
+                    )));
+                }
+                self.scale_priors.insert(id, p);
+            }
+            None => {
+                self.scale_priors.remove(&id);
+            }
+        }
+        Ok(())
+    }
+
+    /// The unary scale factors, by vertex.
+    pub fn scale_priors(&self) -> &BTreeMap<KeyframeId, ScalePrior> {
+        &self.scale_priors
     }
 
     /// Removes the first edge equal to `edge`; returns whether there was one.
@@ -212,14 +264,24 @@ impl PoseGraph {
     }
 
     fn cost_with(&self, pose: &dyn Fn(KeyframeId) -> Option<Sim3>) -> f64 {
-        self.edges
+        let edges: f64 = self
+            .edges
             .iter()
             .filter_map(|e| {
                 let (wi, wj) = (pose(e.to)?, pose(e.from)?);
                 let r = relative_residual(&e.to_from_from, &wi, &wj);
                 Some(0.5 * huber(r.dot(&(e.information * r)), self.huber).0)
             })
-            .sum()
+            .sum();
+        let scales: f64 = self
+            .scale_priors
+            .iter()
+            .filter_map(|(&id, p)| {
+                let r = p.residual(&pose(id)?);
+                Some(0.5 * huber(r * r, Some(p.huber)).0)
+            })
+            .sum();
+        edges + scales
     }
 
     /// Levenberg–Marquardt with Marquardt's diagonal damping (`H + λ·diag(H)`), at most
@@ -227,11 +289,18 @@ impl PoseGraph {
     /// than 1e-12 relative. Fails only when the graph has no free vertex to move (returns the
     /// unchanged cost then) — it never leaves the poses worse than they were.
     pub fn optimize(&mut self, max_iterations: usize) -> Result<OptimizeReport> {
+        // A fixed vertex with a scale factor still has its scale free: the factors, not the
+        // first keyframe's single observation, set the scale gauge.
+        let scale_only = |k: &KeyframeId, v: &Vertex| v.fixed && self.scale_priors.contains_key(k);
         let free: Vec<KeyframeId> = self
             .vertices
             .iter()
-            .filter(|(_, v)| !v.fixed)
+            .filter(|(k, v)| !v.fixed || scale_only(k, v))
             .map(|(&k, _)| k)
+            .collect();
+        let pinned: Vec<bool> = free
+            .iter()
+            .map(|k| self.vertices.get(k).is_some_and(|v| scale_only(k, v)))
             .collect();
         let index: HashMap<KeyframeId, usize> =
             free.iter().enumerate().map(|(i, &k)| (k, i)).collect();
@@ -241,7 +310,7 @@ impl PoseGraph {
             final_cost: initial_cost,
             iterations: 0,
         };
-        if free.is_empty() || self.edges.is_empty() {
+        if free.is_empty() || (self.edges.is_empty() && self.scale_priors.is_empty()) {
             return Ok(report);
         }
         let mut cost = initial_cost;
@@ -252,19 +321,27 @@ impl PoseGraph {
             let mut improved = false;
             while lambda < 1e12 {
                 let mut damped = h.clone();
-                for i in 0..free.len() {
+                for (i, &pin) in pinned.iter().enumerate() {
                     let d = h.diagonal(i);
                     let mut add = Matrix7::zeros();
                     for k in 0..7 {
                         add[(k, k)] = lambda * d[(k, k)].max(1e-12) + 1e-12;
+                        // A scale-only vertex's rotation and translation are held by a
+                        // stiffness that dwarfs every other term (and zeroed below).
+                        if pin && k < 6 {
+                            add[(k, k)] += 1e12 * (d[(k, k)].abs() + 1.0);
+                        }
                     }
                     damped.add(i, i, &add);
                 }
                 let rhs: Vec<Vector7> = g.iter().map(|v| -v).collect();
-                let Some(step) = damped.solve(&rhs) else {
+                let Some(mut step) = damped.solve(&rhs) else {
                     lambda *= 10.0;
                     continue;
                 };
+                for (d, _) in step.iter_mut().zip(&pinned).filter(|(_, p)| **p) {
+                    d.fixed_rows_mut::<6>(0).fill(0.0);
+                }
                 let candidate: HashMap<KeyframeId, Sim3> = free
                     .iter()
                     .zip(&step)
@@ -294,7 +371,8 @@ impl PoseGraph {
         Ok(report)
     }
 
-    /// `H = Σ Jᵀ ρ' Ω J`, `g = Σ Jᵀ ρ' Ω r` over the free vertices (IRLS form of the Huber cost).
+    /// `H = Σ Jᵀ ρ' Ω J`, `g = Σ Jᵀ ρ' Ω r` over the free vertices (IRLS form of the Huber cost),
+    /// edges and unary scale factors.
     fn normal_equations(
         &self,
         index: &HashMap<KeyframeId, usize>,
@@ -323,6 +401,17 @@ impl PoseGraph {
                     }
                 }
             }
+        }
+        for (id, p) in &self.scale_priors {
+            let (Some(&a), Some(pose)) = (index.get(id), self.pose(*id)) else {
+                continue;
+            };
+            let r = p.residual(&pose);
+            let weight = huber(r * r, Some(p.huber)).1;
+            let mut block = Matrix7::zeros();
+            block[(6, 6)] = weight / (p.sigma * p.sigma);
+            h.add(a, a, &block);
+            g[a][6] += weight * r / p.sigma;
         }
         (h, g)
     }

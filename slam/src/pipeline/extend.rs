@@ -91,6 +91,10 @@ impl Pipeline {
             backend.add_map_edge(edge.clone())?;
         }
         let mut pipeline = Self::build(config, camera, prior, gpu, Some(backend))?;
+        // A saved map does not say whether its unit is the metre: anchoring new keyframes to
+        // metres would pull them away from a map of arbitrary scale.
+        pipeline.metric = false;
+        pipeline.stats.scale = "arbitrary";
         pipeline.load_keyframes(map)?;
         pipeline.map = Some(MapOrigin {
             localizer,

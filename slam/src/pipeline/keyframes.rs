@@ -58,7 +58,7 @@ pub(super) struct KeyframeCandidate {
 
 impl Pipeline {
     /// The first frame becomes the first keyframe, its depth initialised from the prior (or
-    /// randomly).
+    /// randomly); with a metric prior its scale makes the world's unit the metre.
     pub(super) fn start(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
         self.start_at(frame, Sim3::identity())
     }
@@ -95,11 +95,17 @@ impl Pipeline {
             (DepthInit::Prior, Some(prior), Some(rgb)) => Some(Arc::new(predict(prior, rgb)?)),
             _ => None,
         };
+        let mut world_from_keyframe = world_from_keyframe;
         match &prior_depth {
-            Some(idepth) => filter.init_from_depth(
-                &normalise_mean(idepth)?,
-                self.config.pipeline.prior_init_var,
-            )?,
+            Some(idepth) => {
+                let (normalised, factor) = normalise_mean(idepth)?;
+                filter.init_from_depth(&normalised, self.config.pipeline.prior_init_var)?;
+                // A metric prior's inverse depths times `factor` are the keyframe's, so its
+                // scale in a world of metres is `factor` (`crate::metric_scale`).
+                if self.metric {
+                    world_from_keyframe.scale = f64::from(factor);
+                }
+            }
             None => filter.init_random(self.config.pipeline.seed),
         }
         filter.regularize();
@@ -286,8 +292,9 @@ fn covariance(information: &Matrix7) -> Matrix7 {
 }
 
 /// Scales a relative inverse-depth map so that its mean over positive pixels is 1 (the
-/// keyframe scale gauge), leaving non-positive pixels at 0 ("no prediction").
-fn normalise_mean(idepth: &ImageF32) -> Result<ImageF32> {
+/// keyframe scale gauge), leaving non-positive pixels at 0 ("no prediction"); returns the map
+/// and the factor applied.
+fn normalise_mean(idepth: &ImageF32) -> Result<(ImageF32, f32)> {
     let (sum, n) = idepth
         .data
         .iter()
@@ -304,5 +311,5 @@ fn normalise_mean(idepth: &ImageF32) -> Result<ImageF32> {
         .iter()
         .map(|&v| if v.is_finite() && v > 0.0 { v * k } else { 0.0 })
         .collect();
-    ImageF32::from_vec(idepth.width, idepth.height, data).map_err(Into::into)
+    Ok((ImageF32::from_vec(idepth.width, idepth.height, data)?, k))
 }

@@ -43,7 +43,7 @@ impl Pipeline {
     }
 
     /// Records dense results, sends their two-view consistent depth to the back end (§III-E)
-    /// and queues their events. A keyframe the layer failed on is logged and counted: the
+    /// and, with a metric prior, their observed scale, and queues their events. A keyframe the layer failed on is logged and counted: the
     /// semi-dense SLAM goes on without it.
     pub(super) fn apply_dense(
         &mut self,
@@ -58,6 +58,10 @@ impl Pipeline {
                     continue;
                 }
             };
+            if let (true, Some(observation)) = (self.metric, output.scale) {
+                self.backend
+                    .send(BackendCommand::ObserveScale { id, observation })?;
+            }
             if let Some(depth) = output.refined_depth {
                 self.stats.depth_refinements += 1;
                 self.backend

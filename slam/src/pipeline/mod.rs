@@ -29,6 +29,8 @@ mod keyframes;
 mod layers;
 mod mapper;
 #[cfg(test)]
+mod metric_tests;
+#[cfg(test)]
 mod tests;
 
 use std::collections::{BTreeMap, HashMap};
@@ -91,6 +93,9 @@ pub struct Stats {
     /// `"prior"`, or `"no_model"` when no depth model is loaded (the dense layer then densifies
     /// from the semi-dense depth alone); `"off"` when the dense layer is disabled.
     pub dense_mode: &'static str,
+    /// `"metric"` when a metric depth prior anchors the map's scale (the world's unit is the
+    /// metre: `backend.metric_scale`), `"arbitrary"` otherwise (a monocular map's unit).
+    pub scale: &'static str,
     /// Dense keyframes whose two-view consistent depth went to the back end (§III-E).
     pub depth_refinements: usize,
     /// Dense keyframes fused into the TSDF.
@@ -109,6 +114,8 @@ pub struct Pipeline {
     camera: PinholeCamera,
     undistort: Option<UndistortMap>,
     prior: Option<SharedPrior>,
+    /// The prior is metric and anchors the scale (`Stats::scale`).
+    metric: bool,
     tracker: SE3Tracker,
     backend: BackendLink,
     dense: Option<Link<DenseLayer>>,
@@ -207,6 +214,10 @@ impl Pipeline {
         let fusion = (config.fusion.enabled && config.dense.enabled)
             .then(|| FusionLink::new(config.fusion.clone(), threaded, gpu))
             .transpose()?;
+        // Anchoring needs the first keyframe in metres, so its depth must come from the prior.
+        let metric = config.backend.metric_scale.enabled
+            && config.pipeline.init == DepthInit::Prior
+            && prior.as_ref().is_some_and(crate::dense::layer::is_metric);
         let dense_mode = match (&dense, &prior) {
             (None, _) => "off",
             (Some(_), Some(_)) => "prior",
@@ -216,6 +227,7 @@ impl Pipeline {
             camera,
             undistort,
             prior,
+            metric,
             tracker,
             backend,
             dense,
@@ -234,6 +246,7 @@ impl Pipeline {
             next_frame_id: 0,
             stats: Stats {
                 dense_mode,
+                scale: if metric { "metric" } else { "arbitrary" },
                 ..Stats::default()
             },
             reported_poses: HashMap::new(),

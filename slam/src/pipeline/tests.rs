@@ -11,7 +11,7 @@ use crate::dataset::trajectory::StampedPose;
 use crate::eval::{AlignMode, ate};
 
 /// 200 frames (6.7 s) of the default orbit at 320×240: translation and rotation together.
-fn sequence() -> &'static (PinholeCamera, Vec<FrameInput>, Vec<StampedPose>) {
+pub(super) fn sequence() -> &'static (PinholeCamera, Vec<FrameInput>, Vec<StampedPose>) {
     static SEQ: OnceLock<(PinholeCamera, Vec<FrameInput>, Vec<StampedPose>)> = OnceLock::new();
     SEQ.get_or_init(|| {
         let config = SynthConfig {

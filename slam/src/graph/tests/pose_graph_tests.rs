@@ -6,7 +6,7 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::geometry::{Matrix7, SO3, Sim3, Vector7};
 use crate::graph::pose_graph::{relative_residual, relative_residual_jacobians};
-use crate::graph::{Constraint, PoseGraph};
+use crate::graph::{Constraint, PoseGraph, ScalePrior};
 use relfusion_core::geometry::testing::numeric_jacobian;
 
 fn random_sim3(rng: &mut ChaCha8Rng, rot: f64, trans: f64, log_scale: f64) -> Sim3 {
@@ -181,4 +181,83 @@ fn pose_graph_rejects_edges_to_unknown_vertices() {
     assert!(graph.add_edge(c).is_ok());
     let report = graph.optimize(10).expect("optimise");
     assert_eq!(report.final_cost, 0.0);
+}
+
+/// Mean `|ln s − ln s_gt|` over the vertices.
+fn mean_scale_error(graph: &PoseGraph, truth: &[Sim3]) -> f64 {
+    truth
+        .iter()
+        .enumerate()
+        .map(|(k, t)| (graph.pose(k).expect("vertex").scale / t.scale).ln().abs())
+        .sum::<f64>()
+        / truth.len() as f64
+}
+
+#[test]
+fn pose_graph_scale_priors_bound_scale_drift_and_tolerate_an_outlier() {
+    // An odometry chain whose scale drifts 3 % per edge (scale σ 0.03 in its information,
+    // the rest 0.003), no loop: only unary scale factors (a metric prior, σ 0.1, votes noisy
+    // by ±0.05) can hold the scale. One factor is wildly wrong (e³). The first vertex is fixed
+    // but has a factor too, so its scale is free.
+    let truth = circle(30);
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut info = Matrix7::identity() / (0.003 * 0.003);
+    info[(6, 6)] = 1.0 / (0.03 * 0.03);
+    let mut bias = Vector7::zeros();
+    bias[6] = 0.03;
+    let mut graph = PoseGraph::new(None);
+    graph.add_vertex(0, truth[0]);
+    for k in 1..truth.len() {
+        let measured = truth[k - 1].inverse() * truth[k] * Sim3::exp(&bias);
+        let initial = graph.pose(k - 1).expect("previous") * measured;
+        graph.add_vertex(k, initial);
+        let edge = Constraint {
+            from: k,
+            to: k - 1,
+            to_from_from: measured,
+            information: info,
+        };
+        graph.add_edge(edge).expect("vertices exist");
+    }
+    let before = mean_scale_error(&graph, &truth);
+    let outlier = 17;
+    for (k, t) in truth.iter().enumerate() {
+        let noise = if k == outlier {
+            3.0
+        } else {
+            rng.random_range(-0.05..0.05)
+        };
+        let prior = ScalePrior {
+            log_scale: t.scale.ln() + noise,
+            sigma: 0.1,
+            huber: 2.0,
+        };
+        graph.set_scale_prior(k, Some(prior)).expect("vertex");
+    }
+    assert!(graph.set_scale_prior(99, None).is_err(), "unknown vertex");
+    let bad = ScalePrior {
+        log_scale: 0.0,
+        sigma: 0.0,
+        huber: 2.0,
+    };
+    assert!(graph.set_scale_prior(1, Some(bad)).is_err(), "σ = 0");
+    let first = graph.pose(0).expect("first");
+    graph.optimize(100).expect("optimise");
+    let after = mean_scale_error(&graph, &truth);
+    let at_outlier = (graph.pose(outlier).expect("v").scale / truth[outlier].scale).ln();
+    eprintln!(
+        "scale priors: mean |ln s error| {before:.3} → {after:.3}, at the outlier {at_outlier:.3}"
+    );
+    let moved = graph.pose(0).expect("first");
+    assert_eq!(
+        (moved.rotation, moved.translation),
+        (first.rotation, first.translation),
+        "the fixed vertex may only change its scale"
+    );
+    assert!(after < 0.15 * before, "scale error {before} → {after}");
+    assert!(
+        at_outlier.abs() < 0.2,
+        "the outlier pulled its vertex: {at_outlier}"
+    );
+    assert_eq!(graph.scale_priors().len(), truth.len());
 }
