@@ -43,8 +43,8 @@ impl Pipeline {
     }
 
     /// Records dense results, sends their two-view consistent depth to the back end (§III-E)
-    /// and, with a metric prior, their observed scale, and queues their events. A keyframe the layer failed on is logged and counted: the
-    /// semi-dense SLAM goes on without it.
+    /// and, with a metric prior, their observed scale, and queues their events. A keyframe the
+    /// layer failed on is logged and counted: the semi-dense SLAM goes on without it.
     pub(super) fn apply_dense(
         &mut self,
         replies: Vec<(KeyframeId, Result<DenseOutput>)>,
