@@ -36,7 +36,7 @@ pub const WATCH: &str = "watch";
 const END_MARKER: &[u8] = b"end";
 /// How long one pushed frame may wait on the owner (queue room under the `wait` policy).
 const PUSH_TIMEOUT: Duration = Duration::from_secs(60);
-/// How often a relay checks that its session exists and someone listens.
+/// How often a relay checks that someone still listens.
 const RELAY_CHECK: Duration = Duration::from_secs(1);
 /// Checks in a row without a listener before a relay stops.
 const RELAY_IDLE_CHECKS: u32 = 5;
@@ -341,9 +341,12 @@ async fn relay_updates(
     let id = session.id().to_string();
     let mut tick = tokio::time::interval(RELAY_CHECK);
     let mut idle = 0;
+    let deleted = session.deleted();
+    tokio::pin!(deleted);
     loop {
         let received = tokio::select! {
             received = events.recv() => received,
+            _ = &mut deleted => break,
             _ = tick.tick() => {
                 let listening = publisher
                     .matching_status()

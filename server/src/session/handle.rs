@@ -9,10 +9,11 @@ use std::thread::JoinHandle;
 use relfusion_proto::http::MapStart;
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
-use tokio::sync::{broadcast, watch};
+use tokio::sync::broadcast;
 
 use super::events::SessionEvent;
 use super::input::QueuedFrame;
+use super::lifecycle::{Lifecycle, Stop};
 use super::persist::{CounterSnapshot, SessionMeta};
 use super::queue::FrameQueue;
 use super::types::camera_json;
@@ -63,15 +64,6 @@ impl Counters {
     }
 }
 
-/// State and error, published through a watch channel so that waiters wake up.
-#[derive(Clone, Debug)]
-pub(crate) struct Status {
-    pub state: SessionState,
-    pub error: Option<String>,
-    /// Why it ended without failing, or what it waits for (`SessionInfo::notice`).
-    pub notice: Option<String>,
-}
-
 /// One session. Shared (`Arc`) by the manager, request handlers and its worker thread.
 pub struct Session {
     pub(super) id: SessionId,
@@ -105,14 +97,10 @@ pub struct Session {
     results_bytes: AtomicU64,
     /// When it ended (seconds since the epoch; 0 while it runs).
     ended_unix: AtomicU64,
-    pub(super) ended: AtomicBool,
-    /// Deleted: the worker stops and discards everything.
-    pub(crate) cancelled: AtomicBool,
-    /// Server shutdown: an upload stops where it is (it re-runs on restart).
-    pub(crate) stop: AtomicBool,
     /// Holds one of the `limits.max_sessions` slots (released once, by delete or worker end).
     pub(crate) holds_slot: AtomicBool,
-    pub(super) status: watch::Sender<Status>,
+    /// State, input, stop signal: the only writer of the session's status.
+    pub(crate) lifecycle: Lifecycle,
     events: broadcast::Sender<SessionEvent>,
     pub(super) track: Mutex<super::track::Track>,
     pub(crate) store: Arc<dyn ObjectStore>,
@@ -128,7 +116,7 @@ impl std::fmt::Debug for Session {
         f.debug_struct("Session")
             .field("id", &self.id)
             .field("kind", &self.kind)
-            .field("state", &self.status.borrow().state)
+            .field("state", &self.lifecycle.state())
             .finish_non_exhaustive()
     }
 }
@@ -159,11 +147,7 @@ impl Session {
         let queue = (meta.kind == SessionKind::Live && !meta.state.is_terminal())
             .then(|| FrameQueue::new(spec.frame_queue));
         let (events, _) = broadcast::channel(spec.event_buffer.max(1));
-        let (status, _) = watch::channel(Status {
-            state: meta.state,
-            error: meta.error.clone(),
-            notice: meta.notice.clone(),
-        });
+        let lifecycle = Lifecycle::new(meta.state, meta.error.clone(), meta.notice.clone());
         Self {
             id: meta.id,
             owner: meta.owner,
@@ -185,11 +169,8 @@ impl Session {
             upload_bytes: meta.upload_bytes.into(),
             results_bytes: meta.results_bytes.into(),
             ended_unix: meta.ended_unix.unwrap_or(0).into(),
-            ended: AtomicBool::new(meta.state.is_terminal()),
-            cancelled: AtomicBool::new(false),
-            stop: AtomicBool::new(false),
             holds_slot: AtomicBool::new(false),
-            status,
+            lifecycle,
             events,
             track: Mutex::new(Default::default()),
             store,
@@ -223,12 +204,12 @@ impl Session {
 
     /// The current state.
     pub fn state(&self) -> SessionState {
-        self.status.borrow().state
+        self.lifecycle.state()
     }
 
     /// Everything reported about the session now.
     pub fn info(&self) -> SessionInfo {
-        let status = self.status.borrow().clone();
+        let status = self.lifecycle.status();
         let c = self.counters.snapshot();
         SessionInfo {
             id: self.id.clone(),
@@ -271,24 +252,17 @@ impl Session {
     /// End of stream: the worker processes the frames already queued, finishes the map,
     /// persists the results and reports `Finished`. Idempotent; no-op for uploads.
     pub fn end_of_stream(&self) {
-        if self.kind != SessionKind::Live || self.ended.swap(true, Ordering::SeqCst) {
+        if self.kind != SessionKind::Live || !self.lifecycle.end_of_stream() {
             return;
         }
         if let Some(queue) = &self.queue {
             queue.close();
         }
-        self.status.send_if_modified(|s| {
-            let running = s.state == SessionState::Running;
-            if running {
-                s.state = SessionState::Finishing;
-            }
-            running
-        });
     }
 
-    /// Whether end of stream was received.
+    /// Whether it takes no more frames (end of stream received, or its worker ended).
     pub fn has_ended(&self) -> bool {
-        self.ended.load(Ordering::SeqCst)
+        self.lifecycle.input_closed()
     }
 
     /// A new subscriber to the session's events (bounded by `limits.event_buffer`; a
@@ -300,9 +274,13 @@ impl Session {
 
     /// Waits until the session is finished or failed; returns its final info.
     pub async fn wait_finished(&self) -> SessionInfo {
-        let mut rx = self.status.subscribe();
-        let _ = rx.wait_for(|s| s.state.is_terminal()).await;
+        self.lifecycle.terminal().await;
         self.info()
+    }
+
+    /// Resolves once the session is deleted: its tasks select on this to stop.
+    pub async fn deleted(&self) {
+        self.lifecycle.deleted().await;
     }
 
     // ---- used by the worker and the manager ----
@@ -314,7 +292,7 @@ impl Session {
 
     /// Sets the notice (why it ends, what it waits for), persisting the metadata.
     pub(crate) fn set_notice(&self, notice: Option<String>) {
-        self.status.send_modify(|s| s.notice = notice);
+        self.lifecycle.set_notice(notice);
         self.persist_meta();
     }
 
@@ -325,10 +303,7 @@ impl Session {
 
     /// Changes the state (and error), persisting the metadata.
     pub(crate) fn set_state(&self, state: SessionState, error: Option<String>) {
-        self.status.send_modify(|s| {
-            s.state = state;
-            s.error = error;
-        });
+        self.lifecycle.set_state(state, error);
         self.persist_meta();
     }
 
@@ -341,11 +316,7 @@ impl Session {
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(1, |d| d.as_secs().max(1));
         self.ended_unix.store(now, Ordering::Relaxed);
-        self.status.send_if_modified(|s| {
-            s.state = state;
-            s.error = error.clone();
-            false
-        });
+        self.lifecycle.record_end(state, error.clone());
         self.persist_meta();
         let event = match (state, error) {
             (SessionState::Failed, Some(message)) => SessionEvent::Failed { message },
@@ -354,12 +325,12 @@ impl Session {
             },
         };
         self.emit(event);
-        self.status.send_modify(|_| {});
+        self.lifecycle.announce();
     }
 
     /// The metadata as it stands.
     pub(crate) fn meta(&self) -> SessionMeta {
-        let status = self.status.borrow().clone();
+        let status = self.lifecycle.status();
         SessionMeta {
             version: super::persist::META_VERSION,
             id: self.id.clone(),
@@ -387,7 +358,7 @@ impl Session {
     /// Writes `meta.json` unless the session was deleted.
     pub(crate) fn persist_meta(&self) {
         let _guard = lock(&self.meta_lock);
-        if self.cancelled.load(Ordering::SeqCst) {
+        if self.lifecycle.is_deleted() {
             return;
         }
         if let Err(e) = self.meta().save(self.store.as_ref()) {
@@ -398,7 +369,7 @@ impl Session {
     /// The worker has ended: no more frames are accepted, and any still queued (a failed
     /// pipeline leaves some) are discarded so that waiting producers are released.
     pub(crate) fn close_input(&self) {
-        self.ended.store(true, Ordering::SeqCst);
+        self.lifecycle.close_input();
         if let Some(queue) = &self.queue {
             let n = queue.close_and_clear();
             self.metrics.frame_queue_depth.dec_by(n as i64);
@@ -410,8 +381,27 @@ impl Session {
     pub(crate) fn cancel(&self) {
         {
             let _guard = lock(&self.meta_lock);
-            self.cancelled.store(true, Ordering::SeqCst);
+            self.lifecycle.stop(Stop::Deleted);
         }
         self.close_input();
+    }
+
+    /// Server shutdown: a live session ends its stream (its queued frames are processed and
+    /// its results persisted); an upload stops where it is and re-runs on restart, and its
+    /// subscribers are told so.
+    pub(crate) fn shut_down(&self) {
+        match self.kind {
+            SessionKind::Live => self.end_of_stream(),
+            SessionKind::Upload => {
+                self.lifecycle.stop(Stop::Shutdown);
+                if !self.state().is_terminal() {
+                    self.emit(SessionEvent::Failed {
+                        message:
+                            "the server is shutting down; this upload re-runs when it restarts"
+                                .into(),
+                    });
+                }
+            }
+        }
     }
 }

@@ -128,7 +128,7 @@ impl Session {
         let Some(queue) = &self.queue else {
             return Err(self.not_accepting());
         };
-        if self.ended.load(Ordering::SeqCst) {
+        if self.has_ended() {
             return Err(self.not_accepting());
         }
         if frame.bytes.len() as u64 > self.max_frame_bytes {
@@ -214,7 +214,7 @@ impl Session {
     }
 
     fn not_accepting(&self) -> ApiError {
-        let status = self.status.borrow().clone();
+        let status = self.lifecycle.status();
         if status.state == SessionState::Failed {
             return ApiError::conflict(format!(
                 "session {} failed ({}); it takes no more frames",

@@ -4,6 +4,7 @@
 //! - [`types`]: the JSON of sessions (create request, info, camera, policy) and the typed
 //!   request it parses into.
 //! - [`handle`]: [`Session`], the shared handle request handlers use.
+//! - [`lifecycle`]: a session's status, its transitions and its one stop signal.
 //! - [`input`]: frames into a live session: checked, decoded, queued.
 //! - [`manager`]: [`SessionManager`]: sessions, uploads, recovery, retention, health.
 //! - [`admission`]: slots, the upload queue, per-owner quotas, upload tickets.
@@ -23,6 +24,7 @@ mod engine;
 pub mod events;
 pub mod handle;
 pub mod input;
+pub(crate) mod lifecycle;
 pub mod manager;
 pub mod overrides;
 pub mod persist;

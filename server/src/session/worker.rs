@@ -209,7 +209,7 @@ impl Runner<'_> {
         let mut window_start = Instant::now();
         let mut in_window = 0u64;
         loop {
-            if self.session.cancelled.load(Ordering::SeqCst) {
+            if self.session.lifecycle.is_deleted() {
                 return Ok(Outcome::Cancelled);
             }
             match queue.pop_timeout(window.min(POLL_INTERVAL)) {
@@ -224,7 +224,7 @@ impl Runner<'_> {
                 }
                 Pop::TimedOut => self.poll()?,
                 Pop::Closed => {
-                    return Ok(if self.session.cancelled.load(Ordering::SeqCst) {
+                    return Ok(if self.session.lifecycle.is_deleted() {
                         Outcome::Cancelled
                     } else {
                         Outcome::Finished
@@ -264,10 +264,10 @@ impl Runner<'_> {
                 .map_err(|e| format!("reading the uploaded dataset: {e}"))?;
         seq.camera = camera;
         for i in 0..seq.len() {
-            if self.session.cancelled.load(Ordering::SeqCst) {
+            if self.session.lifecycle.is_deleted() {
                 return Ok(Outcome::Cancelled);
             }
-            if self.session.stop.load(Ordering::SeqCst) {
+            if self.session.lifecycle.is_stopped() {
                 return Ok(Outcome::Stopped);
             }
             let rgb = seq.load_rgb(i).map_err(|e| format!("frame {i}: {e}"))?;
@@ -385,7 +385,7 @@ impl Runner<'_> {
     /// Writes the current results.
     fn save_results(&self, final_: bool) -> Result<(), String> {
         let s = self.session;
-        if s.cancelled.load(Ordering::SeqCst) {
+        if s.lifecycle.is_deleted() {
             return Err("the session was deleted".into());
         }
         let stats = self.engine.stats();
@@ -438,18 +438,20 @@ impl Runner<'_> {
 
     /// Saves the final results, retrying (1 s, doubling to 30 s) while the store refuses them
     /// (a full disk) until it takes them, the session is deleted, or the server shuts down.
-    fn save_final(&self) -> Result<(), Outcome> {
+    /// Returns whether it had to wait (it said so in the notice).
+    fn save_final(&self) -> Result<bool, Outcome> {
         let s = self.session;
         let mut delay = Duration::from_secs(1);
+        let mut waited = false;
         loop {
             let error = match self.save_results(true) {
-                Ok(()) => return Ok(()),
+                Ok(()) => return Ok(waited),
                 Err(e) => e,
             };
-            if s.cancelled.load(Ordering::SeqCst) {
+            if s.lifecycle.is_deleted() {
                 return Err(Outcome::Cancelled);
             }
-            if s.stop.load(Ordering::SeqCst) {
+            if s.lifecycle.is_stopped() {
                 // Shutdown: the upload re-runs on restart; a live session cannot.
                 return Err(match s.kind() {
                     SessionKind::Upload => Outcome::Stopped,
@@ -465,10 +467,8 @@ impl Runner<'_> {
                 "waiting to store the results (retrying every {} s): {error}",
                 delay.as_secs()
             )));
-            let until = Instant::now() + delay;
-            while Instant::now() < until && !s.stop.load(Ordering::SeqCst) {
-                std::thread::sleep(Duration::from_millis(100));
-            }
+            waited = true;
+            s.lifecycle.sleep_unless_stopped(delay);
             delay = (delay * 2).min(Duration::from_secs(30));
         }
     }
@@ -491,15 +491,14 @@ impl Runner<'_> {
         }
         s.update_keyframe_poses(&poses);
         s.emit(self.keyframe_poses_event(&poses));
-        if s.cancelled.load(Ordering::SeqCst) {
+        if s.lifecycle.is_deleted() {
             return Outcome::Cancelled;
         }
         let optimise_s = t0.elapsed().as_secs_f64();
-        if let Err(outcome) = self.save_final() {
-            return outcome;
-        }
-        if s.info().notice.is_some_and(|n| n.starts_with("waiting")) {
-            s.set_notice(None);
+        match self.save_final() {
+            Ok(true) => s.set_notice(None),
+            Ok(false) => {}
+            Err(outcome) => return outcome,
         }
         tracing::info!(
             session = %s.id(),

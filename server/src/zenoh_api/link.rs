@@ -77,7 +77,8 @@ pub(crate) async fn attach(
             let mut shutdown = shared.shutdown.clone();
             let finished = session.wait_finished();
             tokio::pin!(finished);
-            let mut tick = tokio::time::interval(LIVENESS_CHECK);
+            let deleted = session.deleted();
+            tokio::pin!(deleted);
             loop {
                 let sample = tokio::select! {
                     sample = subscriber.recv_async() => match sample {
@@ -85,13 +86,8 @@ pub(crate) async fn attach(
                         Err(_) => break,
                     },
                     _ = &mut finished => break,
+                    _ = &mut deleted => break,
                     _ = shutdown.wait_for(|stop| *stop) => break,
-                    _ = tick.tick() => {
-                        if deleted(&shared, &session) {
-                            break;
-                        }
-                        continue;
-                    }
                 };
                 if let Err(error) = handle(&shared, &session, &sample).await {
                     let put = shared
@@ -110,15 +106,6 @@ pub(crate) async fn attach(
     };
     let publish = tokio::spawn(publish_updates(shared, session, events, poses, mesh));
     Ok(vec![ingest, publish])
-}
-
-/// How often the session tasks check that their session still exists (deleted sessions
-/// emit no final event).
-const LIVENESS_CHECK: std::time::Duration = std::time::Duration::from_secs(1);
-
-/// Whether the session was deleted (through HTTP): its tasks stop.
-fn deleted(shared: &Shared, session: &Session) -> bool {
-    shared.sessions.get(session.id(), session.owner()).is_err()
 }
 
 /// One message from the client.
@@ -172,18 +159,16 @@ async fn publish_updates(
     mesh: Publisher<'static>,
 ) {
     let id = session.id().to_string();
-    let mut tick = tokio::time::interval(LIVENESS_CHECK);
+    let deleted = session.deleted();
+    tokio::pin!(deleted);
     loop {
         let received = tokio::select! {
             received = events.recv() => received,
-            _ = tick.tick() => {
-                if deleted(&shared, &session) {
-                    // A deleted session emits nothing more and has no map to announce.
-                    let _ = poses.undeclare().await;
-                    let _ = mesh.undeclare().await;
-                    return;
-                }
-                continue;
+            _ = &mut deleted => {
+                // A deleted session emits nothing more and has no map to announce.
+                let _ = poses.undeclare().await;
+                let _ = mesh.undeclare().await;
+                return;
             }
         };
         let event = match received {

@@ -573,19 +573,7 @@ impl SessionManager {
         }
         let sessions: Vec<Arc<Session>> = self.read_sessions().values().cloned().collect();
         for s in &sessions {
-            match s.kind() {
-                SessionKind::Live => s.end_of_stream(),
-                SessionKind::Upload => {
-                    s.stop.store(true, Ordering::SeqCst);
-                    if !s.state().is_terminal() {
-                        s.emit(super::events::SessionEvent::Failed {
-                            message:
-                                "the server is shutting down; this upload re-runs when it restarts"
-                                    .into(),
-                        });
-                    }
-                }
-            }
+            s.shut_down();
         }
         let workers: Vec<_> = sessions
             .iter()
