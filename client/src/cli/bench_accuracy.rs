@@ -10,7 +10,11 @@
 //! depth-shape slope 1 s after the start, its range, the depth scale's drift), so that the
 //! cause of a bad trajectory stays visible (issue 35); with a metric prior (issue 39) also the
 //! ATE after a rigid SE(3) alignment (no scale) and the Sim(3) alignment's scale (1 = metres);
-//! then one aggregate line over the sequences.
+//! for the deterministic run with the dense layer on, the dense columns (issue 39): % of
+//! correct depth of the prior as the pipeline aligned it, of the prior fitted to the sensor, of
+//! the densified depth, and the fused mesh's accuracy and completeness (what `relfusion eval
+//! depth --dataset --run` and `eval mesh` report for a stored run); then one aggregate line over
+//! the sequences.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -18,19 +22,26 @@ use std::time::Instant;
 use anyhow::Context as _;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{StampedPose, stamped_se3};
+use relfusion_slam::eval::dense_depth::evaluate_dense_depth;
+use relfusion_slam::eval::fused_mesh::{MeshSource, evaluate_fused_mesh};
 use relfusion_slam::eval::{
-    AlignMode, AteResult, DEFAULT_MAX_DT, associate_poses, ate, scale_drift,
+    AlignMode, AteResult, DEFAULT_DEPTH_THRESHOLD, DEFAULT_MAX_DT, associate_poses, ate,
+    scale_drift,
 };
 use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
 use serde::Serialize;
 
 use super::depth_probe::{DepthProbe, ShapeSummary, map_pairs};
-use super::run::load_prior;
+use super::run::{load_prior, write_results};
 
 /// Poses per window of the scale-drift figure (2 s at 30 Hz: short enough that tracking is
 /// accurate within it, long enough for a well-conditioned Sim(3) fit).
 const SCALE_WINDOW: usize = 60;
+
+/// Distance bound of an accurate mesh vertex / a covered surface point, in voxels (as `eval
+/// mesh`'s default, issue 5).
+const MESH_THRESHOLD_VOXELS: f64 = 2.0;
 
 #[derive(Debug, clap::Args)]
 pub struct AccuracyArgs {
@@ -79,6 +90,23 @@ pub struct RunFigures {
     pub ate_se3_m: Option<f64>,
     /// The scale of the trajectory's Sim(3) alignment (1 = metric).
     pub sim3_scale: Option<f64>,
+    /// The deterministic run's dense layer and mesh against the sensor (dense layer on).
+    pub dense: Option<DenseFigures>,
+}
+
+/// The dense columns: % of correct depth (the paper's §V.A, mean over keyframes) of the dense
+/// layer's stages, and the fused mesh against the surface the sensor saw.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct DenseFigures {
+    /// The prior as the pipeline aligned it (eq. 3).
+    pub prior_aligned: Option<f64>,
+    /// The prior fitted to the sensor's depth (the paper's baseline).
+    pub prior_gt_fit: Option<f64>,
+    pub densified: Option<f64>,
+    /// Fraction of mesh vertices within [`MESH_THRESHOLD_VOXELS`] of the sensor's surface.
+    pub mesh_accuracy: Option<f64>,
+    /// Fraction of the sensor's surface within that distance of a mesh vertex.
+    pub mesh_completeness: Option<f64>,
 }
 
 /// Median and worst of a figure over the threaded runs.
@@ -276,6 +304,8 @@ fn sequence(
     } else {
         let mut config = config.clone();
         config.pipeline.deterministic = true;
+        // The stage maps are what the dense columns score.
+        config.dense.keep_stages = true;
         Some(run_once(&loaded, &config, args.model.as_deref())?)
     };
     let path_length_m = loaded.path_length();
@@ -315,6 +345,9 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
     }
     let frames_s = t0.elapsed().as_secs_f64();
     pipeline.finish()?;
+    let dense = (config.pipeline.deterministic && config.dense.enabled)
+        .then(|| dense_figures(&loaded.seq.root, &mut pipeline))
+        .transpose()?;
     let trajectory = pipeline.trajectory();
     let keyframes = pipeline.keyframe_trajectory();
     let ate_of = |poses: &[(f64, Sim3)]| loaded.ate(&stamped_se3(poses));
@@ -345,6 +378,48 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
         scale: stats.scale,
         ate_se3_m: se3.map(|r| r.rmse),
         sim3_scale: metric.then(|| sim3.map(|r| r.scale)).flatten(),
+        dense,
+    })
+}
+
+/// Writes a finished run into a scratch folder as `relfusion run` does and scores it as `eval
+/// depth --dataset --run` and `eval mesh` do; a stage or mesh that cannot be scored is `None`
+/// (with a warning), never an error that loses the other figures.
+fn dense_figures(dataset: &Path, pipeline: &mut Pipeline) -> anyhow::Result<DenseFigures> {
+    let out = std::env::temp_dir().join(format!(
+        "relfusion-bench-accuracy-{}-{}",
+        std::process::id(),
+        dataset
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into())
+    ));
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    write_results(&out, pipeline)?;
+    let depth = evaluate_dense_depth(dataset, &out, DEFAULT_DEPTH_THRESHOLD)
+        .inspect_err(|e| tracing::warn!("dense depth of {}: {e}", dataset.display()))
+        .ok();
+    let fusion = &pipeline.config().fusion;
+    let mesh = evaluate_fused_mesh(
+        dataset,
+        &out,
+        fusion,
+        MeshSource::RunMesh,
+        MESH_THRESHOLD_VOXELS,
+    )
+    .inspect_err(|e| tracing::warn!("mesh of {}: {e}", dataset.display()))
+    .ok();
+    if let Err(e) = std::fs::remove_dir_all(&out) {
+        tracing::warn!("removing {}: {e}", out.display());
+    }
+    let stage = |f: fn(&relfusion_slam::eval::dense_depth::StageScores) -> Option<f64>| {
+        depth.as_ref().and_then(|d| f(&d.stages))
+    };
+    Ok(DenseFigures {
+        prior_aligned: stage(|s| s.prior_aligned.map(|x| x.percent_mean)),
+        prior_gt_fit: stage(|s| s.prior_gt_fit.map(|x| x.percent_mean)),
+        densified: stage(|s| s.dense.map(|x| x.percent_mean)),
+        mesh_accuracy: mesh.as_ref().map(|m| m.ours.accuracy),
+        mesh_completeness: mesh.as_ref().map(|m| m.ours.completeness),
     })
 }
 
@@ -404,6 +479,25 @@ fn print_row(f: &SequenceFigures) {
             fmt_m(det.and_then(|d| d.ate_se3_m)),
             fmt_spread(f.sim3_scale, 3),
             fmt_m(det.and_then(|d| d.sim3_scale)),
+        );
+    }
+    if let Some(d) = det.and_then(|d| d.dense) {
+        let pct = |v: Option<f64>| v.map_or_else(|| "-".into(), |x| format!("{x:.1}"));
+        let gain = d
+            .densified
+            .zip(d.prior_gt_fit)
+            .map(|(a, b)| format!("{:+.1}", a - b));
+        println!(
+            "  dense (det): % correct prior aligned {} | prior GT-fitted {} | densified {} ({} vs \
+             GT-fitted) | mesh accuracy {} completeness {}",
+            pct(d.prior_aligned),
+            pct(d.prior_gt_fit),
+            pct(d.densified),
+            gain.unwrap_or_else(|| "-".into()),
+            d.mesh_accuracy
+                .map_or_else(|| "-".into(), |x| format!("{x:.3}")),
+            d.mesh_completeness
+                .map_or_else(|| "-".into(), |x| format!("{x:.3}")),
         );
     }
 }

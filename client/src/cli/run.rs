@@ -170,15 +170,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 /// What [`write_results`] wrote that the summary reports.
-struct Written {
-    mesh: Option<relfusion_slam::fusion::Mesh>,
-    fusion: Option<relfusion_slam::fusion::FusionStats>,
-    map_save_s: f64,
+pub(super) struct Written {
+    pub mesh: Option<relfusion_slam::fusion::Mesh>,
+    pub fusion: Option<relfusion_slam::fusion::FusionStats>,
+    pub map_save_s: f64,
 }
 
 /// Writes a finished run into `out`: trajectory, keyframes, point clouds, the dense keyframes,
 /// the mesh and its statistics, and the map.
-fn write_results(out: &std::path::Path, pipeline: &mut Pipeline) -> anyhow::Result<Written> {
+pub(super) fn write_results(
+    out: &std::path::Path,
+    pipeline: &mut Pipeline,
+) -> anyhow::Result<Written> {
     write_trajectory(&out.join("trajectory.txt"), &pipeline.trajectory())?;
     write_trajectory(&out.join("keyframes.txt"), &pipeline.keyframe_trajectory())?;
     write_points_ply(&out.join("semidense.ply"), &pipeline.semidense_points())?;

@@ -152,9 +152,12 @@ impl Backend {
     /// An empty back end (validates `config`).
     pub fn new(config: BackendConfig) -> Result<Self> {
         config.validate()?;
+        let mut graph = PoseGraph::new(config.pose_graph_huber);
+        let metric = &config.metric_scale;
+        graph.set_edge_scale_sigma(metric.enabled.then_some(metric.edge_scale_sigma))?;
         Ok(Self {
             tracker: Sim3Tracker::new(config.clone()),
-            graph: PoseGraph::new(config.pose_graph_huber),
+            graph,
             config,
             keyframes: BTreeMap::new(),
             pending: Vec::new(),

@@ -225,6 +225,11 @@ pub struct MetricScaleConfig {
     /// Huber width of the factor in units of σ. Default 2: a keyframe whose prior is off by
     /// more than 2σ pulls with a constant force instead of a growing one.
     pub huber: f64,
+    /// Floor of every pose-graph edge's relative-scale σ (natural log) once factors exist
+    /// ([`super::PoseGraph::set_edge_scale_sigma`]). The photometric Hessian claims ~3·10⁻⁴;
+    /// the front end's scale drifts by about 1-3 % per keyframe (scale drift 1.4-3.3 over
+    /// 25-35 keyframes on the shared sequences), so the default is 0.02.
+    pub edge_scale_sigma: f64,
 }
 
 impl Default for MetricScaleConfig {
@@ -235,6 +240,7 @@ impl Default for MetricScaleConfig {
             min_sigma: 0.1,
             sigma_factor: 1.0,
             huber: 2.0,
+            edge_scale_sigma: 0.02,
         }
     }
 }
@@ -254,6 +260,7 @@ impl MetricScaleConfig {
             ("min_sigma", self.min_sigma),
             ("sigma_factor", self.sigma_factor),
             ("huber", self.huber),
+            ("edge_scale_sigma", self.edge_scale_sigma),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(Error::Config(format!(

@@ -261,3 +261,87 @@ fn pose_graph_scale_priors_bound_scale_drift_and_tolerate_an_outlier() {
     );
     assert_eq!(graph.scale_priors().len(), truth.len());
 }
+
+/// Largest minus smallest `ln(s_k / s_true,k)`: the scale drift along the chain (a common
+/// scale error is not drift).
+fn scale_error_range(graph: &PoseGraph, truth: &[Sim3]) -> f64 {
+    let errors = truth
+        .iter()
+        .enumerate()
+        .map(|(k, t)| (graph.pose(k).expect("vertex").scale / t.scale).ln());
+    let (lo, hi) = errors.fold((f64::MAX, f64::MIN), |(lo, hi), e| (lo.min(e), hi.max(e)));
+    hi - lo
+}
+
+#[test]
+fn edge_scale_floor_lets_scale_factors_correct_an_overconfident_chain() {
+    // As on real video: every edge claims its relative scale to 3·10⁻⁴ (information 10⁷) but
+    // the chain drifts 2 % per edge. Without the floor the factors (σ 0.2) only shift the
+    // whole chain; with q = 0.02 they reduce its drift. A graph without factors keeps its
+    // edges' own information.
+    let truth = circle(30);
+    let mut info = Matrix7::identity() / (0.003 * 0.003);
+    info[(6, 6)] = 1e7;
+    let mut bias = Vector7::zeros();
+    bias[6] = 0.02;
+    let build = |floor: Option<f64>| {
+        let mut graph = PoseGraph::new(None);
+        graph.set_edge_scale_sigma(floor).expect("valid floor");
+        graph.add_vertex(0, truth[0]);
+        for k in 1..truth.len() {
+            let measured = truth[k - 1].inverse() * truth[k] * Sim3::exp(&bias);
+            let initial = graph.pose(k - 1).expect("previous") * measured;
+            graph.add_vertex(k, initial);
+            let edge = Constraint {
+                from: k,
+                to: k - 1,
+                to_from_from: measured,
+                information: info,
+            };
+            graph.add_edge(edge).expect("vertices exist");
+        }
+        graph
+    };
+    let mut plain = build(Some(0.02));
+    let untouched = plain.cost();
+    plain.optimize(20).expect("optimise");
+    assert!(
+        (plain.cost() - untouched).abs() <= 1e-9 * untouched.max(1.0),
+        "without factors the floor changes nothing"
+    );
+    let mut errors = Vec::new();
+    for floor in [None, Some(0.02)] {
+        let mut graph = build(floor);
+        for (k, t) in truth.iter().enumerate() {
+            let prior = ScalePrior {
+                log_scale: t.scale.ln(),
+                sigma: 0.2,
+                huber: 2.0,
+            };
+            graph.set_scale_prior(k, Some(prior)).expect("vertex");
+        }
+        let before = scale_error_range(&graph, &truth);
+        graph.optimize(100).expect("optimise");
+        errors.push((before, scale_error_range(&graph, &truth)));
+    }
+    eprintln!(
+        "edge scale floor: drift without {:?}, with {:?}",
+        errors[0], errors[1]
+    );
+    // A drift of one floor σ per edge is still plausible to the edges: the factors take
+    // about 40 % of it out.
+    let ((before, without), (_, with)) = (errors[0], errors[1]);
+    assert!(
+        without > 0.95 * before,
+        "without the floor the chain keeps its drift"
+    );
+    assert!(
+        with < 0.7 * before,
+        "with the floor the factors pull: {before} → {with}"
+    );
+    assert!(
+        PoseGraph::new(None)
+            .set_edge_scale_sigma(Some(0.0))
+            .is_err()
+    );
+}
