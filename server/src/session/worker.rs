@@ -469,6 +469,10 @@ impl Runner<'_> {
             )));
             waited = true;
             s.lifecycle.sleep_unless_stopped(delay);
+            // Deleted while waiting: its data is gone and must not be written again.
+            if s.lifecycle.is_deleted() {
+                return Err(Outcome::Cancelled);
+            }
             delay = (delay * 2).min(Duration::from_secs(30));
         }
     }
