@@ -193,19 +193,21 @@ fn mean_scale_error(graph: &PoseGraph, truth: &[Sim3]) -> f64 {
         / truth.len() as f64
 }
 
-#[test]
-fn pose_graph_scale_priors_bound_scale_drift_and_tolerate_an_outlier() {
-    // An odometry chain whose scale drifts 3 % per edge (scale σ 0.03 in its information,
-    // the rest 0.003), no loop: only unary scale factors (a metric prior, σ 0.1, votes noisy
-    // by ±0.05) can hold the scale. One factor is wildly wrong (e³). The first vertex is fixed
-    // but has a factor too, so its scale is free.
-    let truth = circle(30);
-    let mut rng = ChaCha8Rng::seed_from_u64(3);
+/// An odometry chain along `truth` with no loop: each edge measures the true relative pose with
+/// its log scale off by `drift`, claims scale information `scale_information` (0.003 σ on the
+/// rest), and the graph has the edge scale floor `floor`.
+fn scale_drifting_chain(
+    truth: &[Sim3],
+    scale_information: f64,
+    drift: f64,
+    floor: Option<f64>,
+) -> PoseGraph {
     let mut info = Matrix7::identity() / (0.003 * 0.003);
-    info[(6, 6)] = 1.0 / (0.03 * 0.03);
+    info[(6, 6)] = scale_information;
     let mut bias = Vector7::zeros();
-    bias[6] = 0.03;
+    bias[6] = drift;
     let mut graph = PoseGraph::new(None);
+    graph.set_edge_scale_sigma(floor).expect("valid floor");
     graph.add_vertex(0, truth[0]);
     for k in 1..truth.len() {
         let measured = truth[k - 1].inverse() * truth[k] * Sim3::exp(&bias);
@@ -219,6 +221,18 @@ fn pose_graph_scale_priors_bound_scale_drift_and_tolerate_an_outlier() {
         };
         graph.add_edge(edge).expect("vertices exist");
     }
+    graph
+}
+
+#[test]
+fn pose_graph_scale_priors_bound_scale_drift_and_tolerate_an_outlier() {
+    // An odometry chain whose scale drifts 3 % per edge (scale σ 0.03 in its information,
+    // the rest 0.003), no loop: only unary scale factors (a metric prior, σ 0.1, votes noisy
+    // by ±0.05) can hold the scale. One factor is wildly wrong (e³). The first vertex is fixed
+    // but has a factor too, so its scale is free.
+    let truth = circle(30);
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut graph = scale_drifting_chain(&truth, 1.0 / (0.03 * 0.03), 0.03, None);
     let before = mean_scale_error(&graph, &truth);
     let outlier = 17;
     for (k, t) in truth.iter().enumerate() {
@@ -280,28 +294,7 @@ fn edge_scale_floor_lets_scale_factors_correct_an_overconfident_chain() {
     // whole chain; with q = 0.02 they reduce its drift. A graph without factors keeps its
     // edges' own information.
     let truth = circle(30);
-    let mut info = Matrix7::identity() / (0.003 * 0.003);
-    info[(6, 6)] = 1e7;
-    let mut bias = Vector7::zeros();
-    bias[6] = 0.02;
-    let build = |floor: Option<f64>| {
-        let mut graph = PoseGraph::new(None);
-        graph.set_edge_scale_sigma(floor).expect("valid floor");
-        graph.add_vertex(0, truth[0]);
-        for k in 1..truth.len() {
-            let measured = truth[k - 1].inverse() * truth[k] * Sim3::exp(&bias);
-            let initial = graph.pose(k - 1).expect("previous") * measured;
-            graph.add_vertex(k, initial);
-            let edge = Constraint {
-                from: k,
-                to: k - 1,
-                to_from_from: measured,
-                information: info,
-            };
-            graph.add_edge(edge).expect("vertices exist");
-        }
-        graph
-    };
+    let build = |floor| scale_drifting_chain(&truth, 1e7, 0.02, floor);
     let mut plain = build(Some(0.02));
     let untouched = plain.cost();
     plain.optimize(20).expect("optimise");
