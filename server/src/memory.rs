@@ -8,10 +8,11 @@
 //! many keyframes its map may hold. A camera whose base alone does not fit a share is refused
 //! before anything is allocated.
 //!
-//! The constants were measured with `relfusion run` on synthetic orbits (release build,
-//! lavapipe, peak RSS against keyframes; docs/tuning.md, 2026-11-26): at 640×480 a keyframe
-//! costs 34 MB without the dense layer (110 B per pixel) and 41 MB with it; at 320×240 11 and
-//! 14 MB. The estimate below rounds each term up.
+//! The constants were measured with `relfusion run` on synthetic sequences (RSS against
+//! keyframes; docs/tuning.md "Memory of a session"): a keyframe in full costs about 110 B
+//! per pixel (34 MB at 640×480), but only the `backend.resident_keyframes` newest are held in
+//! full (issue 37); every older one keeps a compact form (colour image, depth map by its
+//! estimates, descriptor) of under 20 B per pixel. The estimate below rounds each term up.
 
 use crate::config::Limits;
 
@@ -28,9 +29,11 @@ const BASE_PER_PIXEL: u64 = 400;
 /// and the fusion's block pool as first allocated.
 const BASE_FIXED: u64 = 64 * MIB;
 const BASE_DENSE: u64 = 160 * MIB;
-/// Bytes per camera pixel of one keyframe: frame pyramid and colour, semi-dense depth,
-/// tracking reference and constraint-search levels.
-const KEYFRAME_PER_PIXEL: u64 = 160;
+/// Bytes per camera pixel of one keyframe held in full (the session's working set): frame
+/// pyramid and colour, semi-dense depth, tracking reference and constraint-search levels.
+const RESIDENT_PER_PIXEL: u64 = 160;
+/// Bytes per camera pixel of every other keyframe: its compact form.
+const KEYFRAME_PER_PIXEL: u64 = 24;
 /// Bytes per dense-resolution pixel of one densified keyframe: dense depth and variance, its
 /// fusion input kept for re-integration, and its mesh blocks.
 const KEYFRAME_PER_DENSE_PIXEL: u64 = 56;
@@ -47,12 +50,12 @@ pub struct SessionCost {
 
 impl SessionCost {
     /// The estimate for a camera of `pixels` with the dense layer at `dense_pixels` (`None`
-    /// when the dense layer is off).
-    pub fn estimate(pixels: u64, dense_pixels: Option<u64>) -> Self {
+    /// when the dense layer is off), holding `resident` keyframes in full.
+    pub fn estimate(pixels: u64, dense_pixels: Option<u64>, resident: usize) -> Self {
         let dense = dense_pixels.unwrap_or(0);
         Self {
             base: BASE_FIXED
-                + BASE_PER_PIXEL * pixels
+                + (BASE_PER_PIXEL + RESIDENT_PER_PIXEL * resident as u64) * pixels
                 + if dense_pixels.is_some() {
                     BASE_DENSE
                 } else {
@@ -162,8 +165,8 @@ mod tests {
     #[test]
     fn shares_set_the_map_size_and_large_cameras_are_refused() {
         let plan = MemoryPlan::new(&limits(16 * 1024, 4, 0));
-        let vga = SessionCost::estimate(640 * 480, Some(320 * 240));
-        let qvga = SessionCost::estimate(320 * 240, Some(320 * 240));
+        let vga = SessionCost::estimate(640 * 480, Some(320 * 240), 8);
+        let qvga = SessionCost::estimate(320 * 240, Some(320 * 240), 8);
         let vga_kf = plan.keyframes_for(vga).expect("fits");
         let qvga_kf = plan.keyframes_for(qvga).expect("fits");
         assert!(
@@ -171,7 +174,7 @@ mod tests {
             "{vga_kf} {qvga_kf}"
         );
         assert!(vga.at(vga_kf) <= plan.share, "the map fits its share");
-        let huge = SessionCost::estimate(8192 * 8192, Some(320 * 240));
+        let huge = SessionCost::estimate(8192 * 8192, Some(320 * 240), 8);
         let e = plan.keyframes_for(huge).expect_err("8192² does not fit");
         assert!(e.contains("smaller image"), "{e}");
         let capped = MemoryPlan::new(&limits(16 * 1024, 4, 20));

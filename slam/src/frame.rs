@@ -13,7 +13,7 @@ pub const PYRAMID_LEVELS: usize = 5;
 
 /// One input image, undistorted, with its pyramid. Shared read-only (`Arc`) between tracking,
 /// mapping, the back end and the dense layer.
-#[derive(Debug)]
+#[derive(Debug, PartialEq)]
 pub struct Frame {
     /// Sequence number given by the pipeline (0, 1, 2, ... in arrival order).
     pub id: u64,
@@ -100,5 +100,133 @@ impl Frame {
     /// The camera of pyramid level `level`.
     pub fn camera_at(&self, level: usize) -> PinholeCamera {
         self.camera.scaled(level as u32)
+    }
+
+    /// Bytes of the pyramid (images and gradients over every level) and colour image.
+    pub fn heap_bytes(&self) -> usize {
+        let pyramid: usize = self
+            .pyramid
+            .levels
+            .iter()
+            .map(|l| 4 * 4 * l.width() * l.height())
+            .sum();
+        pyramid + self.rgb.as_ref().map_or(0, |rgb| rgb.as_raw().len())
+    }
+
+    /// The compact form of this frame (see [`CompactFrame`]).
+    pub fn compact(&self) -> CompactFrame {
+        CompactFrame::of(self)
+    }
+}
+
+/// What a keyframe keeps of its frame once it leaves the working set (issue 37): the image
+/// the pyramid was built from, not the pyramid. An undistorted colour frame keeps only its
+/// colour image (3 B per pixel, shared with whoever else holds it), whose grey conversion is
+/// the pyramid's base; a frame without colour (or whose base is not its colour's grey) keeps
+/// the grey base (4 B per pixel). [`CompactFrame::rebuild`] gives back a frame bit-identical
+/// to the original, so rebuilding on demand never changes a result. The pyramid with its
+/// gradients costs 21 B per pixel.
+#[derive(Clone, Debug)]
+pub struct CompactFrame {
+    pub id: u64,
+    pub timestamp: f64,
+    /// Undistorted pinhole camera of level 0.
+    pub camera: PinholeCamera,
+    /// The colour image, when the frame had one.
+    pub rgb: Option<Arc<::image::RgbImage>>,
+    /// The pyramid's base when it cannot be recomputed from `rgb`.
+    gray: Option<Arc<ImageF32>>,
+    pub sensor_depth: Option<Arc<ImageF32>>,
+}
+
+impl CompactFrame {
+    /// The compact form of `frame` (converts its colour image once to check that the grey
+    /// base can be recomputed from it).
+    pub fn of(frame: &Frame) -> Self {
+        let base = &frame.level(0).image;
+        let from_rgb = frame
+            .rgb
+            .as_deref()
+            .is_some_and(|rgb| ImageF32::from_rgb8(rgb) == *base);
+        Self {
+            id: frame.id,
+            timestamp: frame.timestamp,
+            camera: frame.camera,
+            rgb: frame.rgb.clone(),
+            gray: (!from_rgb).then(|| Arc::new(base.clone())),
+            sensor_depth: frame.sensor_depth.clone(),
+        }
+    }
+
+    /// The full frame again, pyramid and gradients recomputed: equal to the frame this was
+    /// made from.
+    pub fn rebuild(&self) -> Result<Frame> {
+        let converted;
+        let gray = match (&self.gray, &self.rgb) {
+            (Some(gray), _) => gray.as_ref(),
+            (None, Some(rgb)) => {
+                converted = ImageF32::from_rgb8(rgb);
+                &converted
+            }
+            (None, None) => {
+                return Err(Error::Shape(
+                    "a compact frame without an image cannot be rebuilt".into(),
+                ));
+            }
+        };
+        let mut frame = Frame::new(self.id, self.timestamp, self.camera, gray, self.rgb.clone())?;
+        frame.sensor_depth = self.sensor_depth.clone();
+        Ok(frame)
+    }
+
+    /// The grey base, when it is kept (a frame without colour, or whose base is not its
+    /// colour's grey).
+    pub fn gray(&self) -> Option<&ImageF32> {
+        self.gray.as_deref()
+    }
+
+    /// Bytes this form holds (images counted in full even when shared).
+    pub fn heap_bytes(&self) -> usize {
+        let rgb = self.rgb.as_ref().map_or(0, |rgb| rgb.as_raw().len());
+        let gray = self.gray.as_ref().map_or(0, |g| g.data.len() * 4);
+        let depth = self.sensor_depth.as_ref().map_or(0, |d| d.data.len() * 4);
+        rgb + gray + depth
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera() -> PinholeCamera {
+        PinholeCamera::new(60.0, 60.0, 31.5, 23.5, 64, 48).expect("camera")
+    }
+
+    fn colour() -> ::image::RgbImage {
+        ::image::RgbImage::from_fn(64, 48, |x, y| {
+            ::image::Rgb([(x * 4) as u8, (y * 5) as u8, ((x * y) % 251) as u8])
+        })
+    }
+
+    #[test]
+    fn compact_frame_rebuilds_the_same_frame() {
+        // From colour: only the colour image is kept.
+        let mut frame = Frame::from_camera_rgb(3, 0.1, &camera(), None, colour()).expect("frame");
+        frame.sensor_depth = Some(Arc::new(ImageF32::filled(64, 48, 1.5)));
+        let compact = frame.compact();
+        assert!(compact.gray().is_none());
+        assert_eq!(compact.heap_bytes(), 64 * 48 * 3 + 64 * 48 * 4);
+        assert_eq!(compact.rebuild().expect("rebuild"), frame);
+        assert!(frame.heap_bytes() > 5 * 64 * 48 * 3);
+
+        // Grey only, or a grey base that is not the colour's conversion: the base is kept.
+        let mut gray = ImageF32::from_rgb8(&colour());
+        let plain = Frame::new(4, 0.2, camera(), &gray, None).expect("frame");
+        assert!(plain.compact().gray().is_some());
+        assert_eq!(plain.compact().rebuild().expect("rebuild"), plain);
+        gray.data[7] += 0.25;
+        let odd = Frame::new(5, 0.3, camera(), &gray, Some(Arc::new(colour()))).expect("frame");
+        assert!(odd.compact().gray().is_some());
+        assert_eq!(odd.compact().rebuild().expect("rebuild"), odd);
     }
 }

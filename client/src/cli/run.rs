@@ -128,6 +128,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     )?;
     let recording = recorder.map(|r| r.finish()).transpose()?;
     let (mut pipeline, wall_s, load_s) = (outcome.pipeline, outcome.wall_s, outcome.load_s);
+    let peak_rss_run_mb = peak_rss_mb();
 
     let Written {
         mesh,
@@ -163,10 +164,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "voxel_size": fusion.as_ref().map(|f| f.voxel_size),
             "rerun": recording,
             "map_save_s": map_save_s,
+            "keyframe_memory": pipeline.keyframe_memory(),
+            "peak_rss_mb": {"run": peak_rss_run_mb, "with_outputs": peak_rss_mb()},
             "out": args.out,
         })
     );
     Ok(())
+}
+
+/// The process's peak resident memory so far in MiB (Linux `VmHWM`; `None` elsewhere).
+fn peak_rss_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
 }
 
 /// What [`write_results`] wrote that the summary reports.

@@ -19,13 +19,14 @@ use serde::{Deserialize, Serialize};
 use super::KeyframeId;
 use super::config::BackendConfig;
 use super::pose_graph::{Constraint, OptimizeReport, PoseGraph};
-use super::search::{Keyframe, reciprocal_test};
+use super::resident::Resident;
+use super::search::{CompactKeyframe, Keyframe, reciprocal_test};
 use super::sim3_tracker::Sim3Tracker;
 use crate::frame::Frame;
 use nalgebra::Matrix6;
 
 use crate::geometry::{Matrix7, Sim3};
-use crate::mapping::DepthMap;
+use crate::mapping::{CompactDepth, DepthMap};
 use crate::metric_scale::ScaleObservation;
 use crate::{Error, Result};
 
@@ -79,6 +80,8 @@ pub struct NewKeyframe {
     pub id: KeyframeId,
     pub frame: Arc<Frame>,
     pub depth: Arc<DepthMap>,
+    /// `depth` in compact form when the caller keeps one (shared instead of made again).
+    pub compact_depth: Option<Arc<CompactDepth>>,
     /// The front end's estimate; used as the vertex's initial pose when there is no parent in
     /// the graph.
     pub world_from_keyframe: Sim3,
@@ -107,10 +110,26 @@ pub struct ProcessReport {
     pub window: Option<crate::window::SolveReport>,
 }
 
+/// The back end's keyframes and what they hold ([`Backend::memory`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct KeyframeMemory {
+    pub keyframes: usize,
+    /// Held in full (pyramid and alignment levels).
+    pub resident: usize,
+    /// Full forms rebuilt from compact ones so far.
+    pub rebuilds: usize,
+    /// Bytes of every keyframe's compact form (images and depth maps shared with the
+    /// pipeline counted here in full).
+    pub compact_bytes: usize,
+    /// Bytes the resident full forms add.
+    pub resident_bytes: usize,
+}
+
 /// Graph bookkeeping of one keyframe.
 #[derive(Clone, Debug)]
 struct Entry {
-    keyframe: Keyframe,
+    /// The keyframe between uses; its full form is in [`Backend::resident`] or rebuilt.
+    kept: CompactKeyframe,
     /// Insertion index (LSD-SLAM's `idxInKeyframes`).
     order: usize,
     parent: Option<ParentEdge>,
@@ -131,6 +150,8 @@ pub struct Backend {
     tracker: Sim3Tracker,
     graph: PoseGraph,
     keyframes: BTreeMap<KeyframeId, Entry>,
+    /// The most recently used keyframes in full.
+    resident: Resident,
     pending: Vec<KeyframeId>,
     /// Keyframes whose depth changed: their existing constraints are re-estimated.
     refresh: Vec<KeyframeId>,
@@ -151,6 +172,7 @@ impl Backend {
         Ok(Self {
             tracker: Sim3Tracker::new(config.clone()),
             graph,
+            resident: Resident::new(config.resident_keyframes),
             config,
             keyframes: BTreeMap::new(),
             pending: Vec::new(),
@@ -172,6 +194,7 @@ impl Backend {
             return Err(Error::Backend(format!("keyframe {} added twice", new.id)));
         }
         let keyframe = Keyframe::new(new.id, new.frame, new.depth)?;
+        let kept = keyframe.compact_sharing(new.compact_depth);
         let parent = new.parent.as_ref().and_then(|p| {
             Some((
                 self.graph.pose(p.id)?,
@@ -194,7 +217,7 @@ impl Backend {
         self.keyframes.insert(
             new.id,
             Entry {
-                keyframe,
+                kept,
                 order,
                 parent: new.parent,
                 neighbours: BTreeSet::new(),
@@ -203,6 +226,7 @@ impl Backend {
             },
         );
         self.pending.push(new.id);
+        self.resident.insert(keyframe);
         Ok(())
     }
 
@@ -221,6 +245,7 @@ impl Backend {
             return Err(Error::Backend(format!("keyframe {id} added twice")));
         }
         let keyframe = Keyframe::new(id, frame, depth)?;
+        let kept = keyframe.compact();
         self.graph.add_vertex(id, world_from_keyframe);
         self.graph.set_fixed(id, fixed || self.graph.len() == 1)?;
         let order = self.keyframes.len();
@@ -234,7 +259,7 @@ impl Backend {
         self.keyframes.insert(
             id,
             Entry {
-                keyframe,
+                kept,
                 order,
                 parent: None,
                 neighbours: BTreeSet::new(),
@@ -242,6 +267,7 @@ impl Backend {
                 fragment,
             },
         );
+        self.resident.insert(keyframe);
         Ok(())
     }
 
@@ -262,7 +288,10 @@ impl Backend {
             .keyframes
             .get_mut(&id)
             .ok_or_else(|| Error::Backend(format!("depth update for unknown keyframe {id}")))?;
-        entry.keyframe = Keyframe::new(id, Arc::clone(&entry.keyframe.frame), depth)?;
+        let frame = Arc::clone(&self.resident.get(&entry.kept)?.frame);
+        let keyframe = Keyframe::new(id, frame, depth)?;
+        entry.kept = keyframe.compact();
+        self.resident.insert(keyframe);
         entry.failed.clear();
         if !self.pending.contains(&id) && !self.refresh.contains(&id) {
             self.refresh.push(id);
@@ -347,19 +376,22 @@ impl Backend {
         if ids.len() < config.keyframes {
             return Ok(false);
         }
-        let mut members = Vec::with_capacity(ids.len());
+        let mut full = Vec::with_capacity(ids.len());
         for &id in &ids {
             let Some(pose) = self.graph.pose(id) else {
                 return Ok(false);
             };
-            let kf = &self.keyframes[&id].keyframe;
-            members.push(crate::window::WindowKeyframe {
-                id,
+            full.push((self.resident.get(&self.keyframes[&id].kept)?, pose));
+        }
+        let members: Vec<_> = full
+            .iter()
+            .map(|(kf, pose)| crate::window::WindowKeyframe {
+                id: kf.id,
                 frame: &kf.frame,
                 depth: &kf.depth,
-                world_from_keyframe: pose,
-            });
-        }
+                world_from_keyframe: *pose,
+            })
+            .collect();
         let Some(result) = crate::window::optimize_window(config, &members) else {
             return Ok(false);
         };
@@ -442,6 +474,17 @@ impl Backend {
             .filter(move |c| c.from == id || c.to == id)
     }
 
+    /// What the back end's keyframes hold (issue 37).
+    pub fn memory(&self) -> KeyframeMemory {
+        KeyframeMemory {
+            keyframes: self.keyframes.len(),
+            resident: self.resident.len(),
+            rebuilds: self.resident.rebuilds(),
+            compact_bytes: self.keyframes.values().map(|e| e.kept.heap_bytes()).sum(),
+            resident_bytes: self.resident.heap_bytes(),
+        }
+    }
+
     /// Keyframes whose constraint search has not run yet.
     pub fn pending(&self) -> &[KeyframeId] {
         &self.pending
@@ -481,16 +524,11 @@ impl Backend {
                 // candidate_from_keyframe = parent_from_keyframe.
                 tests.push((p.id, p.parent_from_keyframe, self.config.parent_strictness));
             }
+            let this = self.resident.get(&entry.kept)?;
             for (cid, initial, strictness) in tests {
                 report.candidates_tested += 1;
-                let candidate = &self.keyframes[&cid].keyframe;
-                let check = reciprocal_test(
-                    &self.tracker,
-                    &entry.keyframe,
-                    candidate,
-                    &initial,
-                    strictness,
-                );
+                let candidate = self.resident.get(&self.keyframes[&cid].kept)?;
+                let check = reciprocal_test(&self.tracker, &this, &candidate, &initial, strictness);
                 tracing::debug!(
                     keyframe = id,
                     candidate = cid,
@@ -553,6 +591,7 @@ impl Backend {
         };
         let parent = entry.parent.as_ref().map(|p| p.id);
         let mut accepted = Vec::new();
+        let this = self.resident.get(&entry.kept)?;
         for &n in &entry.neighbours {
             let (Some(other), Some(npose)) = (self.keyframes.get(&n), self.graph.pose(n)) else {
                 continue;
@@ -564,13 +603,8 @@ impl Backend {
             };
             report.candidates_tested += 1;
             let initial = npose.inverse() * pose;
-            let check = reciprocal_test(
-                &self.tracker,
-                &entry.keyframe,
-                &other.keyframe,
-                &initial,
-                strictness,
-            );
+            let other = self.resident.get(&other.kept)?;
+            let check = reciprocal_test(&self.tracker, &this, &other, &initial, strictness);
             if let Some(pair) = check.constraints {
                 accepted.push(pair);
             }

@@ -106,6 +106,12 @@ pub struct BackendConfig {
     /// behind under overload, and a short queue then stalls the frame path (docs/tuning.md);
     /// the commands hold shared maps the graph keeps anyway.
     pub channel_capacity: usize,
+    /// Keyframes held in full (pyramid, alignment levels; about 16 MB at 640×480) by the back
+    /// end and, for relocalisation, by the pipeline; older ones keep a compact form (colour
+    /// image, depth map, descriptor) and are rebuilt, identical, when a constraint search or
+    /// relocalisation needs them (`graph::resident`). Default 8: the newest keyframes, which
+    /// the constraint search and relocalisation try first. 0 rebuilds on every use; at most 64.
+    pub resident_keyframes: usize,
 
     /// Unary scale factors from a metric depth prior (issue 39); unused with a relative prior.
     pub metric_scale: MetricScaleConfig,
@@ -143,6 +149,7 @@ impl Default for BackendConfig {
             max_optimization_iterations: 100,
             pose_graph_huber: Some(5.0 * (6000.0f64 * 1.5).sqrt()),
             channel_capacity: 256,
+            resident_keyframes: 8,
             metric_scale: MetricScaleConfig::default(),
             window: crate::window::WindowConfig::default(),
         }
@@ -194,6 +201,12 @@ impl BackendConfig {
             return Err(Error::Config(
                 "backend: channel_capacity must be ≥ 1".into(),
             ));
+        }
+        if self.resident_keyframes > 64 {
+            return Err(Error::Config(format!(
+                "backend: resident_keyframes must be ≤ 64, got {}",
+                self.resident_keyframes
+            )));
         }
         self.metric_scale.validate()?;
         self.window.validate()

@@ -10,6 +10,7 @@
 //! - [`pose_graph`]: the graph and its sparse Levenberg–Marquardt ([`PoseGraph`]), solved by the
 //!   block Cholesky of [`cholesky`];
 //! - [`backend`]: [`Backend`], the keyframe store, constraint search and optimisation;
+//! - [`resident`]: which keyframes the back end holds in full (the others compact);
 //! - [`link`]: [`BackendLink`], the back end in step or on its own thread.
 //!
 //! Naming: a constraint's transform is `to_from_from` (maps `from`-keyframe coordinates to
@@ -22,6 +23,7 @@ pub mod config;
 pub mod link;
 pub mod points;
 pub mod pose_graph;
+pub mod resident;
 pub mod search;
 pub mod sim3_tracker;
 
@@ -32,7 +34,9 @@ pub use backend::{Backend, NewKeyframe, ParentEdge, ProcessReport};
 pub use config::BackendConfig;
 pub use link::{BackendCommand, BackendLink};
 pub use pose_graph::{Constraint, OptimizeReport, PoseGraph, ScalePrior};
-pub use search::{Keyframe, ReciprocalCheck, Thumbnail, reciprocal_consistency, reciprocal_test};
+pub use search::{
+    CompactKeyframe, Keyframe, ReciprocalCheck, Thumbnail, reciprocal_consistency, reciprocal_test,
+};
 pub use sim3_tracker::{Sim3TrackResult, Sim3Tracker};
 
 #[cfg(test)]

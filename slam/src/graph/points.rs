@@ -135,7 +135,7 @@ pub struct RefPoint {
 }
 
 /// Everything of one keyframe at one pyramid level that Sim(3) alignment reads.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct KeyframeLevel {
     pub camera: PinholeCamera,
     /// Pixels with an estimate, unprojected (interior pixels only: the warp needs a 1-pixel
@@ -145,7 +145,7 @@ pub struct KeyframeLevel {
 }
 
 /// The per-level depth pyramid and point clouds of a keyframe.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct KeyframeLevels {
     pub levels: Vec<KeyframeLevel>,
     /// Mean inverse depth of the level-0 estimates (LSD-SLAM's `meanIdepth`, used to express
@@ -156,6 +156,17 @@ pub struct KeyframeLevels {
 }
 
 impl KeyframeLevels {
+    /// Bytes of the points and depth pyramids of every level.
+    pub fn heap_bytes(&self) -> usize {
+        self.levels
+            .iter()
+            .map(|l| {
+                l.points.len() * std::mem::size_of::<RefPoint>()
+                    + (l.depth.idepth.len() + l.depth.var.len()) * 4
+            })
+            .sum()
+    }
+
     /// Builds all [`PYRAMID_LEVELS`] levels. Fails when the depth map and frame sizes differ.
     pub fn new(frame: &Frame, depth: &DepthMap) -> Result<Self> {
         let (w, h) = (frame.camera.width as usize, frame.camera.height as usize);

@@ -19,9 +19,9 @@ use super::points::KeyframeLevels;
 use super::pose_graph::Constraint;
 use super::sim3_tracker::{Sim3TrackResult, Sim3Tracker};
 use crate::Result;
-use crate::frame::{Frame, PYRAMID_LEVELS};
+use crate::frame::{CompactFrame, Frame, PYRAMID_LEVELS};
 use crate::geometry::{Matrix7, Sim3};
-use crate::mapping::DepthMap;
+use crate::mapping::{CompactDepth, DepthMap};
 
 /// Thumbnail size of the appearance descriptor (columns × rows).
 pub const THUMBNAIL_SIZE: (usize, usize) = (32, 24);
@@ -166,13 +166,68 @@ impl Keyframe {
         })
     }
 
+    /// What the back end keeps of this keyframe while it is not in use.
+    pub fn compact(&self) -> CompactKeyframe {
+        self.compact_sharing(None)
+    }
+
+    /// [`Keyframe::compact`] with `depth`, this keyframe's depth map in compact form, when the
+    /// caller already has it.
+    pub fn compact_sharing(&self, depth: Option<Arc<CompactDepth>>) -> CompactKeyframe {
+        CompactKeyframe {
+            id: self.id,
+            image: self.frame.compact(),
+            depth: depth.unwrap_or_else(|| Arc::new(CompactDepth::of(&self.depth))),
+            thumbnail: self.thumbnail.clone(),
+            mean_idepth: self.levels.mean_idepth,
+            estimates: self.levels.estimates,
+        }
+    }
+
+    /// Bytes of the working data a resident keyframe adds to its compact form: the frame's
+    /// pyramid, the full depth map and the alignment levels.
+    pub fn heap_bytes(&self) -> usize {
+        self.frame.heap_bytes() + self.depth.heap_bytes() + self.levels.heap_bytes()
+    }
+}
+
+/// A keyframe as the back end keeps it between uses (issue 37): its image without the pyramid,
+/// its depth, its descriptor and the two figures the candidate search reads. The
+/// [`Keyframe`] it was made from comes back with [`CompactKeyframe::rebuild`], identical.
+#[derive(Clone, Debug)]
+pub struct CompactKeyframe {
+    pub id: KeyframeId,
+    pub image: CompactFrame,
+    pub depth: Arc<CompactDepth>,
+    pub thumbnail: Thumbnail,
+    /// [`KeyframeLevels::mean_idepth`].
+    pub mean_idepth: f64,
+    /// [`KeyframeLevels::estimates`].
+    pub estimates: usize,
+}
+
+impl CompactKeyframe {
+    /// The full keyframe: pyramid and alignment levels recomputed.
+    pub fn rebuild(&self) -> Result<Keyframe> {
+        Keyframe::new(
+            self.id,
+            Arc::new(self.image.rebuild()?),
+            Arc::new(self.depth.expand()),
+        )
+    }
+
     /// Horizontal and vertical field of view (radians).
     pub fn field_of_view(&self) -> (f64, f64) {
-        let c = &self.frame.camera;
+        let c = &self.image.camera;
         (
             2.0 * (f64::from(c.width) / (2.0 * c.fx)).atan(),
             2.0 * (f64::from(c.height) / (2.0 * c.fy)).atan(),
         )
+    }
+
+    /// Bytes held: the compact image and the depth map (shared buffers counted in full).
+    pub fn heap_bytes(&self) -> usize {
+        self.image.heap_bytes() + self.depth.heap_bytes()
     }
 }
 
@@ -183,14 +238,14 @@ impl Keyframe {
 /// `close_angle_fraction` of the mean field of view. Returns the squared distance when close.
 pub fn pose_proximity(
     config: &BackendConfig,
-    a: &Keyframe,
+    a: &CompactKeyframe,
     world_from_a: &Sim3,
-    b: &Keyframe,
+    b: &CompactKeyframe,
     world_from_b: &Sim3,
 ) -> Option<f64> {
     // World distances × (mean inverse depth / world scale) = distances in units of the depth.
-    let fac_a = a.levels.mean_idepth / world_from_a.scale;
-    let fac_b = b.levels.mean_idepth / world_from_b.scale;
+    let fac_a = a.mean_idepth / world_from_a.scale;
+    let fac_b = b.mean_idepth / world_from_b.scale;
     let dist2 = (world_from_a.translation - world_from_b.translation).norm_squared()
         * fac_a.min(fac_b).powi(2);
     let limit = config.close_distance / (config.kf_dist_weight * config.kf_dist_weight);

@@ -166,7 +166,7 @@ impl Localizer {
             .keyframes
             .iter()
             .map(|kf| {
-                let reference = TrackingReference::new(&kf.frame, &kf.depth)?;
+                let reference = TrackingReference::new(&kf.image.rebuild()?, &kf.depth.expand())?;
                 Ok(Anchor {
                     mean_idepth: kf.depth.mean_idepth().unwrap_or(1.0),
                     keyframe: kf.clone(),

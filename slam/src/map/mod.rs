@@ -15,11 +15,11 @@ mod tests;
 
 use std::sync::Arc;
 
-use crate::frame::Frame;
+use crate::frame::CompactFrame;
 use crate::geometry::{PinholeCamera, Sim3};
 use crate::graph::{Constraint, KeyframeId, Thumbnail};
 use crate::image::ImageF32;
-use crate::mapping::DepthMap;
+use crate::mapping::CompactDepth;
 use crate::{Error, Result};
 
 pub use localize::{Localization, LocalizationState, LocalizeConfig, Localizer};
@@ -46,10 +46,11 @@ pub struct MapKeyframe {
     pub timestamp: f64,
     /// The optimised pose (Sim(3): the keyframe's depth is in its own scale).
     pub world_from_keyframe: Sim3,
-    /// The keyframe's image (undistorted) with its pyramid.
-    pub frame: Arc<Frame>,
+    /// The keyframe's image (undistorted), without its pyramid ([`CompactFrame::rebuild`]
+    /// gives the frame back).
+    pub image: CompactFrame,
     /// Semi-dense inverse depth and variance at full resolution (what tracking aligns to).
-    pub depth: Arc<DepthMap>,
+    pub depth: Arc<CompactDepth>,
     /// The dense layer's result, when the keyframe was densified.
     pub dense: Option<DenseDepth>,
     /// Appearance descriptor for place recognition.
@@ -79,11 +80,11 @@ impl SavedMap {
             if kf.id != i {
                 return bad(format!("has id {}", kf.id));
             }
-            if kf.frame.camera != undistorted {
+            if kf.image.camera != undistorted {
                 return bad("its camera is not the map's".into());
             }
             let (w, h) = (undistorted.width as usize, undistorted.height as usize);
-            if (kf.depth.width, kf.depth.height) != (w, h) || kf.depth.pixels.len() != w * h {
+            if (kf.depth.width, kf.depth.height) != (w, h) || kf.depth.len() != w * h {
                 return bad(format!(
                     "depth is {}x{}, camera {w}x{h}",
                     kf.depth.width, kf.depth.height
@@ -118,32 +119,19 @@ impl SavedMap {
         Ok(())
     }
 
-    /// Bytes the loaded map holds in memory (images, pyramids, depth maps), for budgets and
-    /// the benchmark.
+    /// Bytes the loaded map holds in memory (images, depth maps), for budgets and the
+    /// benchmark.
     pub fn memory_bytes(&self) -> usize {
         self.keyframes
             .iter()
             .map(|kf| {
-                let pyramid: usize = kf
-                    .frame
-                    .pyramid
-                    .levels
-                    .iter()
-                    .map(|l| {
-                        (l.image.data.len()
-                            + l.gx.data.len()
-                            + l.gy.data.len()
-                            + l.grad_mag.data.len())
-                            * 4
-                    })
-                    .sum();
-                let rgb = kf.frame.rgb.as_ref().map_or(0, |r| r.as_raw().len());
-                let depth = kf.depth.pixels.len() * std::mem::size_of_val(&kf.depth.pixels[0]);
+                let image = kf.image.heap_bytes();
+                let depth = kf.depth.heap_bytes();
                 let dense = kf
                     .dense
                     .as_ref()
                     .map_or(0, |d| (d.idepth.data.len() + d.variance.data.len()) * 4);
-                pyramid + rgb + depth + dense
+                image + depth + dense
             })
             .sum()
     }

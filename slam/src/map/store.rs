@@ -22,7 +22,7 @@ use crate::frame::Frame;
 use crate::geometry::{Matrix7, PinholeCamera, Sim3};
 use crate::graph::{Constraint, Thumbnail};
 use crate::image::ImageF32;
-use crate::mapping::{DepthMap, InverseDepth};
+use crate::mapping::{CompactDepth, DepthMap, InverseDepth};
 use crate::{Error, Result, npy};
 
 /// The manifest's `format` field: says what the folder is.
@@ -125,17 +125,20 @@ fn write_contents(root: &Path, map: &SavedMap) -> Result<()> {
     for kf in &map.keyframes {
         let dir = keyframe_dir(root, kf.id);
         std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
-        let rgb = kf.frame.rgb.clone().map_or_else(
-            || grey_to_rgb(&kf.frame.level(0).image),
-            |rgb| (*rgb).clone(),
-        );
+        let rgb = match (&kf.image.rgb, kf.image.gray()) {
+            (Some(rgb), _) => (**rgb).clone(),
+            (None, Some(gray)) => grey_to_rgb(gray),
+            (None, None) => {
+                return Err(Error::Map(format!("keyframe {} has no image", kf.id)));
+            }
+        };
         let image_path = dir.join("image.png");
         rgb.save(&image_path).map_err(|source| Error::Image {
             path: image_path.clone(),
             source,
         })?;
         sync_file(&image_path)?;
-        let (idepth, var) = split_depth(&kf.depth)?;
+        let (idepth, var) = split_depth(&kf.depth.expand())?;
         write_npy(&dir.join("semidense_idepth.npy"), &idepth)?;
         write_npy(&dir.join("semidense_var.npy"), &var)?;
         if let Some(dense) = &kf.dense {
@@ -335,8 +338,8 @@ fn read_keyframe(
         id: kf.id,
         timestamp: kf.timestamp,
         world_from_keyframe: kf.world_from_keyframe,
-        frame: Arc::new(frame),
-        depth: Arc::new(depth),
+        image: frame.compact(),
+        depth: Arc::new(CompactDepth::of(&depth)),
         dense,
         thumbnail,
     })

@@ -31,7 +31,7 @@ mod stereo;
 pub(crate) mod test_scene;
 
 pub use config::MappingConfig;
-pub use depth_map::{DepthMap, InverseDepth};
+pub use depth_map::{CompactDepth, DepthMap, InverseDepth};
 pub use filter::{DepthFilter, ObserveStats};
 pub use keyframe::{keyframe_score, keyframe_threshold, needs_new_keyframe};
 pub use prior_fill::{PriorFill, PriorFillParams};

@@ -7,14 +7,16 @@
 //! map). The final mesh leaves the others out too (`Pipeline::finish_fusion`).
 
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 
 use nalgebra::{Vector2, Vector3};
 
 use super::Pipeline;
 use crate::export::ColoredPoint;
 use crate::geometry::{PinholeCamera, Sim3};
-use crate::graph::{Constraint, KeyframeId, Thumbnail};
+use crate::graph::{Constraint, KeyframeId};
 use crate::map::{DenseDepth, MapKeyframe, SavedMap};
+use crate::mapping::CompactDepth;
 use crate::{Error, Result};
 
 /// Grey for points of keyframes without a colour image.
@@ -48,7 +50,7 @@ impl Pipeline {
         self.keyframe_poses()
             .into_iter()
             .filter(|(id, _)| exported[*id])
-            .map(|(id, pose)| (self.keyframes[id].frame.timestamp, pose))
+            .map(|(id, pose)| (self.keyframes[id].image.timestamp, pose))
             .collect()
     }
 
@@ -81,11 +83,11 @@ impl Pipeline {
             }
             let depth = match &current_depth {
                 Some((current, depth)) if *current == id => depth.clone(),
-                _ => kf.depth.clone(),
+                _ => self.keyframe_depth(id),
             };
-            let rgb = kf.frame.rgb.as_deref();
+            let rgb = kf.image.rgb.as_deref();
             back_project(
-                &kf.frame.camera,
+                &kf.image.camera,
                 &world_from_kf,
                 depth.width,
                 depth.height,
@@ -120,21 +122,21 @@ impl Pipeline {
             .filter_map(|(kf, (id, world_from_keyframe))| {
                 let new_id = *renumbered.get(&id)?;
                 let depth = match &current_depth {
-                    Some((current, depth)) if *current == id => depth.clone(),
-                    _ => kf.depth.clone(),
+                    Some((current, depth)) if *current == id => Arc::new(CompactDepth::of(depth)),
+                    _ => kf.compact_depth.clone(),
                 };
                 Some(MapKeyframe {
                     id: new_id,
-                    timestamp: kf.frame.timestamp,
+                    timestamp: kf.image.timestamp,
                     world_from_keyframe,
-                    frame: kf.frame.clone(),
+                    image: kf.image.clone(),
                     depth,
                     dense: self.dense_keyframes.get(&id).map(|d| DenseDepth {
                         camera: d.camera,
                         idepth: d.idepth.clone(),
                         variance: d.variance.clone(),
                     }),
-                    thumbnail: Thumbnail::new(&kf.frame),
+                    thumbnail: kf.thumbnail.clone(),
                 })
             })
             .collect();
@@ -168,7 +170,7 @@ impl Pipeline {
                 continue;
             }
             let (w, h) = (kf.idepth.width, kf.idepth.height);
-            let colors = match &self.keyframes[kf.keyframe_id].frame.rgb {
+            let colors = match &self.keyframes[kf.keyframe_id].image.rgb {
                 Some(rgb) => Some(crate::dense::resample::box_downsample_rgb(rgb, w, h)?),
                 None => None,
             };

@@ -31,7 +31,6 @@ use crate::geometry::{PinholeCamera, SE3};
 use crate::gpu::GpuContext;
 use crate::graph::Backend;
 use crate::map::{Localizer, SavedMap};
-use crate::tracking::TrackingReference;
 use crate::{Error, Result};
 
 /// Settings of map extension.
@@ -81,8 +80,8 @@ impl Pipeline {
         for kf in &map.keyframes {
             backend.add_map_keyframe(
                 kf.id,
-                kf.frame.clone(),
-                kf.depth.clone(),
+                Arc::new(kf.image.rebuild()?),
+                Arc::new(kf.depth.expand()),
                 kf.world_from_keyframe,
                 fix_map,
             )?;
@@ -107,10 +106,13 @@ impl Pipeline {
     fn load_keyframes(&mut self, map: &SavedMap) -> Result<()> {
         for kf in &map.keyframes {
             self.keyframes.push(KeyframeRecord {
-                frame: kf.frame.clone(),
-                depth: kf.depth.clone(),
+                image: kf.image.clone(),
+                thumbnail: kf.thumbnail.clone(),
+                frame: None,
+                depth: None,
+                compact_depth: kf.depth.clone(),
                 world_from_keyframe: kf.world_from_keyframe,
-                reference: Arc::new(TrackingReference::new(&kf.frame, &kf.depth)?),
+                reference: None,
                 parent: None,
                 prior: None,
             });
@@ -134,7 +136,7 @@ impl Pipeline {
                 if let Some(fusion) = &mut self.fusion {
                     fusion.send(FusionJob {
                         keyframe: dense,
-                        rgb: kf.frame.rgb.clone(),
+                        rgb: kf.image.rgb.clone(),
                         pose: kf.world_from_keyframe,
                     })?;
                 }

@@ -176,9 +176,14 @@ impl Pipeline {
                 SE3::identity()
             }
         };
-        let refs: Vec<(&TrackingReference, SE3)> = candidates
+        let held = candidates
             .iter()
-            .map(|&id| (self.keyframes[id].reference.as_ref(), guess(id)))
+            .map(|&id| self.keyframe_reference(id))
+            .collect::<Result<Vec<_>>>()?;
+        let refs: Vec<(&TrackingReference, SE3)> = held
+            .iter()
+            .zip(&candidates)
+            .map(|(reference, &id)| (reference.as_ref(), guess(id)))
             .collect();
         if let Some((i, result)) = self.tracker.try_relocalise(&refs, frame) {
             return self.relocalised_at(frame, candidates[i], &result);
@@ -219,8 +224,8 @@ impl Pipeline {
                 filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
             })?,
             _ => DepthFilter::from_depth_map(
-                self.keyframes[kf].frame.clone(),
-                &self.keyframes[kf].depth,
+                self.keyframe_frame(kf)?,
+                &self.keyframe_depth(kf),
                 self.config.mapping.clone(),
             )?
             .propagate_to(frame.clone(), &result.frame_from_keyframe)?,

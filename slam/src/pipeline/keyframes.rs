@@ -10,11 +10,11 @@ use nalgebra::{Matrix6, Vector3};
 use super::events::{Event, KeyframeEvent, PoseEvent, TrackingState};
 use super::{DepthInit, Pipeline};
 use crate::dense::layer::{DenseJob, predict};
-use crate::frame::Frame;
+use crate::frame::{CompactFrame, Frame};
 use crate::geometry::{Matrix7, SE3, SO3, Sim3};
-use crate::graph::{KeyframeId, NewKeyframe, ParentEdge};
+use crate::graph::{KeyframeId, NewKeyframe, ParentEdge, Thumbnail};
 use crate::image::ImageF32;
-use crate::mapping::{DepthFilter, DepthMap, PriorFillParams};
+use crate::mapping::{CompactDepth, DepthFilter, DepthMap, PriorFillParams};
 use crate::tracking::TrackingReference;
 use crate::{Error, Result};
 
@@ -31,13 +31,24 @@ pub(super) struct FrameRecord {
 /// A finished (or current) keyframe.
 #[derive(Debug)]
 pub(super) struct KeyframeRecord {
-    pub frame: Arc<Frame>,
-    /// Its semi-dense depth as last published (final once the keyframe is finished).
-    pub depth: Arc<DepthMap>,
+    /// Its image without the pyramid, always kept (issue 37).
+    pub image: CompactFrame,
+    /// The full frame while the keyframe is among the `backend.resident_keyframes` newest;
+    /// older keyframes drop it with `reference` ([`Pipeline::retire_keyframes`]) and
+    /// [`Pipeline::keyframe_frame`] rebuilds it, identical.
+    pub frame: Option<Arc<Frame>>,
+    /// Its place-recognition descriptor (what a saved map keeps).
+    pub thumbnail: Thumbnail,
+    /// Its semi-dense depth as last published (final once the keyframe is finished), in
+    /// full while resident (dropped with `frame`; [`Pipeline::keyframe_depth`]) ...
+    pub depth: Option<Arc<DepthMap>>,
+    /// ... and always in compact form.
+    pub compact_depth: Arc<CompactDepth>,
     /// Pose at creation (the front end's estimate, before any optimisation).
     pub world_from_keyframe: Sim3,
-    /// For relocalisation against finished keyframes.
-    pub reference: Arc<TrackingReference>,
+    /// For relocalisation against finished keyframes; dropped with `frame`
+    /// ([`Pipeline::keyframe_reference`] rebuilds it).
+    pub reference: Option<Arc<TrackingReference>>,
     /// The tracking constraint to the keyframe it was created from (sent with it to the back
     /// end once the keyframe is finished).
     pub parent: Option<ParentEdge>,
@@ -209,10 +220,13 @@ impl Pipeline {
         let id = self.keyframes.len();
         let mapped = self.mapper.begin(filter)?;
         self.keyframes.push(KeyframeRecord {
-            frame: frame.clone(),
-            depth: mapped.depth,
+            image: frame.compact(),
+            thumbnail: Thumbnail::new(&frame),
+            frame: Some(frame.clone()),
+            compact_depth: Arc::new(CompactDepth::of(&mapped.depth)),
+            depth: Some(mapped.depth),
             world_from_keyframe,
-            reference: mapped.reference,
+            reference: Some(mapped.reference),
             parent,
             prior,
         });
@@ -258,13 +272,16 @@ impl Pipeline {
             .mapper
             .finish()?
             .ok_or_else(|| Error::Config("the current keyframe has no depth filter".into()))?;
+        let frame = self.keyframe_frame(id)?;
         let record = &mut self.keyframes[id];
-        record.depth = mapped.depth;
-        record.reference = mapped.reference;
+        record.compact_depth = Arc::new(CompactDepth::of(&mapped.depth));
+        record.depth = Some(mapped.depth.clone());
+        record.reference = Some(mapped.reference);
         let new = NewKeyframe {
             id,
-            frame: record.frame.clone(),
-            depth: record.depth.clone(),
+            frame: frame.clone(),
+            depth: mapped.depth.clone(),
+            compact_depth: Some(record.compact_depth.clone()),
             world_from_keyframe: record.world_from_keyframe,
             parent: record.parent.clone(),
         };
@@ -274,14 +291,61 @@ impl Pipeline {
             .map_or_else(Matrix7::zeros, |p| covariance(&p.information));
         let job = DenseJob {
             keyframe_id: id,
-            frame: record.frame.clone(),
-            depth: record.depth.clone(),
+            frame,
+            depth: mapped.depth,
             poses: Vec::new(),
             pose_covariance,
             prior: record.prior.take(),
         };
         self.backend.add_keyframe(new)?;
+        self.retire_keyframes();
         self.densify(job)
+    }
+
+    /// Keyframes older than the `backend.resident_keyframes` newest let go of their full frame
+    /// and tracking reference; the current one never does.
+    fn retire_keyframes(&mut self) {
+        let keep = self.config.backend.resident_keyframes;
+        let old = self.keyframes.len().saturating_sub(keep);
+        let current = self.current;
+        for (id, record) in self.keyframes[..old].iter_mut().enumerate() {
+            if Some(id) != current {
+                record.frame = None;
+                record.depth = None;
+                record.reference = None;
+            }
+        }
+    }
+
+    /// Keyframe `id`'s full frame, rebuilt from its compact image when it was retired.
+    pub(super) fn keyframe_frame(&self, id: KeyframeId) -> Result<Arc<Frame>> {
+        let record = &self.keyframes[id];
+        match &record.frame {
+            Some(frame) => Ok(frame.clone()),
+            None => Ok(Arc::new(record.image.rebuild()?)),
+        }
+    }
+
+    /// Keyframe `id`'s semi-dense depth as last published, expanded from its compact form
+    /// when it was retired.
+    pub(super) fn keyframe_depth(&self, id: KeyframeId) -> Arc<DepthMap> {
+        let record = &self.keyframes[id];
+        match &record.depth {
+            Some(depth) => depth.clone(),
+            None => Arc::new(record.compact_depth.expand()),
+        }
+    }
+
+    /// Keyframe `id`'s tracking reference, rebuilt from its image and depth when it was
+    /// retired (the same as the mapping published).
+    pub(super) fn keyframe_reference(&self, id: KeyframeId) -> Result<Arc<TrackingReference>> {
+        match &self.keyframes[id].reference {
+            Some(reference) => Ok(reference.clone()),
+            None => Ok(Arc::new(TrackingReference::new(
+                self.keyframe_frame(id)?.as_ref(),
+                &self.keyframe_depth(id),
+            )?)),
+        }
     }
 }
 

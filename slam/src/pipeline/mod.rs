@@ -45,7 +45,7 @@ use crate::background::{Link, Priority, WorkerSpec};
 use crate::dense::DenseKeyframe;
 use crate::dense::layer::{DenseLayer, SharedPrior};
 use crate::dense::prior::DepthPrior;
-use crate::frame::Frame;
+use crate::frame::CompactFrame;
 use crate::fusion::worker::FusionLink;
 use crate::fusion::{FusionStats, Mesh};
 use crate::geometry::{PinholeCamera, SE3, Sim3, UndistortMap};
@@ -104,6 +104,21 @@ pub struct Stats {
     pub keyframes_not_fused: usize,
     /// Revision of the last mesh update.
     pub mesh_revision: u64,
+}
+
+/// What a session's keyframes hold ([`Pipeline::keyframe_memory`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct KeyframeMemory {
+    pub keyframes: usize,
+    /// Keyframes whose full frame and tracking reference the pipeline holds (the
+    /// `backend.resident_keyframes` newest).
+    pub resident: usize,
+    /// Bytes of every keyframe's compact image and depth map.
+    pub compact_bytes: usize,
+    /// Bytes the full frames and tracking references held add.
+    pub resident_bytes: usize,
+    /// The back end's figures, when it is at hand (in step, or after `finish`).
+    pub backend: Option<crate::graph::backend::KeyframeMemory>,
 }
 
 /// The pipeline of one session.
@@ -265,6 +280,28 @@ impl Pipeline {
         &self.stats
     }
 
+    /// What the keyframes hold in memory now (issue 37).
+    pub fn keyframe_memory(&self) -> KeyframeMemory {
+        let held = self.keyframes.iter().filter(|k| k.frame.is_some());
+        KeyframeMemory {
+            keyframes: self.keyframes.len(),
+            resident: held.clone().count(),
+            compact_bytes: self
+                .keyframes
+                .iter()
+                .map(|k| k.image.heap_bytes() + k.compact_depth.heap_bytes())
+                .sum(),
+            resident_bytes: held
+                .map(|k| {
+                    k.frame.as_ref().map_or(0, |f| f.heap_bytes())
+                        + k.depth.as_ref().map_or(0, |d| d.heap_bytes())
+                        + k.reference.as_ref().map_or(0, |r| r.heap_bytes())
+                })
+                .sum(),
+            backend: self.backend.backend().map(Backend::memory),
+        }
+    }
+
     /// Processes one frame and returns what happened: a pose event always; keyframe events
     /// when one was made; dense keyframes and mesh updates as the layers finish them; the
     /// keyframe poses whenever the pose graph moved them.
@@ -352,11 +389,11 @@ impl Pipeline {
     /// Every keyframe's image and semi-dense inverse depth as last published (final once the
     /// keyframe is finished), in the keyframe's own scale: what the depth probes of
     /// `relfusion bench accuracy` compare with the sensor's depth.
-    pub fn keyframe_depths(&self) -> Vec<(KeyframeId, Arc<Frame>, Arc<DepthMap>)> {
+    pub fn keyframe_depths(&self) -> Vec<(KeyframeId, CompactFrame, Arc<DepthMap>)> {
         self.keyframes
             .iter()
             .enumerate()
-            .map(|(id, k)| (id, k.frame.clone(), k.depth.clone()))
+            .map(|(id, k)| (id, k.image.clone(), self.keyframe_depth(id)))
             .collect()
     }
 

@@ -161,6 +161,52 @@ fn deterministic_mode_gives_the_same_trajectory_twice() {
     assert_eq!(a.keyframe_trajectory(), b.keyframe_trajectory());
 }
 
+/// Issue 37: keyframes that leave the working set keep a compact form and are rebuilt when
+/// used again. Rebuilding on every use (`resident_keyframes` 0) must give the same
+/// trajectory, keyframes, semi-dense points, dense depth and mesh as holding every keyframe
+/// in full, while holding far less.
+#[test]
+fn compact_keyframes_change_where_data_lives_never_results() {
+    let run_with = |resident: usize| {
+        let mut config = deterministic();
+        config.backend.resident_keyframes = resident;
+        let (mut pipeline, _) = run(config);
+        let mesh = pipeline.mesh().expect("mesh").expect("a fused mesh");
+        (pipeline, mesh)
+    };
+    let (all, all_mesh) = run_with(64);
+    let (none, none_mesh) = run_with(0);
+    assert_eq!(all.trajectory(), none.trajectory());
+    assert_eq!(all.keyframe_trajectory(), none.keyframe_trajectory());
+    assert_eq!(all.semidense_points(), none.semidense_points());
+    let dense = |p: &Pipeline| {
+        p.dense_keyframes()
+            .into_iter()
+            .map(|(k, pose)| (k.idepth.data.clone(), pose))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(dense(&all), dense(&none));
+    assert_eq!(all_mesh.positions, none_mesh.positions);
+
+    let (a, n) = (all.keyframe_memory(), none.keyframe_memory());
+    println!("all resident: {a:?}\nnone resident: {n:?}");
+    assert!(a.keyframes >= 5, "the orbit makes several keyframes");
+    assert_eq!(a.resident, a.keyframes);
+    assert_eq!(n.resident, 0);
+    let (ab, nb) = (a.backend.expect("in step"), n.backend.expect("in step"));
+    assert_eq!((ab.resident, ab.rebuilds), (ab.keyframes, 0));
+    assert_eq!(nb.resident, 0);
+    assert!(
+        nb.rebuilds > 0,
+        "constraint searches rebuild compact keyframes"
+    );
+    // A full keyframe (pyramid, tracking reference, alignment levels) costs several times
+    // its compact form.
+    let full = (a.resident_bytes + ab.resident_bytes) / a.keyframes;
+    let compact = a.compact_bytes / a.keyframes;
+    assert!(full > 3 * compact, "full {full} B, compact {compact} B");
+}
+
 #[test]
 fn threaded_back_end_tracks_the_sequence_too() {
     let (_, frames, gt) = sequence();

@@ -34,6 +34,11 @@ impl ReferenceLevel {
     pub fn is_empty(&self) -> bool {
         self.x.is_empty()
     }
+
+    /// Bytes of its point buffers (six values of 4 bytes per point).
+    fn heap_bytes(&self) -> usize {
+        6 * 4 * self.len()
+    }
 }
 
 /// A keyframe prepared for tracking: one [`ReferenceLevel`] per pyramid level.
@@ -64,6 +69,11 @@ const NONE: IdepthVar = IdepthVar {
 };
 
 impl TrackingReference {
+    /// Bytes of the point buffers of every level.
+    pub fn heap_bytes(&self) -> usize {
+        self.levels.iter().map(ReferenceLevel::heap_bytes).sum()
+    }
+
     /// Builds the per-level point clouds of `keyframe` from its semi-dense map `depth`.
     ///
     /// Only [`InverseDepth::Estimate`]s with positive inverse depth and variance become points;

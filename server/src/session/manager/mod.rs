@@ -256,7 +256,11 @@ impl SessionManager {
         let dense = &config.dense;
         let dense_pixels = dense.enabled.then(|| (dense.width * dense.height) as u64);
         self.memory
-            .keyframes_for(SessionCost::estimate(pixels, dense_pixels))
+            .keyframes_for(SessionCost::estimate(
+                pixels,
+                dense_pixels,
+                config.backend.resident_keyframes,
+            ))
             .map_err(ApiError::bad_request)
     }
 

@@ -56,7 +56,7 @@ impl Backend {
                 && Some(cid) != parent
                 && !entry.neighbours.contains(&cid)
                 && c.order >= self.config.skip_initial_keyframes
-                && c.keyframe.levels.estimates > 0
+                && c.kept.estimates > 0
         };
         // Poses of another fragment are in another frame: only appearance proposes those.
         let mut close: Vec<(KeyframeId, f64)> = self
@@ -65,7 +65,7 @@ impl Backend {
             .filter(|(cid, c)| eligible(**cid, c) && c.fragment == entry.fragment)
             .filter_map(|(&cid, c)| {
                 let cpose = self.graph.pose(cid)?;
-                pose_proximity(&self.config, &entry.keyframe, &pose, &c.keyframe, &cpose)
+                pose_proximity(&self.config, &entry.kept, &pose, &c.kept, &cpose)
                     .map(|d2| (cid, d2))
             })
             .collect();
@@ -108,7 +108,7 @@ impl Backend {
                         .get(cid)
                         .is_none_or(|&d| d >= self.config.min_far_graph_distance)
                 })
-                .map(|(&cid, c)| (cid, entry.keyframe.thumbnail.score(&c.keyframe.thumbnail)))
+                .map(|(&cid, c)| (cid, entry.kept.thumbnail.score(&c.kept.thumbnail)))
                 .filter(|&(_, s)| s >= self.config.appearance_min_score)
                 .collect();
             far.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));

@@ -354,3 +354,45 @@ fn reciprocal_consistency_is_chi_square_with_seven_degrees_of_freedom() {
     // Standard error of the mean of χ²(7): sqrt(14 / 4000) ≈ 0.06.
     assert!((mean - 7.0).abs() < 0.3, "mean Mahalanobis distance {mean}");
 }
+
+/// Issue 37: the back end's working set holds the most recently used keyframes in full and
+/// rebuilds the others from their compact form, identical to what was inserted.
+#[test]
+fn resident_set_evicts_the_least_recently_used_and_rebuilds_it_identical() {
+    use crate::graph::resident::Resident;
+    let (a, b) = pair();
+    let ka = Keyframe::new(0, Arc::clone(&a.frame), Arc::clone(&a.depth)).expect("a");
+    let kb = Keyframe::new(1, Arc::clone(&b.frame), Arc::clone(&b.depth)).expect("b");
+    let (ca, cb) = (ka.compact(), kb.compact());
+    assert!(
+        ka.heap_bytes() > 3 * ca.heap_bytes(),
+        "the compact form is small"
+    );
+
+    let mut resident = Resident::new(1);
+    resident.insert(ka.clone());
+    resident.insert(kb.clone());
+    assert_eq!((resident.len(), resident.rebuilds()), (1, 0));
+    // b is resident: no rebuild. a was evicted: rebuilt, and now b is out.
+    assert!(Arc::ptr_eq(
+        &resident.get(&cb).expect("b"),
+        &resident.get(&cb).expect("b")
+    ));
+    assert_eq!(resident.rebuilds(), 0);
+    let again = resident.get(&ca).expect("a");
+    assert_eq!(resident.rebuilds(), 1);
+    assert_eq!(*again.frame, *ka.frame);
+    assert_eq!(again.levels, ka.levels);
+    assert_eq!(again.thumbnail, ka.thumbnail);
+    assert_eq!(resident.heap_bytes(), ka.heap_bytes());
+    resident.get(&cb).expect("b");
+    assert_eq!(resident.rebuilds(), 2);
+
+    // Capacity 0 holds nothing and rebuilds on every use.
+    let mut none = Resident::new(0);
+    none.insert(ka);
+    assert!(none.is_empty());
+    none.get(&ca).expect("a");
+    none.get(&ca).expect("a");
+    assert_eq!((none.len(), none.rebuilds()), (0, 2));
+}
