@@ -76,3 +76,26 @@ pub struct DenseKeyframe {
     pub timings: DenseTimings,
     pub stages: Option<Arc<DenseStages>>,
 }
+
+impl DenseKeyframe {
+    /// Bytes of its maps (depth, variance and, when kept, the stages).
+    pub fn heap_bytes(&self) -> usize {
+        let image = |i: &ImageF32| 4 * i.data.len();
+        let stages = self.stages.as_deref().map_or(0, |s| {
+            [
+                Some(&s.intensity),
+                s.prior.as_ref(),
+                s.prior_aligned.as_ref(),
+                Some(&s.semidense),
+                Some(&s.semidense_var),
+                Some(&s.filtered),
+                Some(&s.filtered_var),
+            ]
+            .into_iter()
+            .flatten()
+            .map(image)
+            .sum()
+        });
+        image(&self.idepth) + image(&self.variance) + stages
+    }
+}

@@ -193,7 +193,8 @@ impl Backend {
         if self.keyframes.contains_key(&new.id) {
             return Err(Error::Backend(format!("keyframe {} added twice", new.id)));
         }
-        let keyframe = Keyframe::new(new.id, new.frame, new.depth)?;
+        let finest = self.config.finest_level();
+        let keyframe = Keyframe::from_level(new.id, new.frame, new.depth, finest)?;
         let kept = keyframe.compact_sharing(new.compact_depth);
         let parent = new.parent.as_ref().and_then(|p| {
             Some((
@@ -244,7 +245,7 @@ impl Backend {
         if self.keyframes.contains_key(&id) {
             return Err(Error::Backend(format!("keyframe {id} added twice")));
         }
-        let keyframe = Keyframe::new(id, frame, depth)?;
+        let keyframe = Keyframe::from_level(id, frame, depth, self.config.finest_level())?;
         let kept = keyframe.compact();
         self.graph.add_vertex(id, world_from_keyframe);
         self.graph.set_fixed(id, fixed || self.graph.len() == 1)?;
@@ -289,7 +290,7 @@ impl Backend {
             .get_mut(&id)
             .ok_or_else(|| Error::Backend(format!("depth update for unknown keyframe {id}")))?;
         let frame = Arc::clone(&self.resident.get(&entry.kept)?.frame);
-        let keyframe = Keyframe::new(id, frame, depth)?;
+        let keyframe = Keyframe::from_level(id, frame, depth, self.config.finest_level())?;
         entry.kept = keyframe.compact();
         self.resident.insert(keyframe);
         entry.failed.clear();

@@ -157,6 +157,15 @@ impl Default for BackendConfig {
 }
 
 impl BackendConfig {
+    /// The finest pyramid level any alignment of the back end uses (keyframes keep no
+    /// alignment data below it).
+    pub fn finest_level(&self) -> usize {
+        self.stage_levels
+            .iter()
+            .copied()
+            .fold(self.min_level, usize::min)
+    }
+
     /// Checks level ranges and that every factor is positive and finite.
     pub fn validate(&self) -> Result<()> {
         if self.min_level > self.max_level || self.max_level >= PYRAMID_LEVELS {

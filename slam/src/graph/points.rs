@@ -169,6 +169,13 @@ impl KeyframeLevels {
 
     /// Builds all [`PYRAMID_LEVELS`] levels. Fails when the depth map and frame sizes differ.
     pub fn new(frame: &Frame, depth: &DepthMap) -> Result<Self> {
+        Self::from_level(frame, depth, 0)
+    }
+
+    /// [`KeyframeLevels::new`] with the levels finer than `finest` left without points or
+    /// depth: the back end never aligns below [`super::BackendConfig::finest_level`], and
+    /// level 0 alone holds about 60 % of the points and depth.
+    pub fn from_level(frame: &Frame, depth: &DepthMap, finest: usize) -> Result<Self> {
         let (w, h) = (frame.camera.width as usize, frame.camera.height as usize);
         if (depth.width, depth.height) != (w, h) || depth.pixels.len() != w * h {
             return Err(Error::Shape(format!(
@@ -199,6 +206,19 @@ impl KeyframeLevels {
                     "level {l}: image {}x{}, depth {}x{}",
                     image.width, image.height, depth_level.width, depth_level.height
                 )));
+            }
+            if l < finest {
+                levels.push(KeyframeLevel {
+                    camera,
+                    points: Vec::new(),
+                    depth: DepthLevel {
+                        width: depth_level.width,
+                        height: depth_level.height,
+                        idepth: Vec::new(),
+                        var: Vec::new(),
+                    },
+                });
+                continue;
             }
             let mut points = Vec::new();
             for y in 1..depth_level.height.saturating_sub(1) {

@@ -150,12 +150,25 @@ pub struct Keyframe {
     pub depth: Arc<DepthMap>,
     pub levels: KeyframeLevels,
     pub thumbnail: Thumbnail,
+    /// The finest level `levels` holds ([`KeyframeLevels::from_level`]).
+    pub finest_level: usize,
 }
 
 impl Keyframe {
     /// Builds the depth pyramid and descriptor (fails when depth and frame sizes differ).
     pub fn new(id: KeyframeId, frame: Arc<Frame>, depth: Arc<DepthMap>) -> Result<Self> {
-        let levels = KeyframeLevels::new(&frame, &depth)?;
+        Self::from_level(id, frame, depth, 0)
+    }
+
+    /// [`Keyframe::new`] with alignment levels from `finest` up only
+    /// ([`KeyframeLevels::from_level`]).
+    pub fn from_level(
+        id: KeyframeId,
+        frame: Arc<Frame>,
+        depth: Arc<DepthMap>,
+        finest: usize,
+    ) -> Result<Self> {
+        let levels = KeyframeLevels::from_level(&frame, &depth, finest)?;
         let thumbnail = Thumbnail::new(&frame);
         Ok(Self {
             id,
@@ -163,6 +176,7 @@ impl Keyframe {
             depth,
             levels,
             thumbnail,
+            finest_level: finest,
         })
     }
 
@@ -181,6 +195,7 @@ impl Keyframe {
             thumbnail: self.thumbnail.clone(),
             mean_idepth: self.levels.mean_idepth,
             estimates: self.levels.estimates,
+            finest_level: self.finest_level,
         }
     }
 
@@ -204,15 +219,18 @@ pub struct CompactKeyframe {
     pub mean_idepth: f64,
     /// [`KeyframeLevels::estimates`].
     pub estimates: usize,
+    /// [`Keyframe::finest_level`].
+    pub finest_level: usize,
 }
 
 impl CompactKeyframe {
     /// The full keyframe: pyramid and alignment levels recomputed.
     pub fn rebuild(&self) -> Result<Keyframe> {
-        Keyframe::new(
+        Keyframe::from_level(
             self.id,
             Arc::new(self.image.rebuild()?),
             Arc::new(self.depth.expand()),
+            self.finest_level,
         )
     }
 

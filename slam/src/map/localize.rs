@@ -22,9 +22,19 @@
 use super::{MapKeyframe, SavedMap};
 use crate::frame::Frame;
 use crate::geometry::{PinholeCamera, SE3, Sim3, UndistortMap};
+use crate::graph::resident::Resident;
 use crate::graph::{KeyframeId, Thumbnail};
 use crate::tracking::{SE3Tracker, TrackingConfig, TrackingReference, TrackingResult};
 use crate::{Error, Result};
+
+/// Tracking references a [`Localizer`] keeps beyond its place-recognition candidates: the
+/// keyframes tracking and verification use next to them.
+const RESIDENT_BEYOND_CANDIDATES: usize = 4;
+
+/// A map keyframe's tracking reference, from its compact image and depth.
+fn reference_of(kf: &MapKeyframe) -> Result<TrackingReference> {
+    TrackingReference::new(&kf.image.rebuild()?, &kf.depth.expand())
+}
 
 /// Settings of [`Localizer`].
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -120,10 +130,9 @@ pub struct Localization {
     pub reach: f64,
 }
 
-/// A map keyframe ready for alignment.
+/// A map keyframe ready for alignment (its tracking reference in [`Localizer::references`]).
 struct Anchor {
     keyframe: MapKeyframe,
-    reference: TrackingReference,
     /// Mean inverse depth of its semi-dense map (distances in units of the scene depth).
     mean_idepth: f64,
 }
@@ -143,6 +152,11 @@ pub struct Localizer {
     camera: PinholeCamera,
     undistort: Option<UndistortMap>,
     anchors: Vec<Anchor>,
+    /// The most recently used keyframes' tracking references (issue 37: a map of hundreds of
+    /// keyframes holds its images and depth compact); others are rebuilt when aligned to.
+    references: Resident<TrackingReference>,
+    /// Points the map's keyframes offer tracking at full resolution, in all.
+    tracking_points: usize,
     tracker: SE3Tracker,
     last: Option<LastPose>,
     next_frame_id: u64,
@@ -162,15 +176,19 @@ impl Localizer {
     /// decide what a good alignment is.
     pub fn new(map: &SavedMap, tracking: TrackingConfig, config: LocalizeConfig) -> Result<Self> {
         config.validate()?;
+        // Every reference is built once (it checks the keyframe and counts its points); the
+        // last ones built stay resident.
+        let mut references = Resident::new(config.candidates + RESIDENT_BEYOND_CANDIDATES);
+        let mut tracking_points = 0;
         let anchors = map
             .keyframes
             .iter()
             .map(|kf| {
-                let reference = TrackingReference::new(&kf.image.rebuild()?, &kf.depth.expand())?;
+                let reference = references.insert_as(kf.id, reference_of(kf)?);
+                tracking_points += reference.num_points(0);
                 Ok(Anchor {
                     mean_idepth: kf.depth.mean_idepth().unwrap_or(1.0),
                     keyframe: kf.clone(),
-                    reference,
                 })
             })
             .collect::<Result<Vec<_>>>()?;
@@ -188,6 +206,8 @@ impl Localizer {
             camera: map.camera,
             undistort,
             anchors,
+            references,
+            tracking_points,
             last: None,
             // Frame ids above the keyframes' so that none is mistaken for a keyframe.
             next_frame_id: 1 << 32,
@@ -196,7 +216,7 @@ impl Localizer {
 
     /// Points the map's keyframes offer tracking at full resolution, in all.
     pub fn tracking_points(&self) -> usize {
-        self.anchors.iter().map(|a| a.reference.num_points(0)).sum()
+        self.tracking_points
     }
 
     /// Localises one frame (distorted as the camera delivers it).
@@ -323,14 +343,21 @@ impl Localizer {
         guess: &SE3,
         velocity: Option<SE3>,
     ) -> Option<TrackingResult> {
-        let reference = &self.anchors[kf].reference;
+        let keyframe = &self.anchors[kf].keyframe;
+        let reference = match self.references.get_or_build(kf, || reference_of(keyframe)) {
+            Ok(reference) => reference,
+            Err(e) => {
+                tracing::warn!(keyframe = kf, "map keyframe not rebuilt: {e}");
+                return None;
+            }
+        };
         if let Some(v) = velocity {
-            let result = self.tracker.track(reference, frame, &(v * *guess));
+            let result = self.tracker.track(&reference, frame, &(v * *guess));
             if result.good {
                 return Some(result);
             }
         }
-        let result = self.tracker.track(reference, frame, guess);
+        let result = self.tracker.track(&reference, frame, guess);
         result.good.then_some(result)
     }
 

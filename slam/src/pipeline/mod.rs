@@ -117,6 +117,8 @@ pub struct KeyframeMemory {
     pub compact_bytes: usize,
     /// Bytes the full frames and tracking references held add.
     pub resident_bytes: usize,
+    /// Bytes of the dense keyframes' maps (depth and variance; the stages when kept).
+    pub dense_bytes: usize,
     /// The back end's figures, when it is at hand (in step, or after `finish`).
     pub backend: Option<crate::graph::backend::KeyframeMemory>,
 }
@@ -298,6 +300,7 @@ impl Pipeline {
                         + k.reference.as_ref().map_or(0, |r| r.heap_bytes())
                 })
                 .sum(),
+            dense_bytes: self.dense_keyframes.values().map(|d| d.heap_bytes()).sum(),
             backend: self.backend.backend().map(Backend::memory),
         }
     }

@@ -123,3 +123,65 @@ fn a_session_ends_at_its_map_limit_with_its_results() {
     let trajectory = get(&server, &format!("/v1/sessions/{id}/trajectory"), None);
     assert_eq!(tum_lines(&trajectory.body).len() as u64, processed);
 }
+
+/// Issue 37: keyframes outside the working set are compact, so the same memory share holds
+/// about twice as many (320×240 with the dense layer): a 300-frame upload that makes about
+/// 27 keyframes, which a share of 580 MiB ended at 20 when every keyframe was costed (and
+/// held) in full, now maps to its end, and the server stays within its budget while it does.
+#[test]
+fn compact_keyframes_let_a_session_map_past_the_old_limit_within_its_budget() {
+    const FRAMES: usize = 300;
+    const BUDGET_MB: u64 = 964;
+    let dir = synth_sequence("hardening-compact", FRAMES, 23);
+    let server = spawn(
+        "compact",
+        Some(&format!(
+            "[limits]\nmemory_budget_mb = {BUDGET_MB}\nmax_sessions = 1\n"
+        )),
+        &[],
+    );
+    let created = upload(&server, None, &tar_with_list(&dir, &rgb_txt(&dir)));
+    assert_eq!(created.status, 201, "{}", created.body);
+    let id = created.json()["id"].as_str().expect("id").to_string();
+    // Polled here rather than with `wait_info`: the server's RSS is sampled on the way, and
+    // 300 frames take longer than its deadline on a loaded 2-core machine.
+    let mut peak = 0u64;
+    let deadline = Instant::now() + Duration::from_secs(400);
+    let info = loop {
+        peak = peak.max(rss(server.pid()));
+        let info = get(&server, &format!("/v1/sessions/{id}"), None).json();
+        if info["state"] == "finished" || info["state"] == "failed" {
+            break info;
+        }
+        assert!(Instant::now() < deadline, "not finished in time: {info}");
+        std::thread::sleep(Duration::from_millis(500));
+    };
+    assert_eq!(info["state"], "finished", "{info}");
+    assert_eq!(info["frames_processed"], FRAMES as u64, "{info}");
+    let keyframes = info["keyframes"].as_u64().expect("keyframes");
+    let limit = info["max_keyframes"].as_u64().expect("limit");
+    println!(
+        "{keyframes} keyframes of at most {limit}; server peak RSS {} MiB",
+        peak >> 20
+    );
+    assert!(
+        keyframes > 20,
+        "the sequence maps past the old limit: {info}"
+    );
+    assert!(
+        limit >= 36,
+        "the share holds almost twice the old 20: {info}"
+    );
+    assert!(
+        !info["notice"]
+            .as_str()
+            .unwrap_or_default()
+            .contains("map limit"),
+        "{info}"
+    );
+    assert!(
+        peak < BUDGET_MB << 20,
+        "the server peaked at {} MiB over its {BUDGET_MB} MiB budget",
+        peak >> 20
+    );
+}
