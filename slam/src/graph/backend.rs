@@ -233,12 +233,14 @@ impl Backend {
 
     /// Inserts a keyframe of a saved map (`crate::map`) at its saved pose: no constraint
     /// search (its edges come with the map, [`Backend::add_map_edge`]); `fixed` holds the pose
-    /// constant in every later optimisation.
+    /// constant in every later optimisation; `compact_depth` is `depth` in compact form when
+    /// the caller keeps one.
     pub fn add_map_keyframe(
         &mut self,
         id: KeyframeId,
         frame: Arc<Frame>,
         depth: Arc<DepthMap>,
+        compact_depth: Option<Arc<CompactDepth>>,
         world_from_keyframe: Sim3,
         fixed: bool,
     ) -> Result<()> {
@@ -246,7 +248,7 @@ impl Backend {
             return Err(Error::Backend(format!("keyframe {id} added twice")));
         }
         let keyframe = Keyframe::from_level(id, frame, depth, self.config.finest_level())?;
-        let kept = keyframe.compact();
+        let kept = keyframe.compact_sharing(compact_depth);
         self.graph.add_vertex(id, world_from_keyframe);
         self.graph.set_fixed(id, fixed || self.graph.len() == 1)?;
         let order = self.keyframes.len();

@@ -82,6 +82,7 @@ impl Pipeline {
                 kf.id,
                 Arc::new(kf.image.rebuild()?),
                 Arc::new(kf.depth.expand()),
+                Some(kf.depth.clone()),
                 kf.world_from_keyframe,
                 fix_map,
             )?;

@@ -169,6 +169,10 @@ impl Pipeline {
             )
             .take(n.max(1))
             .collect();
+        let held = candidates
+            .iter()
+            .map(|&id| self.keyframe_reference(id))
+            .collect::<Result<Vec<_>>>()?;
         let guess = |id: KeyframeId| {
             if id == current_id {
                 self.last_frame_from_keyframe
@@ -176,10 +180,6 @@ impl Pipeline {
                 SE3::identity()
             }
         };
-        let held = candidates
-            .iter()
-            .map(|&id| self.keyframe_reference(id))
-            .collect::<Result<Vec<_>>>()?;
         let refs: Vec<(&TrackingReference, SE3)> = held
             .iter()
             .zip(&candidates)

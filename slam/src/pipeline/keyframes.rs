@@ -302,8 +302,8 @@ impl Pipeline {
         self.densify(job)
     }
 
-    /// Keyframes older than the `backend.resident_keyframes` newest let go of their full frame
-    /// and tracking reference; the current one never does.
+    /// Keyframes older than the `backend.resident_keyframes` newest let go of their full
+    /// frame, full depth map and tracking reference; the current one never does.
     fn retire_keyframes(&mut self) {
         let keep = self.config.backend.resident_keyframes;
         let old = self.keyframes.len().saturating_sub(keep);
@@ -337,15 +337,18 @@ impl Pipeline {
     }
 
     /// Keyframe `id`'s tracking reference, rebuilt from its image and depth when it was
-    /// retired (the same as the mapping published).
-    pub(super) fn keyframe_reference(&self, id: KeyframeId) -> Result<Arc<TrackingReference>> {
-        match &self.keyframes[id].reference {
-            Some(reference) => Ok(reference.clone()),
-            None => Ok(Arc::new(TrackingReference::new(
-                self.keyframe_frame(id)?.as_ref(),
-                &self.keyframe_depth(id),
-            )?)),
+    /// retired (the same as the mapping published) and kept until the next keyframe retires
+    /// it again: a lost camera tries the same keyframes frame after frame.
+    pub(super) fn keyframe_reference(&mut self, id: KeyframeId) -> Result<Arc<TrackingReference>> {
+        if let Some(reference) = &self.keyframes[id].reference {
+            return Ok(reference.clone());
         }
+        let reference = Arc::new(TrackingReference::new(
+            self.keyframe_frame(id)?.as_ref(),
+            &self.keyframe_depth(id),
+        )?);
+        self.keyframes[id].reference = Some(reference.clone());
+        Ok(reference)
     }
 }
 
