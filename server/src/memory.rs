@@ -11,8 +11,10 @@
 //! The constants were measured with `relfusion run` on synthetic sequences (RSS against
 //! keyframes; docs/tuning.md "Memory of a session"): a keyframe in full costs about 110 B
 //! per pixel (34 MB at 640×480), but only the `backend.resident_keyframes` newest are held in
-//! full (issue 37); every older one keeps a compact form (colour image, depth map by its
-//! estimates, descriptor) of under 20 B per pixel. The estimate below rounds each term up.
+//! full (issue 37); the next `backend.held_keyframes` keep a compact form (colour image, depth
+//! map by its estimates, descriptor) of under 20 B per pixel in memory, and every older one
+//! spills that to the session's store (`session::spill`), keeping its descriptor, pose and
+//! dense map. The estimate below rounds each term up.
 
 use crate::config::Limits;
 
@@ -32,8 +34,11 @@ const BASE_DENSE: u64 = 160 * MIB;
 /// Bytes per camera pixel of one keyframe held in full (the session's working set): frame
 /// pyramid and colour, semi-dense depth, tracking reference and constraint-search levels.
 const RESIDENT_PER_PIXEL: u64 = 160;
-/// Bytes per camera pixel of every other keyframe: its compact form.
-const KEYFRAME_PER_PIXEL: u64 = 24;
+/// Bytes per camera pixel of a keyframe held in compact form.
+const COMPACT_PER_PIXEL: u64 = 24;
+/// Bytes per camera pixel of every older keyframe, spilled to the store: its descriptor,
+/// graph bookkeeping and the records of the frames tracked against it (measured: a few kB).
+const KEYFRAME_PER_PIXEL: u64 = 1;
 /// Bytes per dense-resolution pixel of one densified keyframe: dense depth and variance, its
 /// fusion input kept for re-integration, and its mesh blocks.
 const KEYFRAME_PER_DENSE_PIXEL: u64 = 56;
@@ -50,12 +55,14 @@ pub struct SessionCost {
 
 impl SessionCost {
     /// The estimate for a camera of `pixels` with the dense layer at `dense_pixels` (`None`
-    /// when the dense layer is off), holding `resident` keyframes in full.
-    pub fn estimate(pixels: u64, dense_pixels: Option<u64>, resident: usize) -> Self {
+    /// when the dense layer is off), holding `resident` keyframes in full and `held` more in
+    /// compact form; every other one is spilled.
+    pub fn estimate(pixels: u64, dense_pixels: Option<u64>, resident: usize, held: usize) -> Self {
         let dense = dense_pixels.unwrap_or(0);
+        let working = RESIDENT_PER_PIXEL * resident as u64 + COMPACT_PER_PIXEL * held as u64;
         Self {
             base: BASE_FIXED
-                + (BASE_PER_PIXEL + RESIDENT_PER_PIXEL * resident as u64) * pixels
+                + (BASE_PER_PIXEL + working) * pixels
                 + if dense_pixels.is_some() {
                     BASE_DENSE
                 } else {
@@ -165,16 +172,20 @@ mod tests {
     #[test]
     fn shares_set_the_map_size_and_large_cameras_are_refused() {
         let plan = MemoryPlan::new(&limits(16 * 1024, 4, 0));
-        let vga = SessionCost::estimate(640 * 480, Some(320 * 240), 8);
-        let qvga = SessionCost::estimate(320 * 240, Some(320 * 240), 8);
+        let vga = SessionCost::estimate(640 * 480, Some(320 * 240), 8, 24);
+        let qvga = SessionCost::estimate(320 * 240, Some(320 * 240), 8, 24);
         let vga_kf = plan.keyframes_for(vga).expect("fits");
         let qvga_kf = plan.keyframes_for(qvga).expect("fits");
         assert!(
-            vga_kf >= MIN_KEYFRAMES && qvga_kf > 2 * vga_kf,
+            vga_kf >= MIN_KEYFRAMES && qvga_kf > vga_kf,
             "{vga_kf} {qvga_kf}"
         );
+        // Spilled keyframes cost their dense maps, not their images: without the dense layer
+        // a session holds thousands.
+        let sparse = SessionCost::estimate(640 * 480, None, 8, 24);
+        assert!(plan.keyframes_for(sparse).expect("fits") > 2000);
         assert!(vga.at(vga_kf) <= plan.share, "the map fits its share");
-        let huge = SessionCost::estimate(8192 * 8192, Some(320 * 240), 8);
+        let huge = SessionCost::estimate(8192 * 8192, Some(320 * 240), 8, 24);
         let e = plan.keyframes_for(huge).expect_err("8192² does not fit");
         assert!(e.contains("smaller image"), "{e}");
         let capped = MemoryPlan::new(&limits(16 * 1024, 4, 20));

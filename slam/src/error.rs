@@ -37,6 +37,9 @@ pub enum Error {
     /// The depth-prior runtime or model failed (missing runtime library, model file, shapes).
     #[error("depth prior: {0}")]
     Prior(String),
+    /// A keyframe could not be spilled to, or read back from, the session's store.
+    #[error("spill: {0}")]
+    Spill(String),
     /// A configuration value is invalid.
     #[error("config: {0}")]
     Config(String),

@@ -1,5 +1,6 @@
 //! A camera frame as the SLAM layer sees it: undistorted grayscale pyramid with gradients.
 
+use crate::spill::{Reader, Writer};
 use std::sync::Arc;
 
 use crate::geometry::{PinholeCamera, UndistortMap};
@@ -194,6 +195,114 @@ impl CompactFrame {
     }
 }
 
+impl crate::spill::Spillable for CompactFrame {
+    fn encode(&self, out: &mut Writer) {
+        out.u64(self.id);
+        out.f64(self.timestamp);
+        let c = &self.camera;
+        for v in [c.fx, c.fy, c.cx, c.cy] {
+            out.f64(v);
+        }
+        out.u64(u64::from(c.width));
+        out.u64(u64::from(c.height));
+        match &c.distortion {
+            Some(d) => {
+                out.u8(1);
+                for v in [d.k1, d.k2, d.p1, d.p2, d.k3] {
+                    out.f64(v);
+                }
+            }
+            None => out.u8(0),
+        }
+        match &self.rgb {
+            Some(rgb) => {
+                out.u8(1);
+                out.u64(u64::from(rgb.width()));
+                out.u64(u64::from(rgb.height()));
+                out.bytes(rgb.as_raw());
+            }
+            None => out.u8(0),
+        }
+        for image in [&self.gray, &self.sensor_depth] {
+            match image {
+                Some(image) => {
+                    out.u8(1);
+                    out.u64(image.width as u64);
+                    out.u64(image.height as u64);
+                    out.f32s(&image.data);
+                }
+                None => out.u8(0),
+            }
+        }
+    }
+
+    fn decode(input: &mut Reader<'_>) -> Result<Self> {
+        let id = input.u64()?;
+        let timestamp = input.f64()?;
+        let (fx, fy, cx, cy) = (input.f64()?, input.f64()?, input.f64()?, input.f64()?);
+        let dim = |v: u64| u32::try_from(v).map_err(|_| Error::Spill("a size does not fit".into()));
+        let (width, height) = (dim(input.u64()?)?, dim(input.u64()?)?);
+        let distortion = match input.u8()? {
+            0 => None,
+            _ => Some(crate::geometry::Distortion {
+                k1: input.f64()?,
+                k2: input.f64()?,
+                p1: input.f64()?,
+                p2: input.f64()?,
+                k3: input.f64()?,
+            }),
+        };
+        let camera = PinholeCamera {
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+            distortion,
+        };
+        let rgb = match input.u8()? {
+            0 => None,
+            _ => {
+                let (w, h) = (dim(input.u64()?)?, dim(input.u64()?)?);
+                let raw = input.bytes()?.to_vec();
+                let rgb = ::image::RgbImage::from_raw(w, h, raw).ok_or_else(|| {
+                    Error::Spill("a spilled colour image has the wrong size".into())
+                })?;
+                Some(Arc::new(rgb))
+            }
+        };
+        let mut images = [None, None];
+        for slot in &mut images {
+            if input.u8()? != 0 {
+                let (w, h) = (input.usize()?, input.usize()?);
+                let data = input.f32s()?;
+                if w.checked_mul(h) != Some(data.len()) {
+                    return Err(Error::Spill("a spilled image has the wrong size".into()));
+                }
+                *slot = Some(Arc::new(ImageF32 {
+                    width: w,
+                    height: h,
+                    data,
+                }));
+            }
+        }
+        let [gray, sensor_depth] = images;
+        Ok(Self {
+            id,
+            timestamp,
+            camera,
+            rgb,
+            gray,
+            sensor_depth,
+        })
+    }
+
+    fn heap_bytes(&self) -> usize {
+        CompactFrame::heap_bytes(self)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -228,5 +337,24 @@ mod tests {
         let odd = Frame::new(5, 0.3, camera(), &gray, Some(Arc::new(colour()))).expect("frame");
         assert!(odd.compact().gray().is_some());
         assert_eq!(odd.compact().rebuild().expect("rebuild"), odd);
+
+        // Spilled and read back (issue 37): every form, and a distorted camera, come back.
+        let mut distorted = frame.compact();
+        distorted.camera.distortion = Some(crate::geometry::Distortion {
+            k1: 0.1,
+            k2: -0.02,
+            p1: 1e-3,
+            p2: -1e-4,
+            k3: 0.0,
+        });
+        for (compact, original) in [(frame.compact(), &frame), (odd.compact(), &odd)] {
+            let back = crate::spill::round_trip(&compact).expect("round trip");
+            assert_eq!(back.rebuild().expect("rebuild"), *original);
+        }
+        let back = crate::spill::round_trip(&plain.compact()).expect("round trip");
+        assert_eq!(back.rebuild().expect("rebuild"), plain);
+        let back = crate::spill::round_trip(&distorted).expect("round trip");
+        assert_eq!(back.camera, distorted.camera);
+        assert_eq!(back.sensor_depth, distorted.sensor_depth);
     }
 }

@@ -51,6 +51,7 @@ pub mod odometry;
 pub mod optim;
 pub mod pipeline;
 pub mod scale_shift;
+pub mod spill;
 pub mod tracking;
 pub mod window;
 

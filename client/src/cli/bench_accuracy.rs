@@ -359,7 +359,7 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
         .then(|| loaded.ate_aligned(&stamped_se3(&trajectory), AlignMode::Se3))
         .flatten();
     let mut probe = DepthProbe::default();
-    for (_, frame, depth) in pipeline.keyframe_depths() {
+    for (_, frame, depth) in pipeline.keyframe_depths()? {
         if let Some(sensor) = loaded.seq.load_depth(frame.id as usize)? {
             probe.add(frame.timestamp, &map_pairs(&depth, &sensor));
         }

@@ -69,6 +69,11 @@ pub struct Args {
     /// camera is found in the map and writes the merged map, mesh and keyframes of both.
     #[arg(long, value_enum, default_value = "localize", requires = "map")]
     pub mode: MapMode,
+    /// Spill keyframes older than the newest `backend.resident_keyframes +
+    /// backend.held_keyframes` into this folder (created) and read them back when needed, as
+    /// a service session does into its store: memory stays bounded, results do not change.
+    #[arg(long, value_name = "DIR")]
+    pub spill: Option<PathBuf>,
 }
 
 /// What a run does with a loaded map.
@@ -112,6 +117,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         None => Pipeline::new(config, seq.camera, prior)?,
     };
+    if let Some(dir) = &args.spill {
+        let store = relfusion_slam::spill::FolderStore::new(dir)?;
+        pipeline.spill().attach(std::sync::Arc::new(store))?;
+    }
     let map_load_s = extend.is_some().then(|| t_map_load.elapsed().as_secs_f64());
     let outcome = run_sequence(
         &seq,
@@ -195,7 +204,7 @@ pub(super) fn write_results(
 ) -> anyhow::Result<Written> {
     write_trajectory(&out.join("trajectory.txt"), &pipeline.trajectory())?;
     write_trajectory(&out.join("keyframes.txt"), &pipeline.keyframe_trajectory())?;
-    write_points_ply(&out.join("semidense.ply"), &pipeline.semidense_points())?;
+    write_points_ply(&out.join("semidense.ply"), &pipeline.semidense_points()?)?;
     if pipeline.config().dense.enabled {
         write_points_ply(&out.join("dense.ply"), &pipeline.dense_points()?)?;
         // The maps inside are shared (`Arc`): cloning a keyframe copies no pixels.

@@ -65,6 +65,20 @@ impl Engine {
         })
     }
 
+    /// Old keyframes spill to `store` (a mapping engine; a localiser's map stays as loaded).
+    pub fn attach_spill(
+        &self,
+        store: std::sync::Arc<dyn relfusion_slam::spill::SpillStore>,
+    ) -> Result<(), String> {
+        match self {
+            Engine::Map(pipeline) => pipeline
+                .spill()
+                .attach(store)
+                .map_err(|e| format!("spilling: {e}")),
+            Engine::Localize { .. } => Ok(()),
+        }
+    }
+
     /// One frame; what happened, as pipeline events (a localised frame is a pose: `tracking`
     /// or `relocalized` in the map's frame; a frame not in the map is `lost`, at the identity).
     pub fn push(&mut self, frame_id: u64, input: FrameInput) -> relfusion_slam::Result<Vec<Event>> {
@@ -138,14 +152,18 @@ impl Engine {
 
     /// The trajectory, keyframes and semi-dense cloud as result files; `None` for a localiser
     /// (whose trajectory is the poses it reported).
-    pub fn result_files(&self) -> Option<(String, String, Vec<u8>)> {
+    pub fn result_files(&self) -> Result<Option<(String, String, Vec<u8>)>, String> {
         match self {
-            Engine::Map(pipeline) => Some((
+            Engine::Map(pipeline) => Ok(Some((
                 crate::convert::tum_text(&pipeline.trajectory()),
                 crate::convert::tum_text(&pipeline.keyframe_trajectory()),
-                points_ply(&pipeline.semidense_points()),
-            )),
-            Engine::Localize { .. } => None,
+                points_ply(
+                    &pipeline
+                        .semidense_points()
+                        .map_err(|e| format!("the point cloud: {e}"))?,
+                ),
+            ))),
+            Engine::Localize { .. } => Ok(None),
         }
     }
 

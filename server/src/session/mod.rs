@@ -31,6 +31,7 @@ pub mod persist;
 pub mod prior;
 pub mod queue;
 pub mod snapshot;
+mod spill;
 pub mod track;
 pub mod types;
 pub mod upload;

@@ -40,6 +40,9 @@ const SETTABLE: &[(&str, Bound)] = &[
     ("mapping.kf_dist_weight", Bound::Num(0.5, 50.0)),
     ("mapping.kf_usage_weight", Bound::Num(0.5, 50.0)),
     ("backend.loop_closure_strictness", Bound::Num(0.5, 100.0)),
+    // Compact keyframes held in memory before older ones spill to the store: admission costs
+    // them (`memory::SessionCost`), so a client trades memory for store reads within its share.
+    ("backend.held_keyframes", Bound::Int(0, 64)),
     ("dense.enabled", Bound::Bool),
     ("dense.compute", Bound::Choice(&["gpu", "cpu"])),
     ("dense.filter.enabled", Bound::Bool),

@@ -85,6 +85,14 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         Ok(engine) => engine,
         Err(e) => return fail(session, None, e),
     };
+    // Old keyframes spill to the session's store: its memory stays bounded however long it
+    // runs (issue 37).
+    let spill = super::spill::SessionSpill::open(session.store.clone(), session.id())
+        .map_err(|e| format!("opening the session's spill area: {e}"))
+        .and_then(|spill| engine.attach_spill(Arc::new(spill)));
+    if let Err(e) = spill {
+        return fail(session, None, e);
+    }
     // An extended map's keyframes are the session's too: listed with their poses, counted
     // towards its keyframe limit.
     for (id, (timestamp, pose)) in engine.map_keyframes().into_iter().enumerate() {
@@ -390,13 +398,14 @@ impl Runner<'_> {
         }
         let stats = self.engine.stats();
         // A localising session's trajectory is the poses it reported, in the map's frame.
-        let (trajectory, keyframes, pointcloud) = self.engine.result_files().unwrap_or_else(|| {
-            (
-                s.trajectory_tum(),
-                String::new(),
-                crate::convert::points_ply(&[]),
-            )
-        });
+        let (trajectory, keyframes, pointcloud) =
+            self.engine.result_files()?.unwrap_or_else(|| {
+                (
+                    s.trajectory_tum(),
+                    String::new(),
+                    crate::convert::points_ply(&[]),
+                )
+            });
         let results = Results {
             trajectory,
             keyframes,

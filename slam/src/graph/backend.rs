@@ -20,7 +20,7 @@ use super::KeyframeId;
 use super::config::BackendConfig;
 use super::pose_graph::{Constraint, OptimizeReport, PoseGraph};
 use super::resident::Resident;
-use super::search::{CompactKeyframe, Keyframe, reciprocal_test};
+use super::search::{CompactKeyframe, Keyframe, KeyframeData, reciprocal_test};
 use super::sim3_tracker::Sim3Tracker;
 use crate::frame::Frame;
 use nalgebra::Matrix6;
@@ -80,8 +80,9 @@ pub struct NewKeyframe {
     pub id: KeyframeId,
     pub frame: Arc<Frame>,
     pub depth: Arc<DepthMap>,
-    /// `depth` in compact form when the caller keeps one (shared instead of made again).
-    pub compact_depth: Option<Arc<CompactDepth>>,
+    /// Its image and `depth` in compact form when the caller keeps them (shared, and spilled
+    /// once, instead of made again).
+    pub data: Option<KeyframeData>,
     /// The front end's estimate; used as the vertex's initial pose when there is no parent in
     /// the graph.
     pub world_from_keyframe: Sim3,
@@ -118,9 +119,11 @@ pub struct KeyframeMemory {
     pub resident: usize,
     /// Full forms rebuilt from compact ones so far.
     pub rebuilds: usize,
-    /// Bytes of every keyframe's compact form (images and depth maps shared with the
-    /// pipeline counted here in full).
+    /// Bytes of every keyframe's compact form held in memory (images and depth maps shared
+    /// with the pipeline counted here in full).
     pub compact_bytes: usize,
+    /// Keyframes whose compact form is spilled to the session's store.
+    pub spilled: usize,
     /// Bytes the resident full forms add.
     pub resident_bytes: usize,
 }
@@ -195,7 +198,7 @@ impl Backend {
         }
         let finest = self.config.finest_level();
         let keyframe = Keyframe::from_level(new.id, new.frame, new.depth, finest)?;
-        let kept = keyframe.compact_sharing(new.compact_depth);
+        let kept = keyframe.compact_sharing(new.data);
         let parent = new.parent.as_ref().and_then(|p| {
             Some((
                 self.graph.pose(p.id)?,
@@ -228,19 +231,20 @@ impl Backend {
         );
         self.pending.push(new.id);
         self.resident.insert(keyframe);
+        self.spill_old();
         Ok(())
     }
 
     /// Inserts a keyframe of a saved map (`crate::map`) at its saved pose: no constraint
     /// search (its edges come with the map, [`Backend::add_map_edge`]); `fixed` holds the pose
-    /// constant in every later optimisation; `compact_depth` is `depth` in compact form when
-    /// the caller keeps one.
+    /// constant in every later optimisation; `data` is its image and `depth` in compact form
+    /// when the caller keeps them.
     pub fn add_map_keyframe(
         &mut self,
         id: KeyframeId,
         frame: Arc<Frame>,
         depth: Arc<DepthMap>,
-        compact_depth: Option<Arc<CompactDepth>>,
+        data: Option<KeyframeData>,
         world_from_keyframe: Sim3,
         fixed: bool,
     ) -> Result<()> {
@@ -248,7 +252,7 @@ impl Backend {
             return Err(Error::Backend(format!("keyframe {id} added twice")));
         }
         let keyframe = Keyframe::from_level(id, frame, depth, self.config.finest_level())?;
-        let kept = keyframe.compact_sharing(compact_depth);
+        let kept = keyframe.compact_sharing(data);
         self.graph.add_vertex(id, world_from_keyframe);
         self.graph.set_fixed(id, fixed || self.graph.len() == 1)?;
         let order = self.keyframes.len();
@@ -271,7 +275,18 @@ impl Backend {
             },
         );
         self.resident.insert(keyframe);
+        self.spill_old();
         Ok(())
+    }
+
+    /// Spills the compact data of keyframes older than the newest `resident_keyframes +
+    /// held_keyframes` to the session's store (`crate::spill`; nothing happens without one).
+    fn spill_old(&self) {
+        let keep = self.config.resident_keyframes + self.config.held_keyframes;
+        let old = self.keyframes.len().saturating_sub(keep);
+        for entry in self.keyframes.values().filter(|e| e.order < old) {
+            entry.kept.data.spill();
+        }
     }
 
     /// Adds an edge of a saved map between two of its keyframes (both already inserted).
@@ -293,12 +308,17 @@ impl Backend {
             .ok_or_else(|| Error::Backend(format!("depth update for unknown keyframe {id}")))?;
         let frame = Arc::clone(&self.resident.get(&entry.kept)?.frame);
         let keyframe = Keyframe::from_level(id, frame, depth, self.config.finest_level())?;
-        entry.kept = keyframe.compact();
+        let data = entry
+            .kept
+            .data
+            .with_depth(CompactDepth::of(&keyframe.depth));
+        entry.kept = keyframe.compact_sharing(Some(data));
         self.resident.insert(keyframe);
         entry.failed.clear();
         if !self.pending.contains(&id) && !self.refresh.contains(&id) {
             self.refresh.push(id);
         }
+        self.spill_old();
         Ok(())
     }
 
@@ -484,6 +504,11 @@ impl Backend {
             resident: self.resident.len(),
             rebuilds: self.resident.rebuilds(),
             compact_bytes: self.keyframes.values().map(|e| e.kept.heap_bytes()).sum(),
+            spilled: self
+                .keyframes
+                .values()
+                .filter(|e| !e.kept.data.is_held())
+                .count(),
             resident_bytes: self.resident.heap_bytes(),
         }
     }

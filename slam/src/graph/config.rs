@@ -112,6 +112,12 @@ pub struct BackendConfig {
     /// relocalisation needs them (`graph::resident`). Default 8: the newest keyframes, which
     /// the constraint search and relocalisation try first. 0 rebuilds on every use; at most 64.
     pub resident_keyframes: usize,
+    /// Keyframes older than the resident ones whose compact form stays in memory; older ones
+    /// spill to the session's store when it has one (`crate::spill`: about 2.7 MB each at
+    /// 640×480 in memory, a few kB once spilled) and are read back when needed. Default 24:
+    /// loop closures and relocalisation mostly revisit recent keyframes, and reading one back
+    /// costs a store round trip. 0 spills every keyframe that leaves the resident set.
+    pub held_keyframes: usize,
 
     /// Unary scale factors from a metric depth prior (issue 39); unused with a relative prior.
     pub metric_scale: MetricScaleConfig,
@@ -150,6 +156,7 @@ impl Default for BackendConfig {
             pose_graph_huber: Some(5.0 * (6000.0f64 * 1.5).sqrt()),
             channel_capacity: 256,
             resident_keyframes: 8,
+            held_keyframes: 24,
             metric_scale: MetricScaleConfig::default(),
             window: crate::window::WindowConfig::default(),
         }
@@ -215,6 +222,12 @@ impl BackendConfig {
             return Err(Error::Config(format!(
                 "backend: resident_keyframes must be ≤ 64, got {}",
                 self.resident_keyframes
+            )));
+        }
+        if self.held_keyframes > 4096 {
+            return Err(Error::Config(format!(
+                "backend: held_keyframes must be ≤ 4096, got {}",
+                self.held_keyframes
             )));
         }
         self.metric_scale.validate()?;

@@ -20,8 +20,9 @@ use super::pose_graph::Constraint;
 use super::sim3_tracker::{Sim3TrackResult, Sim3Tracker};
 use crate::Result;
 use crate::frame::{CompactFrame, Frame, PYRAMID_LEVELS};
-use crate::geometry::{Matrix7, Sim3};
+use crate::geometry::{Matrix7, PinholeCamera, Sim3};
 use crate::mapping::{CompactDepth, DepthMap};
+use crate::spill::{Spill, Stored};
 
 /// Thumbnail size of the appearance descriptor (columns × rows).
 pub const THUMBNAIL_SIZE: (usize, usize) = (32, 24);
@@ -185,13 +186,19 @@ impl Keyframe {
         self.compact_sharing(None)
     }
 
-    /// [`Keyframe::compact`] with `depth`, this keyframe's depth map in compact form, when the
-    /// caller already has it.
-    pub fn compact_sharing(&self, depth: Option<Arc<CompactDepth>>) -> CompactKeyframe {
+    /// [`Keyframe::compact`] with `data`, this keyframe's image and depth in compact form,
+    /// when the caller already has them (one copy, spilled once: `crate::spill`).
+    pub fn compact_sharing(&self, data: Option<KeyframeData>) -> CompactKeyframe {
         CompactKeyframe {
             id: self.id,
-            image: self.frame.compact(),
-            depth: depth.unwrap_or_else(|| Arc::new(CompactDepth::of(&self.depth))),
+            data: data.unwrap_or_else(|| {
+                KeyframeData::new(
+                    &Spill::default(),
+                    self.frame.compact(),
+                    CompactDepth::of(&self.depth),
+                )
+            }),
+            camera: self.frame.camera,
             thumbnail: self.thumbnail.clone(),
             mean_idepth: self.levels.mean_idepth,
             estimates: self.levels.estimates,
@@ -206,14 +213,68 @@ impl Keyframe {
     }
 }
 
-/// A keyframe as the back end keeps it between uses (issue 37): its image without the pyramid,
-/// its depth, its descriptor and the two figures the candidate search reads. The
-/// [`Keyframe`] it was made from comes back with [`CompactKeyframe::rebuild`], identical.
+/// A keyframe's image and depth in compact form, each held in memory or spilled to the
+/// session's store (`crate::spill`); one copy shared by the pipeline and the back end.
+#[derive(Clone, Debug)]
+pub struct KeyframeData {
+    pub image: Arc<Stored<CompactFrame>>,
+    pub depth: Arc<Stored<CompactDepth>>,
+}
+
+impl KeyframeData {
+    /// Both held, spilling with `spill`.
+    pub fn new(spill: &Spill, image: CompactFrame, depth: CompactDepth) -> Self {
+        let image = Stored::new(spill, Arc::new(image));
+        let depth = image.sibling(Arc::new(depth));
+        Self { image, depth }
+    }
+
+    /// The same image with another depth (a refined or final one).
+    pub fn with_depth(&self, depth: CompactDepth) -> Self {
+        Self {
+            image: Arc::clone(&self.image),
+            depth: self.image.sibling(Arc::new(depth)),
+        }
+    }
+
+    /// The full frame, its pyramid recomputed (read back first when spilled).
+    pub fn frame(&self) -> Result<Frame> {
+        self.image.get()?.rebuild()
+    }
+
+    /// The full depth map (read back first when spilled).
+    pub fn depth_map(&self) -> Result<DepthMap> {
+        Ok(self.depth.get()?.expand())
+    }
+
+    /// Spills both to the session's store; a failing store keeps them in memory (logged).
+    pub fn spill(&self) {
+        if let Err(e) = self.image.spill().and_then(|()| self.depth.spill()) {
+            tracing::warn!(error = %e, "keyframe kept in memory: spilling failed");
+        }
+    }
+
+    /// Whether the image is in memory (not spilled).
+    pub fn is_held(&self) -> bool {
+        self.image.is_held()
+    }
+
+    /// Bytes held in memory (shared buffers counted in full).
+    pub fn held_bytes(&self) -> usize {
+        self.image.held_bytes() + self.depth.held_bytes()
+    }
+}
+
+/// A keyframe as the back end keeps it between uses (issue 37): its image without the pyramid
+/// and its depth (in memory or spilled), its descriptor and the figures the candidate search
+/// reads. The [`Keyframe`] it was made from comes back with [`CompactKeyframe::rebuild`],
+/// identical.
 #[derive(Clone, Debug)]
 pub struct CompactKeyframe {
     pub id: KeyframeId,
-    pub image: CompactFrame,
-    pub depth: Arc<CompactDepth>,
+    pub data: KeyframeData,
+    /// Undistorted camera of level 0.
+    pub camera: PinholeCamera,
     pub thumbnail: Thumbnail,
     /// [`KeyframeLevels::mean_idepth`].
     pub mean_idepth: f64,
@@ -228,24 +289,24 @@ impl CompactKeyframe {
     pub fn rebuild(&self) -> Result<Keyframe> {
         Keyframe::from_level(
             self.id,
-            Arc::new(self.image.rebuild()?),
-            Arc::new(self.depth.expand()),
+            Arc::new(self.data.frame()?),
+            Arc::new(self.data.depth_map()?),
             self.finest_level,
         )
     }
 
     /// Horizontal and vertical field of view (radians).
     pub fn field_of_view(&self) -> (f64, f64) {
-        let c = &self.image.camera;
+        let c = &self.camera;
         (
             2.0 * (f64::from(c.width) / (2.0 * c.fx)).atan(),
             2.0 * (f64::from(c.height) / (2.0 * c.fy)).atan(),
         )
     }
 
-    /// Bytes held: the compact image and the depth map (shared buffers counted in full).
+    /// Bytes held in memory: the compact image and the depth map unless spilled.
     pub fn heap_bytes(&self) -> usize {
-        self.image.heap_bytes() + self.depth.heap_bytes()
+        self.data.held_bytes()
     }
 }
 

@@ -171,6 +171,41 @@ impl CompactDepth {
     }
 }
 
+impl crate::spill::Spillable for CompactDepth {
+    fn encode(&self, out: &mut crate::spill::Writer) {
+        out.u64(self.width as u64);
+        out.u64(self.height as u64);
+        out.bytes(&self.states);
+        out.f32s(bytemuck::cast_slice(&self.values));
+    }
+
+    fn decode(input: &mut crate::spill::Reader<'_>) -> crate::Result<Self> {
+        let (width, height) = (input.usize()?, input.usize()?);
+        let states = input.bytes()?.to_vec();
+        let flat = input.f32s()?;
+        let values: Vec<[f32; 2]> = flat.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
+        let estimates = states.iter().filter(|&&s| s == ESTIMATE).count();
+        if width.checked_mul(height) != Some(states.len())
+            || flat.len() != 2 * values.len()
+            || values.len() != estimates
+        {
+            return Err(crate::Error::Spill(
+                "a spilled depth map is inconsistent".into(),
+            ));
+        }
+        Ok(Self {
+            width,
+            height,
+            states,
+            values,
+        })
+    }
+
+    fn heap_bytes(&self) -> usize {
+        CompactDepth::heap_bytes(self)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -194,6 +229,10 @@ mod tests {
         }
         let compact = CompactDepth::of(&map);
         assert_eq!(compact.expand(), map);
+        assert_eq!(
+            crate::spill::round_trip(&compact).expect("spilled"),
+            compact
+        );
         assert_eq!(compact.num_estimates(), map.num_estimates());
         assert_eq!(compact.mean_idepth(), map.mean_idepth());
         assert!(compact.heap_bytes() * 2 < map.heap_bytes());

@@ -13,6 +13,7 @@ use nalgebra::{Vector2, Vector3};
 
 use super::Pipeline;
 use crate::export::ColoredPoint;
+use crate::frame::CompactFrame;
 use crate::geometry::{PinholeCamera, Sim3};
 use crate::graph::{Constraint, KeyframeId};
 use crate::map::{DenseDepth, MapKeyframe, SavedMap};
@@ -50,7 +51,7 @@ impl Pipeline {
         self.keyframe_poses()
             .into_iter()
             .filter(|(id, _)| exported[*id])
-            .map(|(id, pose)| (self.keyframes[id].image.timestamp, pose))
+            .map(|(id, pose)| (self.keyframes[id].timestamp, pose))
             .collect()
     }
 
@@ -72,7 +73,8 @@ impl Pipeline {
     }
 
     /// The semi-dense points of every keyframe at its current pose, coloured from its image.
-    pub fn semidense_points(&self) -> Vec<ColoredPoint> {
+    /// Spilled keyframes are read back.
+    pub fn semidense_points(&self) -> Result<Vec<ColoredPoint>> {
         let poses = self.keyframe_poses();
         let exported = self.exported();
         let mut points = Vec::new();
@@ -83,11 +85,12 @@ impl Pipeline {
             }
             let depth = match &current_depth {
                 Some((current, depth)) if *current == id => depth.clone(),
-                _ => self.keyframe_depth(id),
+                _ => self.keyframe_depth(id)?,
             };
-            let rgb = kf.image.rgb.as_deref();
+            let image = kf.data.image.get()?;
+            let rgb = image.rgb.as_deref();
             back_project(
-                &kf.image.camera,
+                &kf.camera,
                 &world_from_kf,
                 depth.width,
                 depth.height,
@@ -96,7 +99,7 @@ impl Pipeline {
                 &mut points,
             );
         }
-        points
+        Ok(points)
     }
 
     /// The map as it stands, to save (`map::write_map`): every keyframe of the main fragment
@@ -122,14 +125,20 @@ impl Pipeline {
             .filter_map(|(kf, (id, world_from_keyframe))| {
                 let new_id = *renumbered.get(&id)?;
                 let depth = match &current_depth {
-                    Some((current, depth)) if *current == id => Arc::new(CompactDepth::of(depth)),
-                    _ => kf.compact_depth.clone(),
+                    Some((current, depth)) if *current == id => {
+                        Ok(Arc::new(CompactDepth::of(depth)))
+                    }
+                    _ => kf.data.depth.get(),
                 };
-                Some(MapKeyframe {
+                let (image, depth) = match (kf.data.image.get(), depth) {
+                    (Ok(image), Ok(depth)) => (image, depth),
+                    (Err(e), _) | (_, Err(e)) => return Some(Err(e)),
+                };
+                Some(Ok(MapKeyframe {
                     id: new_id,
-                    timestamp: kf.image.timestamp,
+                    timestamp: kf.timestamp,
                     world_from_keyframe,
-                    image: kf.image.clone(),
+                    image: CompactFrame::clone(&image),
                     depth,
                     dense: self.dense_keyframes.get(&id).map(|d| DenseDepth {
                         camera: d.camera,
@@ -137,9 +146,9 @@ impl Pipeline {
                         variance: d.variance.clone(),
                     }),
                     thumbnail: kf.thumbnail.clone(),
-                })
+                }))
             })
-            .collect();
+            .collect::<Result<Vec<_>>>()?;
         let edges = backend
             .graph()
             .edges()
@@ -170,7 +179,7 @@ impl Pipeline {
                 continue;
             }
             let (w, h) = (kf.idepth.width, kf.idepth.height);
-            let colors = match &self.keyframes[kf.keyframe_id].image.rgb {
+            let colors = match &self.keyframes[kf.keyframe_id].data.image.get()?.rgb {
                 Some(rgb) => Some(crate::dense::resample::box_downsample_rgb(rgb, w, h)?),
                 None => None,
             };

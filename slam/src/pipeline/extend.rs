@@ -30,7 +30,9 @@ use crate::fusion::worker::FusionJob;
 use crate::geometry::{PinholeCamera, SE3};
 use crate::gpu::GpuContext;
 use crate::graph::Backend;
+use crate::graph::KeyframeData;
 use crate::map::{Localizer, SavedMap};
+use crate::spill::{Spill, Stored};
 use crate::{Error, Result};
 
 /// Settings of map extension.
@@ -77,25 +79,32 @@ impl Pipeline {
         let localizer = Localizer::new(map, config.tracking.clone(), config.localize.clone())?;
         let fix_map = config.extend.fix_map;
         let mut backend = Backend::new(config.backend.clone())?;
+        let spill = Spill::default();
+        let mut data = Vec::with_capacity(map.keyframes.len());
         for kf in &map.keyframes {
+            let kept = KeyframeData {
+                image: Stored::new(&spill, Arc::new(kf.image.clone())),
+                depth: Stored::new(&spill, Arc::clone(&kf.depth)),
+            };
             backend.add_map_keyframe(
                 kf.id,
                 Arc::new(kf.image.rebuild()?),
                 Arc::new(kf.depth.expand()),
-                Some(kf.depth.clone()),
+                Some(kept.clone()),
                 kf.world_from_keyframe,
                 fix_map,
             )?;
+            data.push(kept);
         }
         for edge in &map.edges {
             backend.add_map_edge(edge.clone())?;
         }
-        let mut pipeline = Self::build(config, camera, prior, gpu, Some(backend))?;
+        let mut pipeline = Self::build(config, camera, prior, gpu, Some(backend), spill)?;
         // A saved map does not say whether its unit is the metre: anchoring new keyframes to
         // metres would pull them away from a map of arbitrary scale.
         pipeline.metric = false;
         pipeline.stats.scale = "arbitrary";
-        pipeline.load_keyframes(map)?;
+        pipeline.load_keyframes(map, data)?;
         pipeline.map = Some(MapOrigin {
             localizer,
             keyframes: map.keyframes.len(),
@@ -104,14 +113,15 @@ impl Pipeline {
     }
 
     /// The map's keyframes as the pipeline's first ones; their dense depth to the fusion.
-    fn load_keyframes(&mut self, map: &SavedMap) -> Result<()> {
-        for kf in &map.keyframes {
+    fn load_keyframes(&mut self, map: &SavedMap, data: Vec<KeyframeData>) -> Result<()> {
+        for (kf, data) in map.keyframes.iter().zip(data) {
             self.keyframes.push(KeyframeRecord {
-                image: kf.image.clone(),
+                timestamp: kf.timestamp,
+                camera: kf.image.camera,
+                data,
                 thumbnail: kf.thumbnail.clone(),
                 frame: None,
                 depth: None,
-                compact_depth: kf.depth.clone(),
                 world_from_keyframe: kf.world_from_keyframe,
                 reference: None,
                 parent: None,

@@ -225,7 +225,7 @@ impl Pipeline {
             })?,
             _ => DepthFilter::from_depth_map(
                 self.keyframe_frame(kf)?,
-                &self.keyframe_depth(kf),
+                self.keyframe_depth(kf)?.as_ref(),
                 self.config.mapping.clone(),
             )?
             .propagate_to(frame.clone(), &result.frame_from_keyframe)?,

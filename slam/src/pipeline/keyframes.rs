@@ -10,9 +10,9 @@ use nalgebra::{Matrix6, Vector3};
 use super::events::{Event, KeyframeEvent, PoseEvent, TrackingState};
 use super::{DepthInit, Pipeline};
 use crate::dense::layer::{DenseJob, predict};
-use crate::frame::{CompactFrame, Frame};
-use crate::geometry::{Matrix7, SE3, SO3, Sim3};
-use crate::graph::{KeyframeId, NewKeyframe, ParentEdge, Thumbnail};
+use crate::frame::Frame;
+use crate::geometry::{Matrix7, PinholeCamera, SE3, SO3, Sim3};
+use crate::graph::{KeyframeData, KeyframeId, NewKeyframe, ParentEdge, Thumbnail};
 use crate::image::ImageF32;
 use crate::mapping::{CompactDepth, DepthFilter, DepthMap, PriorFillParams};
 use crate::tracking::TrackingReference;
@@ -31,19 +31,22 @@ pub(super) struct FrameRecord {
 /// A finished (or current) keyframe.
 #[derive(Debug)]
 pub(super) struct KeyframeRecord {
-    /// Its image without the pyramid, always kept (issue 37).
-    pub image: CompactFrame,
+    /// Its timestamp and undistorted camera (kept while its image may be spilled).
+    pub timestamp: f64,
+    pub camera: PinholeCamera,
+    /// Its image without the pyramid and its semi-dense depth as last published (final once
+    /// the keyframe is finished), in compact form, always kept: in memory, or in the session's
+    /// store once older than `backend.resident_keyframes + backend.held_keyframes` (issue 37).
+    pub data: KeyframeData,
     /// The full frame while the keyframe is among the `backend.resident_keyframes` newest;
     /// older keyframes drop it with `reference` ([`Pipeline::retire_keyframes`]) and
     /// [`Pipeline::keyframe_frame`] rebuilds it, identical.
     pub frame: Option<Arc<Frame>>,
     /// Its place-recognition descriptor (what a saved map keeps).
     pub thumbnail: Thumbnail,
-    /// Its semi-dense depth as last published (final once the keyframe is finished), in
-    /// full while resident (dropped with `frame`; [`Pipeline::keyframe_depth`]) ...
+    /// Its semi-dense depth in full while resident (dropped with `frame`;
+    /// [`Pipeline::keyframe_depth`]).
     pub depth: Option<Arc<DepthMap>>,
-    /// ... and always in compact form.
-    pub compact_depth: Arc<CompactDepth>,
     /// Pose at creation (the front end's estimate, before any optimisation).
     pub world_from_keyframe: Sim3,
     /// For relocalisation against finished keyframes; dropped with `frame`
@@ -220,10 +223,15 @@ impl Pipeline {
         let id = self.keyframes.len();
         let mapped = self.mapper.begin(filter)?;
         self.keyframes.push(KeyframeRecord {
-            image: frame.compact(),
+            timestamp: frame.timestamp,
+            camera: frame.camera,
+            data: KeyframeData::new(
+                &self.spill,
+                frame.compact(),
+                CompactDepth::of(&mapped.depth),
+            ),
             thumbnail: Thumbnail::new(&frame),
             frame: Some(frame.clone()),
-            compact_depth: Arc::new(CompactDepth::of(&mapped.depth)),
             depth: Some(mapped.depth),
             world_from_keyframe,
             reference: Some(mapped.reference),
@@ -274,14 +282,14 @@ impl Pipeline {
             .ok_or_else(|| Error::Config("the current keyframe has no depth filter".into()))?;
         let frame = self.keyframe_frame(id)?;
         let record = &mut self.keyframes[id];
-        record.compact_depth = Arc::new(CompactDepth::of(&mapped.depth));
+        record.data = record.data.with_depth(CompactDepth::of(&mapped.depth));
         record.depth = Some(mapped.depth.clone());
         record.reference = Some(mapped.reference);
         let new = NewKeyframe {
             id,
             frame: frame.clone(),
             depth: mapped.depth.clone(),
-            compact_depth: Some(record.compact_depth.clone()),
+            data: Some(record.data.clone()),
             world_from_keyframe: record.world_from_keyframe,
             parent: record.parent.clone(),
         };
@@ -303,16 +311,25 @@ impl Pipeline {
     }
 
     /// Keyframes older than the `backend.resident_keyframes` newest let go of their full
-    /// frame, full depth map and tracking reference; the current one never does.
+    /// frame, full depth map and tracking reference; those older than the newest
+    /// `resident_keyframes + held_keyframes` also spill their compact data to the session's
+    /// store when it has one. The current one never does either.
     fn retire_keyframes(&mut self) {
         let keep = self.config.backend.resident_keyframes;
-        let old = self.keyframes.len().saturating_sub(keep);
+        let held = keep + self.config.backend.held_keyframes;
+        let n = self.keyframes.len();
         let current = self.current;
-        for (id, record) in self.keyframes[..old].iter_mut().enumerate() {
-            if Some(id) != current {
+        for (id, record) in self.keyframes.iter_mut().enumerate() {
+            if Some(id) == current {
+                continue;
+            }
+            if id + keep < n {
                 record.frame = None;
                 record.depth = None;
                 record.reference = None;
+            }
+            if id + held < n {
+                record.data.spill();
             }
         }
     }
@@ -322,17 +339,17 @@ impl Pipeline {
         let record = &self.keyframes[id];
         match &record.frame {
             Some(frame) => Ok(frame.clone()),
-            None => Ok(Arc::new(record.image.rebuild()?)),
+            None => Ok(Arc::new(record.data.frame()?)),
         }
     }
 
     /// Keyframe `id`'s semi-dense depth as last published, expanded from its compact form
     /// when it was retired.
-    pub(super) fn keyframe_depth(&self, id: KeyframeId) -> Arc<DepthMap> {
+    pub(super) fn keyframe_depth(&self, id: KeyframeId) -> Result<Arc<DepthMap>> {
         let record = &self.keyframes[id];
         match &record.depth {
-            Some(depth) => depth.clone(),
-            None => Arc::new(record.compact_depth.expand()),
+            Some(depth) => Ok(depth.clone()),
+            None => Ok(Arc::new(record.data.depth_map()?)),
         }
     }
 
@@ -345,7 +362,7 @@ impl Pipeline {
         }
         let reference = Arc::new(TrackingReference::new(
             self.keyframe_frame(id)?.as_ref(),
-            &self.keyframe_depth(id),
+            self.keyframe_depth(id)?.as_ref(),
         )?);
         self.keyframes[id].reference = Some(reference.clone());
         Ok(reference)

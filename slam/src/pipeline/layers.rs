@@ -89,7 +89,7 @@ impl Pipeline {
         }
         let id = keyframe.keyframe_id;
         let job = FusionJob {
-            rgb: self.keyframes[id].image.rgb.clone(),
+            rgb: self.keyframes[id].data.image.get()?.rgb.clone(),
             pose: self.current_pose(id),
             keyframe,
         };

@@ -53,6 +53,7 @@ use crate::gpu::GpuContext;
 use crate::graph::{Backend, BackendLink, KeyframeId};
 use crate::image::ImageF32;
 use crate::mapping::DepthMap;
+use crate::spill::Spill;
 use crate::tracking::SE3Tracker;
 use extend::MapOrigin;
 use keyframes::{FrameRecord, KeyframeRecord};
@@ -113,8 +114,12 @@ pub struct KeyframeMemory {
     /// Keyframes whose full frame and tracking reference the pipeline holds (the
     /// `backend.resident_keyframes` newest).
     pub resident: usize,
-    /// Bytes of every keyframe's compact image and depth map.
+    /// Bytes of the compact images and depth maps held in memory.
     pub compact_bytes: usize,
+    /// Keyframes whose compact image and depth are spilled to the session's store.
+    pub spilled: usize,
+    /// What was written to and read from the store.
+    pub spill: crate::spill::SpillFigures,
     /// Bytes the full frames and tracking references held add.
     pub resident_bytes: usize,
     /// Bytes of the dense keyframes' maps (depth and variance; the stages when kept).
@@ -164,6 +169,8 @@ pub struct Pipeline {
     reported_poses: HashMap<KeyframeId, Sim3>,
     /// The saved map this pipeline extends, if any ([`Pipeline::extending`]).
     map: Option<MapOrigin>,
+    /// Where old keyframes' compact data goes (`crate::spill`).
+    spill: Spill,
 }
 
 impl Pipeline {
@@ -186,16 +193,18 @@ impl Pipeline {
         prior: Option<Box<dyn DepthPrior>>,
         gpu: Option<Arc<GpuContext>>,
     ) -> Result<Self> {
-        Self::build(config, camera, prior, gpu, None)
+        Self::build(config, camera, prior, gpu, None, Spill::default())
     }
 
-    /// [`Pipeline::with_gpu`] with a back end that may already hold keyframes (a loaded map).
+    /// [`Pipeline::with_gpu`] with a back end that may already hold keyframes (a loaded map,
+    /// whose compact data spills with `spill`).
     fn build(
         mut config: Config,
         camera: PinholeCamera,
         prior: Option<Box<dyn DepthPrior>>,
         gpu: Option<Arc<GpuContext>>,
         backend: Option<Backend>,
+        spill: Spill,
     ) -> Result<Self> {
         config.validate()?;
         let threaded = !config.pipeline.deterministic;
@@ -268,6 +277,7 @@ impl Pipeline {
             },
             reported_poses: HashMap::new(),
             map: None,
+            spill,
             config,
         })
     }
@@ -288,11 +298,9 @@ impl Pipeline {
         KeyframeMemory {
             keyframes: self.keyframes.len(),
             resident: held.clone().count(),
-            compact_bytes: self
-                .keyframes
-                .iter()
-                .map(|k| k.image.heap_bytes() + k.compact_depth.heap_bytes())
-                .sum(),
+            compact_bytes: self.keyframes.iter().map(|k| k.data.held_bytes()).sum(),
+            spilled: self.keyframes.iter().filter(|k| !k.data.is_held()).count(),
+            spill: self.spill.figures(),
             resident_bytes: held
                 .map(|k| {
                     k.frame.as_ref().map_or(0, |f| f.heap_bytes())
@@ -392,12 +400,19 @@ impl Pipeline {
     /// Every keyframe's image and semi-dense inverse depth as last published (final once the
     /// keyframe is finished), in the keyframe's own scale: what the depth probes of
     /// `relfusion bench accuracy` compare with the sensor's depth.
-    pub fn keyframe_depths(&self) -> Vec<(KeyframeId, CompactFrame, Arc<DepthMap>)> {
+    /// Spilled keyframes are read back.
+    pub fn keyframe_depths(&self) -> Result<Vec<(KeyframeId, Arc<CompactFrame>, Arc<DepthMap>)>> {
         self.keyframes
             .iter()
             .enumerate()
-            .map(|(id, k)| (id, k.image.clone(), self.keyframe_depth(id)))
+            .map(|(id, k)| Ok((id, k.data.image.get()?, self.keyframe_depth(id)?)))
             .collect()
+    }
+
+    /// The session's spilling (`crate::spill`): attach a store before the first frame to keep
+    /// only the newest keyframes' compact data in memory.
+    pub fn spill(&self) -> &Spill {
+        &self.spill
     }
 
     /// The best current estimate of a keyframe's pose: the back end's once it has one.

@@ -118,7 +118,7 @@ fn pipeline_tracks_every_synthetic_frame_within_the_ate_bound() {
         "frame ATE {} > 2.5% of {path} m",
         traj.rmse
     );
-    assert!(!pipeline.semidense_points().is_empty());
+    assert!(!pipeline.semidense_points().expect("points").is_empty());
 }
 
 /// The paper's Table III baseline "*": refining the pose graph with the sensor depth must
@@ -162,23 +162,39 @@ fn deterministic_mode_gives_the_same_trajectory_twice() {
 }
 
 /// Issue 37: keyframes that leave the working set keep a compact form and are rebuilt when
-/// used again. Rebuilding on every use (`resident_keyframes` 0) must give the same
-/// trajectory, keyframes, semi-dense points, dense depth and mesh as holding every keyframe
-/// in full, while holding far less.
+/// used again; older ones spill to the session's store and are read back. Rebuilding on every
+/// use (`resident_keyframes` 0) with every finished keyframe spilled (`held_keyframes` 0) must
+/// give the same trajectory, keyframes, semi-dense points, dense depth and mesh as holding
+/// every keyframe in full, while holding far less.
 #[test]
-fn compact_keyframes_change_where_data_lives_never_results() {
-    let run_with = |resident: usize| {
+fn compact_and_spilled_keyframes_change_where_data_lives_never_results() {
+    let spill_dir = std::env::temp_dir().join(format!("relfusion-spill-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&spill_dir);
+    let run_with = |resident: usize, spill: bool| {
         let mut config = deterministic();
         config.backend.resident_keyframes = resident;
-        let (mut pipeline, _) = run(config);
+        config.backend.held_keyframes = 0;
+        let (camera, frames, _) = sequence();
+        let mut pipeline = Pipeline::new(config, *camera, None).expect("pipeline");
+        if spill {
+            let store = crate::spill::FolderStore::new(&spill_dir).expect("spill folder");
+            pipeline.spill().attach(Arc::new(store)).expect("attach");
+        }
+        for frame in frames {
+            pipeline.push(frame.clone()).expect("push");
+        }
+        pipeline.finish().expect("finish");
         let mesh = pipeline.mesh().expect("mesh").expect("a fused mesh");
         (pipeline, mesh)
     };
-    let (all, all_mesh) = run_with(64);
-    let (none, none_mesh) = run_with(0);
+    let (all, all_mesh) = run_with(64, false);
+    let (none, none_mesh) = run_with(0, true);
     assert_eq!(all.trajectory(), none.trajectory());
     assert_eq!(all.keyframe_trajectory(), none.keyframe_trajectory());
-    assert_eq!(all.semidense_points(), none.semidense_points());
+    assert_eq!(
+        all.semidense_points().expect("points"),
+        none.semidense_points().expect("points")
+    );
     let dense = |p: &Pipeline| {
         p.dense_keyframes()
             .into_iter()
@@ -187,11 +203,12 @@ fn compact_keyframes_change_where_data_lives_never_results() {
     };
     assert_eq!(dense(&all), dense(&none));
     assert_eq!(all_mesh.positions, none_mesh.positions);
+    assert_eq!(all_mesh.colors, none_mesh.colors);
 
     let (a, n) = (all.keyframe_memory(), none.keyframe_memory());
-    println!("all resident: {a:?}\nnone resident: {n:?}");
+    println!("all resident: {a:?}\nnone resident, spilled: {n:?}");
     assert!(a.keyframes >= 5, "the orbit makes several keyframes");
-    assert_eq!(a.resident, a.keyframes);
+    assert_eq!((a.resident, a.spilled), (a.keyframes, 0));
     assert_eq!(n.resident, 0);
     let (ab, nb) = (a.backend.expect("in step"), n.backend.expect("in step"));
     assert_eq!((ab.resident, ab.rebuilds), (ab.keyframes, 0));
@@ -200,11 +217,19 @@ fn compact_keyframes_change_where_data_lives_never_results() {
         nb.rebuilds > 0,
         "constraint searches rebuild compact keyframes"
     );
+    // Every finished keyframe is spilled (the current one was finished by `finish`) and
+    // nothing of them stays in memory; constraint searches read them back.
+    assert_eq!((n.spilled, nb.spilled), (n.keyframes, nb.keyframes));
+    assert_eq!((n.compact_bytes, nb.compact_bytes), (0, 0));
+    assert!(n.spill.spilled >= 2 * n.keyframes && n.spill.loads > 0);
+    let files = std::fs::read_dir(&spill_dir).expect("spill folder").count();
+    assert_eq!(files, n.spill.spilled);
     // A full keyframe (pyramid, tracking reference, alignment levels) costs several times
     // its compact form.
     let full = (a.resident_bytes + ab.resident_bytes) / a.keyframes;
     let compact = a.compact_bytes / a.keyframes;
     assert!(full > 3 * compact, "full {full} B, compact {compact} B");
+    std::fs::remove_dir_all(&spill_dir).ok();
 }
 
 #[test]

@@ -124,10 +124,12 @@ fn a_session_ends_at_its_map_limit_with_its_results() {
     assert_eq!(tum_lines(&trajectory.body).len() as u64, processed);
 }
 
-/// Issue 37: keyframes outside the working set are compact, so the same memory share holds
-/// about twice as many (320×240 with the dense layer): a 300-frame upload that makes about
-/// 27 keyframes, which a share of 580 MiB ended at 20 when every keyframe was costed (and
-/// held) in full, now maps to its end, and the server stays within its budget while it does.
+/// Issue 37: keyframes outside the working set are compact, and older ones spill to the
+/// session's store, so the same memory share holds more than twice as many (320×240 with the
+/// dense layer): a 300-frame upload that makes about 27 keyframes, which a share of 580 MiB
+/// ended at 20 when every keyframe was costed (and held) in full, now maps to its end with
+/// its keyframes spilled (`backend.held_keyframes` 0), the server stays within its budget
+/// while it does, and deleting the session removes what it spilled.
 #[test]
 fn compact_keyframes_let_a_session_map_past_the_old_limit_within_its_budget() {
     const FRAMES: usize = 300;
@@ -140,7 +142,14 @@ fn compact_keyframes_let_a_session_map_past_the_old_limit_within_its_budget() {
         )),
         &[],
     );
-    let created = upload(&server, None, &tar_with_list(&dir, &rgb_txt(&dir)));
+    let created = send(
+        &server,
+        "POST",
+        "/v1/uploads?format=tar&config=%7B%22backend%22%3A%7B%22held_keyframes%22%3A0%7D%7D",
+        None,
+        "application/x-tar",
+        &tar_with_list(&dir, &rgb_txt(&dir)),
+    );
     assert_eq!(created.status, 201, "{}", created.body);
     let id = created.json()["id"].as_str().expect("id").to_string();
     // Polled here rather than with `wait_info`: the server's RSS is sampled on the way, and
@@ -183,5 +192,29 @@ fn compact_keyframes_let_a_session_map_past_the_old_limit_within_its_budget() {
         peak < BUDGET_MB << 20,
         "the server peaked at {} MiB over its {BUDGET_MB} MiB budget",
         peak >> 20
+    );
+    // All but the 8 resident keyframes went to the store: an image and a depth map each.
+    let spill = server.data_dir().join("sessions").join(&id).join("spill");
+    let spilled = std::fs::read_dir(&spill).map_or(0, |d| d.count()) as u64;
+    assert!(
+        spilled >= 2 * (keyframes - 8),
+        "{spilled} objects spilled for {keyframes} keyframes"
+    );
+    let deleted = send(
+        &server,
+        "DELETE",
+        &format!("/v1/sessions/{id}"),
+        None,
+        "",
+        &[],
+    );
+    assert!(deleted.status < 300, "{}", deleted.body);
+    let removed_by = Instant::now() + Duration::from_secs(20);
+    while spill.exists() && Instant::now() < removed_by {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert!(
+        !spill.exists(),
+        "a deleted session's spilled keyframes are removed"
     );
 }

@@ -260,6 +260,7 @@ impl SessionManager {
                 pixels,
                 dense_pixels,
                 config.backend.resident_keyframes,
+                config.backend.held_keyframes,
             ))
             .map_err(ApiError::bad_request)
     }

@@ -60,7 +60,7 @@ fn drifting_inputs(keyframes: &[SynthKeyframe]) -> Vec<NewKeyframe> {
                 id: k,
                 frame: Arc::clone(&kf.frame),
                 depth: Arc::clone(&kf.depth),
-                compact_depth: None,
+                data: None,
                 world_from_keyframe,
                 parent,
             }
@@ -196,7 +196,7 @@ fn backend_appearance_search_links_a_keyframe_with_a_wrong_pose() {
         id: 3,
         frame: Arc::clone(&revisit.frame),
         depth: Arc::clone(&revisit.depth),
-        compact_depth: None,
+        data: None,
         world_from_keyframe: wrong,
         parent: None,
     });
