@@ -107,6 +107,9 @@ pub struct Stats {
     pub mesh_revision: u64,
 }
 
+/// A keyframe's image and semi-dense depth ([`Pipeline::keyframe_depths`]).
+pub type KeyframeDepth = (KeyframeId, Arc<CompactFrame>, Arc<DepthMap>);
+
 /// What a session's keyframes hold ([`Pipeline::keyframe_memory`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct KeyframeMemory {
@@ -401,7 +404,7 @@ impl Pipeline {
     /// keyframe is finished), in the keyframe's own scale: what the depth probes of
     /// `relfusion bench accuracy` compare with the sensor's depth.
     /// Spilled keyframes are read back.
-    pub fn keyframe_depths(&self) -> Result<Vec<(KeyframeId, Arc<CompactFrame>, Arc<DepthMap>)>> {
+    pub fn keyframe_depths(&self) -> Result<Vec<KeyframeDepth>> {
         self.keyframes
             .iter()
             .enumerate()
