@@ -24,6 +24,9 @@ pub trait SpillStore: Send + Sync + fmt::Debug {
     fn put(&self, key: &str, bytes: &[u8]) -> std::result::Result<(), String>;
     /// The object under `key`.
     fn get(&self, key: &str) -> std::result::Result<Vec<u8>, String>;
+    /// Removes the object under `key` (a value replaced or dropped: a refined depth map
+    /// supersedes the one spilled before).
+    fn remove(&self, key: &str) -> std::result::Result<(), String>;
 }
 
 /// A folder as a [`SpillStore`] (`relfusion run --spill DIR`, tests). Nothing here needs to
@@ -53,6 +56,10 @@ impl SpillStore for FolderStore {
 
     fn get(&self, key: &str) -> std::result::Result<Vec<u8>, String> {
         std::fs::read(self.dir.join(key)).map_err(|e| format!("{key}: {e}"))
+    }
+
+    fn remove(&self, key: &str) -> std::result::Result<(), String> {
+        std::fs::remove_file(self.dir.join(key)).map_err(|e| format!("{key}: {e}"))
     }
 }
 
@@ -196,6 +203,18 @@ impl<T: Spillable> Stored<T> {
         self.spill.shared.store.get().ok_or_else(|| {
             Error::Spill(format!("{} is spilled but no store is attached", self.key))
         })
+    }
+}
+
+impl<T> Drop for Stored<T> {
+    /// A spilled value nobody holds any more leaves the store too.
+    fn drop(&mut self) {
+        let spilled = self.lock().is_none();
+        if let (true, Some(store)) = (spilled, self.spill.shared.store.get())
+            && let Err(e) = store.remove(&self.key)
+        {
+            tracing::debug!(key = %self.key, error = %e, "a dropped spilled value stays in the store");
+        }
     }
 }
 
@@ -380,6 +399,9 @@ mod tests {
         bytes.truncate(bytes.len() - 3);
         std::fs::write(&path, &bytes).expect("write");
         assert!(stored.get().is_err());
+        // Dropping a spilled value removes its object.
+        drop(stored);
+        assert!(!path.exists());
         std::fs::remove_dir_all(&dir).ok();
     }
 

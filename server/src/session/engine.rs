@@ -65,6 +65,14 @@ impl Engine {
         })
     }
 
+    /// What a mapping engine's keyframes hold in memory and in the store.
+    pub fn keyframe_memory(&self) -> Option<relfusion_slam::pipeline::KeyframeMemory> {
+        match self {
+            Engine::Map(pipeline) => Some(pipeline.keyframe_memory()),
+            Engine::Localize { .. } => None,
+        }
+    }
+
     /// Old keyframes spill to `store` (a mapping engine; a localiser's map stays as loaded).
     pub fn attach_spill(
         &self,

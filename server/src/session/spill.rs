@@ -1,4 +1,5 @@
-//! A session's spilled keyframes in its store (issue 37): `sessions/<id>/spill/<n>`, in the
+//! A session's spilled keyframes in its store (issue 37): `sessions/<id>/spill/<n>/value`
+//! (a folder per value, so that a superseded one is removed with `delete_prefix`), in the
 //! same object store as its uploads and results (filesystem or S3), so they go with the
 //! session when it is deleted or expires. They are a cache of the running pipeline: a session
 //! that re-runs after a restart clears them first ([`SessionSpill::open`]).
@@ -34,15 +35,21 @@ impl SessionSpill {
 impl SpillStore for SessionSpill {
     fn put(&self, key: &str, bytes: &[u8]) -> Result<(), String> {
         self.store
-            .put(&format!("{}{key}", self.prefix), bytes)
+            .put(&format!("{}{key}/value", self.prefix), bytes)
             .map_err(|e| e.to_string())
     }
 
     fn get(&self, key: &str) -> Result<Vec<u8>, String> {
-        match self.store.get(&format!("{}{key}", self.prefix)) {
+        match self.store.get(&format!("{}{key}/value", self.prefix)) {
             Ok(Some(bytes)) => Ok(bytes),
             Ok(None) => Err(format!("spilled keyframe data {key} is missing")),
             Err(e) => Err(e.to_string()),
         }
+    }
+
+    fn remove(&self, key: &str) -> Result<(), String> {
+        self.store
+            .delete_prefix(&format!("{}{key}/", self.prefix))
+            .map_err(|e| e.to_string())
     }
 }

@@ -428,6 +428,8 @@ impl Runner<'_> {
                 "scale": stats.scale,
                 "keyframes_fused": stats.keyframes_fused,
                 "mesh_revision": stats.mesh_revision,
+                // Keyframes held in full, compact and spilled, and their bytes (issue 37).
+                "keyframe_memory": self.engine.keyframe_memory(),
             }),
         };
         let mut bytes = results

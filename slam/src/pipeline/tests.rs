@@ -222,8 +222,14 @@ fn compact_and_spilled_keyframes_change_where_data_lives_never_results() {
     assert_eq!((n.spilled, nb.spilled), (n.keyframes, nb.keyframes));
     assert_eq!((n.compact_bytes, nb.compact_bytes), (0, 0));
     assert!(n.spill.spilled >= 2 * n.keyframes && n.spill.loads > 0);
+    // Superseded values (a depth map refined after it was spilled) left the store.
     let files = std::fs::read_dir(&spill_dir).expect("spill folder").count();
-    assert_eq!(files, n.spill.spilled);
+    assert!(
+        files >= 2 * n.keyframes && files <= n.spill.spilled,
+        "{files} objects for {} keyframes, {} spilled",
+        n.keyframes,
+        n.spill.spilled
+    );
     // A full keyframe (pyramid, tracking reference, alignment levels) costs several times
     // its compact form.
     let full = (a.resident_bytes + ab.resident_bytes) / a.keyframes;

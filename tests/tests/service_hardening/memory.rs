@@ -155,9 +155,12 @@ fn compact_keyframes_let_a_session_map_past_the_old_limit_within_its_budget() {
     // Polled here rather than with `wait_info`: the server's RSS is sampled on the way, and
     // 300 frames take longer than its deadline on a loaded 2-core machine.
     let mut peak = 0u64;
+    let spill = server.data_dir().join("sessions").join(&id).join("spill");
+    let mut most_spilled = 0;
     let deadline = Instant::now() + Duration::from_secs(400);
     let info = loop {
         peak = peak.max(rss(server.pid()));
+        most_spilled = most_spilled.max(std::fs::read_dir(&spill).map_or(0, |d| d.count()));
         let info = get(&server, &format!("/v1/sessions/{id}"), None).json();
         if info["state"] == "finished" || info["state"] == "failed" {
             break info;
@@ -193,13 +196,23 @@ fn compact_keyframes_let_a_session_map_past_the_old_limit_within_its_budget() {
         "the server peaked at {} MiB over its {BUDGET_MB} MiB budget",
         peak >> 20
     );
-    // All but the 8 resident keyframes went to the store: an image and a depth map each.
-    let spill = server.data_dir().join("sessions").join(&id).join("spill");
-    let spilled = std::fs::read_dir(&spill).map_or(0, |d| d.count()) as u64;
+    // All but the 8 resident keyframes went to the store (an image and a depth map each),
+    // and the finished session's pipeline took them away with it.
+    let summary_path = spill.with_file_name("results").join("summary.json");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&summary_path).expect("summary.json"))
+            .expect("summary JSON");
+    let memory = &summary["keyframe_memory"];
+    assert_eq!(memory["spilled"], keyframes - 8, "{summary}");
     assert!(
-        spilled >= 2 * (keyframes - 8),
-        "{spilled} objects spilled for {keyframes} keyframes"
+        memory["spill"]["spilled"].as_u64() >= Some(2 * (keyframes - 8)),
+        "{summary}"
     );
+    assert!(
+        most_spilled as u64 >= keyframes - 8,
+        "{most_spilled} objects seen in the store for {keyframes} keyframes"
+    );
+    assert_eq!(std::fs::read_dir(&spill).map_or(0, |d| d.count()), 0);
     let deleted = send(
         &server,
         "DELETE",
