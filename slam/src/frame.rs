@@ -252,14 +252,11 @@ impl crate::spill::Spillable for CompactFrame {
                 k3: input.f64()?,
             }),
         };
-        let camera = PinholeCamera {
-            fx,
-            fy,
-            cx,
-            cy,
-            width,
-            height,
-            distortion,
+        // Through the one camera check: a damaged object is an error, not a bad camera.
+        let camera = PinholeCamera::new(fx, fy, cx, cy, width, height)?;
+        let camera = match distortion {
+            Some(d) => camera.with_distortion(d)?,
+            None => camera,
         };
         let rgb = match input.u8()? {
             0 => None,
