@@ -199,21 +199,7 @@ impl crate::spill::Spillable for CompactFrame {
     fn encode(&self, out: &mut Writer) {
         out.u64(self.id);
         out.f64(self.timestamp);
-        let c = &self.camera;
-        for v in [c.fx, c.fy, c.cx, c.cy] {
-            out.f64(v);
-        }
-        out.u64(u64::from(c.width));
-        out.u64(u64::from(c.height));
-        match &c.distortion {
-            Some(d) => {
-                out.u8(1);
-                for v in [d.k1, d.k2, d.p1, d.p2, d.k3] {
-                    out.f64(v);
-                }
-            }
-            None => out.u8(0),
-        }
+        out.camera(&self.camera);
         match &self.rgb {
             Some(rgb) => {
                 out.u8(1);
@@ -223,41 +209,15 @@ impl crate::spill::Spillable for CompactFrame {
             }
             None => out.u8(0),
         }
-        for image in [&self.gray, &self.sensor_depth] {
-            match image {
-                Some(image) => {
-                    out.u8(1);
-                    out.u64(image.width as u64);
-                    out.u64(image.height as u64);
-                    out.f32s(&image.data);
-                }
-                None => out.u8(0),
-            }
-        }
+        out.opt_image(self.gray.as_deref());
+        out.opt_image(self.sensor_depth.as_deref());
     }
 
     fn decode(input: &mut Reader<'_>) -> Result<Self> {
         let id = input.u64()?;
         let timestamp = input.f64()?;
-        let (fx, fy, cx, cy) = (input.f64()?, input.f64()?, input.f64()?, input.f64()?);
+        let camera = input.camera()?;
         let dim = |v: u64| u32::try_from(v).map_err(|_| Error::Spill("a size does not fit".into()));
-        let (width, height) = (dim(input.u64()?)?, dim(input.u64()?)?);
-        let distortion = match input.u8()? {
-            0 => None,
-            _ => Some(crate::geometry::Distortion {
-                k1: input.f64()?,
-                k2: input.f64()?,
-                p1: input.f64()?,
-                p2: input.f64()?,
-                k3: input.f64()?,
-            }),
-        };
-        // Through the one camera check: a damaged object is an error, not a bad camera.
-        let camera = PinholeCamera::new(fx, fy, cx, cy, width, height)?;
-        let camera = match distortion {
-            Some(d) => camera.with_distortion(d)?,
-            None => camera,
-        };
         let rgb = match input.u8()? {
             0 => None,
             _ => {
@@ -269,22 +229,8 @@ impl crate::spill::Spillable for CompactFrame {
                 Some(Arc::new(rgb))
             }
         };
-        let mut images = [None, None];
-        for slot in &mut images {
-            if input.u8()? != 0 {
-                let (w, h) = (input.usize()?, input.usize()?);
-                let data = input.f32s()?;
-                if w.checked_mul(h) != Some(data.len()) {
-                    return Err(Error::Spill("a spilled image has the wrong size".into()));
-                }
-                *slot = Some(Arc::new(ImageF32 {
-                    width: w,
-                    height: h,
-                    data,
-                }));
-            }
-        }
-        let [gray, sensor_depth] = images;
+        let gray = input.opt_image()?.map(Arc::new);
+        let sensor_depth = input.opt_image()?.map(Arc::new);
         Ok(Self {
             id,
             timestamp,

@@ -16,6 +16,10 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+
+use crate::geometry::{Distortion, PinholeCamera, SO3, Sim3};
+use crate::image::ImageF32;
 use crate::{Error, Result};
 
 /// Where spilled keyframes go: a key-value store private to one session.
@@ -77,6 +81,9 @@ struct Shared {
     spilled: AtomicUsize,
     spilled_bytes: AtomicU64,
     loads: AtomicUsize,
+    /// Why the store refused a value: spilling stops there (keyframes stay in memory) and the
+    /// session says so ([`Spill::failure`]).
+    failure: OnceLock<String>,
 }
 
 /// What a session has spilled ([`Spill::figures`]).
@@ -88,6 +95,8 @@ pub struct SpillFigures {
     pub spilled_bytes: u64,
     /// Values read back.
     pub loads: usize,
+    /// The store refused a value and spilling stopped ([`Spill::failure`] says why).
+    pub failed: bool,
 }
 
 impl Spill {
@@ -100,9 +109,16 @@ impl Spill {
             .map_err(|_| Error::Spill("a store is already attached".into()))
     }
 
-    /// Whether a store is attached.
+    /// Whether values spill: a store is attached and has not failed.
     pub fn enabled(&self) -> bool {
-        self.shared.store.get().is_some()
+        self.shared.store.get().is_some() && self.shared.failure.get().is_none()
+    }
+
+    /// Why the store refused a value, once it has: from then on nothing more is spilled (what
+    /// is spilled already is still read back), so a full or broken store costs memory, never
+    /// data.
+    pub fn failure(&self) -> Option<&str> {
+        self.shared.failure.get().map(String::as_str)
     }
 
     /// Figures so far.
@@ -111,6 +127,7 @@ impl Spill {
             spilled: self.shared.spilled.load(Ordering::Relaxed),
             spilled_bytes: self.shared.spilled_bytes.load(Ordering::Relaxed),
             loads: self.shared.loads.load(Ordering::Relaxed),
+            failed: self.shared.failure.get().is_some(),
         }
     }
 }
@@ -171,12 +188,17 @@ impl<T: Spillable> Stored<T> {
         Ok(Arc::new(value))
     }
 
-    /// Writes the value to the store and drops it from memory; nothing happens without a store
-    /// or when it is spilled already.
+    /// Writes the value to the store and drops it from memory; nothing happens without a store,
+    /// after the store failed once, or when the value is spilled already. The first failure is
+    /// returned and stops all spilling of the session ([`Spill::failure`]).
     pub fn spill(&self) -> Result<()> {
-        let Some(store) = self.spill.shared.store.get() else {
+        let shared = &self.spill.shared;
+        let Some(store) = shared.store.get() else {
             return Ok(());
         };
+        if shared.failure.get().is_some() {
+            return Ok(());
+        }
         let mut held = self.lock();
         let Some(value) = held.as_ref() else {
             return Ok(());
@@ -184,9 +206,11 @@ impl<T: Spillable> Stored<T> {
         let mut writer = Writer::default();
         value.encode(&mut writer);
         let bytes = lz4_flex::compress_prepend_size(&writer.bytes);
-        store.put(&self.key, &bytes).map_err(Error::Spill)?;
+        if let Err(e) = store.put(&self.key, &bytes) {
+            let _ = shared.failure.set(e.clone());
+            return Err(Error::Spill(e));
+        }
         *held = None;
-        let shared = &self.spill.shared;
         shared.spilled.fetch_add(1, Ordering::Relaxed);
         shared
             .spilled_bytes
@@ -260,6 +284,54 @@ impl Writer {
     pub fn f32s(&mut self, v: &[f32]) {
         self.bytes(bytemuck::cast_slice(v));
     }
+    pub fn u32s(&mut self, v: &[u32]) {
+        self.bytes(bytemuck::cast_slice(v));
+    }
+    pub fn str(&mut self, v: &str) {
+        self.bytes(v.as_bytes());
+    }
+    /// A pinhole camera with its distortion, if any.
+    pub fn camera(&mut self, c: &PinholeCamera) {
+        for v in [c.fx, c.fy, c.cx, c.cy] {
+            self.f64(v);
+        }
+        self.u64(u64::from(c.width));
+        self.u64(u64::from(c.height));
+        match &c.distortion {
+            Some(d) => {
+                self.u8(1);
+                for v in [d.k1, d.k2, d.p1, d.p2, d.k3] {
+                    self.f64(v);
+                }
+            }
+            None => self.u8(0),
+        }
+    }
+    /// A similarity (quaternion, translation, scale; bit patterns kept).
+    pub fn sim3(&mut self, p: &Sim3) {
+        let q = p.rotation.quaternion();
+        for v in [q.w, q.i, q.j, q.k] {
+            self.f64(v);
+        }
+        for v in p.translation.iter() {
+            self.f64(*v);
+        }
+        self.f64(p.scale);
+    }
+    pub fn image(&mut self, image: &ImageF32) {
+        self.u64(image.width as u64);
+        self.u64(image.height as u64);
+        self.f32s(&image.data);
+    }
+    pub fn opt_image(&mut self, image: Option<&ImageF32>) {
+        match image {
+            Some(image) => {
+                self.u8(1);
+                self.image(image);
+            }
+            None => self.u8(0),
+        }
+    }
 }
 
 /// Reads what a [`Writer`] wrote; any shortfall or excess is an error, never a panic.
@@ -309,6 +381,56 @@ impl<'a> Reader<'a> {
             .chunks_exact(4)
             .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
             .collect())
+    }
+    pub fn u32s(&mut self) -> Result<Vec<u32>> {
+        Ok(self.f32s()?.into_iter().map(f32::to_bits).collect())
+    }
+    pub fn string(&mut self) -> Result<String> {
+        String::from_utf8(self.bytes()?.to_vec())
+            .map_err(|_| Error::Spill("a spilled text is not UTF-8".into()))
+    }
+    /// A camera, through [`PinholeCamera`]'s own checks: a damaged object is an error, not a
+    /// bad camera.
+    pub fn camera(&mut self) -> Result<PinholeCamera> {
+        let (fx, fy, cx, cy) = (self.f64()?, self.f64()?, self.f64()?, self.f64()?);
+        let dim = |v: u64| u32::try_from(v).map_err(|_| Error::Spill("a size does not fit".into()));
+        let (width, height) = (dim(self.u64()?)?, dim(self.u64()?)?);
+        let camera = PinholeCamera::new(fx, fy, cx, cy, width, height)?;
+        Ok(match self.u8()? {
+            0 => camera,
+            _ => camera.with_distortion(Distortion {
+                k1: self.f64()?,
+                k2: self.f64()?,
+                p1: self.f64()?,
+                p2: self.f64()?,
+                k3: self.f64()?,
+            })?,
+        })
+    }
+    pub fn sim3(&mut self) -> Result<Sim3> {
+        let (w, i, j, k) = (self.f64()?, self.f64()?, self.f64()?, self.f64()?);
+        let t = Vector3::new(self.f64()?, self.f64()?, self.f64()?);
+        let scale = self.f64()?;
+        let q = UnitQuaternion::new_unchecked(Quaternion::new(w, i, j, k));
+        Ok(Sim3::new(SO3::from_quaternion(q), t, scale))
+    }
+    pub fn image(&mut self) -> Result<ImageF32> {
+        let (width, height) = (self.usize()?, self.usize()?);
+        let data = self.f32s()?;
+        if width.checked_mul(height) != Some(data.len()) {
+            return Err(Error::Spill("a spilled image has the wrong size".into()));
+        }
+        Ok(ImageF32 {
+            width,
+            height,
+            data,
+        })
+    }
+    pub fn opt_image(&mut self) -> Result<Option<ImageF32>> {
+        match self.u8()? {
+            0 => Ok(None),
+            _ => self.image().map(Some),
+        }
     }
     /// Everything was read.
     pub fn finish(&self) -> Result<()> {
@@ -403,6 +525,56 @@ mod tests {
         drop(stored);
         assert!(!path.exists());
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A store that takes `room` values and then refuses, like a full disk or bucket.
+    #[derive(Debug)]
+    struct Full {
+        room: usize,
+        puts: AtomicUsize,
+    }
+
+    impl SpillStore for Full {
+        fn put(&self, key: &str, _: &[u8]) -> std::result::Result<(), String> {
+            let n = self.puts.fetch_add(1, Ordering::Relaxed);
+            if n < self.room {
+                Ok(())
+            } else {
+                Err(format!("{key}: no space left"))
+            }
+        }
+        fn get(&self, key: &str) -> std::result::Result<Vec<u8>, String> {
+            Err(format!("{key}: not kept"))
+        }
+        fn remove(&self, _: &str) -> std::result::Result<(), String> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_full_store_stops_spilling_and_keeps_values_in_memory() {
+        let spill = Spill::default();
+        let store = Arc::new(Full {
+            room: 1,
+            puts: AtomicUsize::new(0),
+        });
+        spill.attach(store.clone()).expect("attach");
+        let values: Vec<_> = (0..4)
+            .map(|i| Stored::new(&spill, Arc::new(Pair(i, vec![i as f32]))))
+            .collect();
+        values[0].spill().expect("room for one");
+        let e = values[1].spill().expect_err("full");
+        assert!(e.to_string().contains("no space left"), "{e}");
+        assert!(spill.failure().is_some_and(|f| f.contains("no space")));
+        assert!(!spill.enabled() && spill.figures().failed);
+        // No further attempts: the rest stay in memory, readable.
+        values[2].spill().expect("no-op after the failure");
+        assert_eq!(store.puts.load(Ordering::Relaxed), 2);
+        for v in &values[1..] {
+            assert!(v.is_held());
+            assert_eq!(v.get().expect("held").0, v.held().expect("held").0);
+        }
+        assert_eq!(spill.figures().spilled, 1);
     }
 
     #[test]

@@ -209,7 +209,7 @@ pub(super) fn write_results(
         write_points_ply(&out.join("dense.ply"), &pipeline.dense_points()?)?;
         // The maps inside are shared (`Arc`): cloning a keyframe copies no pixels.
         let dense: Vec<_> = pipeline
-            .dense_keyframes()
+            .dense_keyframes()?
             .into_iter()
             .map(|(kf, pose)| ((*kf).clone(), pose))
             .collect();

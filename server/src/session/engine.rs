@@ -73,6 +73,14 @@ impl Engine {
         }
     }
 
+    /// Why the session's store refused spilled keyframes, once it has.
+    pub fn spill_failure(&self) -> Option<String> {
+        match self {
+            Engine::Map(pipeline) => pipeline.spill().failure().map(str::to_owned),
+            Engine::Localize { .. } => None,
+        }
+    }
+
     /// Old keyframes spill to `store` (a mapping engine; a localiser's map stays as loaded).
     pub fn attach_spill(
         &self,

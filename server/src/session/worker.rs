@@ -106,7 +106,7 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         last_stats: Stats::default(),
         since_checkpoint: 0,
         keyframe_frames: std::collections::HashMap::new(),
-        map_full: false,
+        mapping_ended: false,
     };
     let fed = match session.kind() {
         SessionKind::Live => runner.feed_live(),
@@ -139,8 +139,9 @@ struct Runner<'a> {
     since_checkpoint: usize,
     /// Client frame id and timestamp of each keyframe, for pose-graph updates.
     keyframe_frames: std::collections::HashMap<u64, (u64, f64)>,
-    /// The map reached the session's keyframe limit: no more frames go in.
-    map_full: bool,
+    /// Mapping ended early (the map limit, or a store that refused spilled keyframes): no more
+    /// frames go in.
+    mapping_ended: bool,
 }
 
 impl Runner<'_> {
@@ -225,7 +226,7 @@ impl Runner<'_> {
                     self.env.metrics.frame_queue_depth.dec();
                     in_window += 1;
                     self.process(frame)?;
-                    if self.map_full {
+                    if self.mapping_ended {
                         self.session.close_input();
                         return Ok(Outcome::Finished);
                     }
@@ -289,7 +290,7 @@ impl Runner<'_> {
                 rgb,
                 received: Instant::now(),
             })?;
-            if self.map_full {
+            if self.mapping_ended {
                 break;
             }
         }
@@ -369,8 +370,22 @@ impl Runner<'_> {
             }
         }
         let keyframes = s.counters.keyframes.load(Ordering::Relaxed);
-        if keyframes >= s.max_keyframes as u64 && !self.map_full {
-            self.map_full = true;
+        // The memory model counts on old keyframes leaving memory: when the store refuses
+        // them (full, or gone), mapping ends here with what it has (issue 37, item 4).
+        if !self.mapping_ended
+            && let Some(e) = self.engine.spill_failure()
+        {
+            self.mapping_ended = true;
+            let notice = format!(
+                "ended: the session's store refused its spilled keyframes ({e}); results up \
+                 to frame {} are kept, later frames were not processed",
+                frame.frame_id
+            );
+            tracing::warn!(session = %s.id(), "{notice}");
+            s.set_notice(Some(notice));
+        }
+        if keyframes >= s.max_keyframes as u64 && !self.mapping_ended {
+            self.mapping_ended = true;
             let notice = format!(
                 "ended at the map limit: {keyframes} keyframes, what this session's share of \
                  the server's memory holds (limits.memory_budget_mb, limits.max_keyframes); \

@@ -5,8 +5,10 @@
 //! Re-integration follows BundleFusion's de-integration: a moved keyframe is integrated again
 //! with weight −w at the pose it went in with, then with +w at its new pose, so the volume
 //! always equals the fusion of every kept keyframe at its latest pose (exactly, while voxel
-//! weights stay under the cap). The inputs needed for that are kept within
-//! `fusion.keyframe_memory_mb`; a keyframe whose input was dropped stays where it was fused.
+//! weights stay under the cap). The inputs needed for that are held within
+//! `fusion.keyframe_memory_mb`; past it, older inputs spill to the session's store (issue 37)
+//! and are read back when their keyframe moves, or, without a store, are dropped and their
+//! keyframe stays where it was fused.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::Arc;
@@ -15,9 +17,10 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::dense::DenseCompute;
-use crate::geometry::Sim3;
+use crate::geometry::{PinholeCamera, Sim3};
 use crate::gpu::GpuContext;
 use crate::graph::KeyframeId;
+use crate::spill::{Spill, Stored};
 use crate::{Error, Result};
 
 use super::block::{BLOCK_SIDE, BlockIndex, BlockTable, UPPER_NEIGHBOURS};
@@ -49,8 +52,12 @@ pub struct FusionStats {
     pub keyframes_fused: usize,
     /// De-integrations + re-integrations after pose-graph moves.
     pub reintegrations: usize,
-    /// Keyframes whose input was dropped for the memory budget (they can no longer move).
+    /// Keyframes whose input was dropped for the memory budget (no store: they can no longer
+    /// move).
     pub inputs_dropped: usize,
+    /// Keyframes whose input went to the session's store for the memory budget (read back
+    /// when they move).
+    pub inputs_spilled: usize,
     /// Blocks that could not be allocated (pool full).
     pub blocks_refused: usize,
     pub blocks: usize,
@@ -176,12 +183,15 @@ impl Store {
     }
 }
 
-/// A fused keyframe: where it went in, and its input while the budget keeps it.
+/// A fused keyframe: where it went in, and its input (held, spilled, or dropped without a
+/// store). Camera and median depth stay for the pose-change test.
 #[derive(Debug)]
 struct Fused {
     pose: Sim3,
     blocks: Vec<BlockIndex>,
-    input: Option<Arc<FusionInput>>,
+    camera: PinholeCamera,
+    median_depth: f32,
+    input: Option<Arc<Stored<FusionInput>>>,
 }
 
 /// TSDF volume, block table, keyframe records and the current block meshes of one session.
@@ -193,8 +203,10 @@ pub struct Fuser {
     /// Set by the first keyframe unless configured.
     voxel_size: Option<f32>,
     fused: BTreeMap<KeyframeId, Fused>,
-    /// Keyframes holding an input, oldest first (eviction order).
+    /// Keyframes holding an input in memory, oldest first (eviction order).
     kept: VecDeque<KeyframeId>,
+    /// Where inputs past the budget go (`crate::spill`; dropped when no store is attached).
+    spill: Spill,
     kept_bytes: usize,
     dirty: BTreeSet<BlockIndex>,
     meshes: BTreeMap<BlockIndex, BlockMesh>,
@@ -220,11 +232,19 @@ impl Fuser {
             config,
             fused: BTreeMap::new(),
             kept: VecDeque::new(),
+            spill: Spill::default(),
             kept_bytes: 0,
             dirty: BTreeSet::new(),
             meshes: BTreeMap::new(),
             revision: 0,
         })
+    }
+
+    /// Inputs past the memory budget spill to `spill`'s store (once one is attached) instead
+    /// of being dropped.
+    pub fn with_spill(mut self, spill: Spill) -> Self {
+        self.spill = spill;
+        self
     }
 
     pub fn stats(&self) -> FusionStats {
@@ -272,19 +292,20 @@ impl Fuser {
         if self.fused.contains_key(&id) {
             self.remove_keyframe(id)?;
         }
-        let input = Arc::new(input);
         let blocks = self.integrate(&input, &pose)?;
         self.stats.keyframes_fused += 1;
+        self.kept.push_back(id);
+        self.kept_bytes += input.bytes();
         self.fused.insert(
             id,
             Fused {
                 pose,
                 blocks,
-                input: Some(input.clone()),
+                camera: input.camera,
+                median_depth: input.median_depth,
+                input: Some(Stored::new(&self.spill, Arc::new(input))),
             },
         );
-        self.kept.push_back(id);
-        self.kept_bytes += input.bytes();
         self.enforce_budget();
         Ok(())
     }
@@ -302,12 +323,14 @@ impl Fuser {
             let Some(f) = self.fused.get(id) else {
                 continue;
             };
-            let Some(input) = f.input.clone() else {
+            let Some(stored) = &f.input else {
                 continue;
             };
-            if displacement(&f.pose, pose, &input) <= limit {
+            if displacement(&f.pose, pose, &f.camera, f.median_depth) <= limit {
                 continue;
             }
+            // Read back when spilled; it stays in the store.
+            let input = stored.get()?;
             let (old, old_blocks) = (f.pose, f.blocks.clone());
             self.deintegrate(&input, &old, &old_blocks)?;
             let blocks = self.integrate(&input, pose)?;
@@ -323,16 +346,19 @@ impl Fuser {
         Ok(moved)
     }
 
-    /// De-integrates a keyframe (kept input only: one whose input went for the memory budget
-    /// stays in the volume) and forgets it.
+    /// De-integrates a keyframe (one whose input was dropped for the memory budget stays in
+    /// the volume) and forgets it.
     pub fn remove_keyframe(&mut self, id: KeyframeId) -> Result<()> {
         let Some(f) = self.fused.remove(&id) else {
             return Ok(());
         };
-        if let Some(input) = &f.input {
-            self.deintegrate(input, &f.pose, &f.blocks)?;
-            self.kept.retain(|k| *k != id);
-            self.kept_bytes -= input.bytes();
+        if let Some(stored) = &f.input {
+            let input = stored.get()?;
+            self.deintegrate(&input, &f.pose, &f.blocks)?;
+            if stored.is_held() {
+                self.kept.retain(|k| *k != id);
+                self.kept_bytes -= input.bytes();
+            }
             self.free_empty_blocks()?;
         }
         Ok(())
@@ -425,13 +451,31 @@ impl Fuser {
         Ok(())
     }
 
-    /// Drops the oldest inputs past the memory budget (never the newest keyframe's).
+    /// Spills (or, without a store, drops) the oldest inputs past the memory budget (never the
+    /// newest keyframe's).
     fn enforce_budget(&mut self) {
         let budget = (self.config.keyframe_memory_mb * 1024.0 * 1024.0) as usize;
         while self.kept_bytes > budget && self.kept.len() > 1 {
             let id = self.kept.pop_front().expect("len > 1");
-            if let Some(input) = self.fused.get_mut(&id).and_then(|f| f.input.take()) {
-                self.kept_bytes -= input.bytes();
+            let Some(f) = self.fused.get_mut(&id) else {
+                continue;
+            };
+            let Some(bytes) = f.input.as_ref().and_then(|s| s.held()).map(|i| i.bytes()) else {
+                continue;
+            };
+            self.kept_bytes -= bytes;
+            let spilled = self.spill.enabled()
+                && f.input.as_ref().is_some_and(|s| match s.spill() {
+                    Ok(()) => !s.is_held(),
+                    Err(e) => {
+                        tracing::warn!(keyframe = id, error = %e, "fusion input dropped: spilling failed");
+                        false
+                    }
+                });
+            if spilled {
+                self.stats.inputs_spilled += 1;
+            } else {
+                f.input = None;
                 self.stats.inputs_dropped += 1;
             }
         }
@@ -521,9 +565,8 @@ fn input_view<'a>(input: &'a FusionInput, pose: &Sim3) -> Result<DepthView<'a>> 
 /// How far a keyframe's surface moves between two poses: the largest displacement of five
 /// points at its median depth (image centre and corners), in world units. Scale changes count:
 /// a Sim(3) scale change moves the surface even when the camera stays put.
-fn displacement(old: &Sim3, new: &Sim3, input: &FusionInput) -> f64 {
-    let c = &input.camera;
-    let d = f64::from(input.median_depth);
+fn displacement(old: &Sim3, new: &Sim3, c: &PinholeCamera, median_depth: f32) -> f64 {
+    let d = f64::from(median_depth);
     let (w, h) = (f64::from(c.width), f64::from(c.height));
     [(w / 2.0, h / 2.0), (0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
         .iter()

@@ -172,6 +172,62 @@ fn inputs_past_the_memory_budget_stay_where_they_were_fused() {
 }
 
 #[test]
+fn inputs_past_the_budget_spill_and_still_move() {
+    let one = wall_input(0, &FusionConfig::default()).bytes() as f64;
+    let tight = FusionConfig {
+        keyframe_memory_mb: 1.5 * one / (1024.0 * 1024.0),
+        ..config(DenseCompute::Cpu)
+    };
+    let dir = std::env::temp_dir().join(format!("relfusion-fuser-spill-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let spill = Spill::default();
+    spill
+        .attach(Arc::new(crate::spill::FolderStore::new(&dir).expect("dir")))
+        .expect("attach");
+    let mut spilled = Fuser::new(tight.clone(), None)
+        .expect("fuser")
+        .with_spill(spill.clone());
+    let mut held = Fuser::new(config(DenseCompute::Cpu), None).expect("fuser");
+    for fuser in [&mut spilled, &mut held] {
+        for id in 0..3 {
+            fuser
+                .add_keyframe(wall_input(id, &tight), pose(0.1 * id as f64, 0.0, 1.0))
+                .expect("add");
+        }
+    }
+    let s = spilled.stats();
+    assert_eq!((s.inputs_spilled, s.inputs_dropped), (2, 0));
+    assert_eq!(spill.figures().spilled, 2);
+    let moved: Vec<_> = (0..3)
+        .map(|id| (id, pose(0.1 * id as f64, 1.0, 1.0)))
+        .collect();
+    assert_eq!(spilled.update_poses(&moved).expect("move"), 3);
+    assert_eq!(held.update_poses(&moved).expect("move"), 3);
+    assert_eq!(
+        spill.figures().loads,
+        2,
+        "the spilled inputs were read back"
+    );
+    let (a, b) = (spilled.mesh().expect("mesh"), held.mesh().expect("mesh"));
+    assert_eq!(
+        a.positions, b.positions,
+        "spilling changes where inputs live, not the mesh"
+    );
+    // Removing a keyframe whose input is spilled takes it out of the volume too.
+    spilled.remove_keyframe(0).expect("remove");
+    held.remove_keyframe(0).expect("remove");
+    assert_eq!(
+        spilled.mesh().expect("mesh").positions,
+        held.mesh().expect("mesh").positions
+    );
+    let files = || std::fs::read_dir(&dir).expect("dir").count();
+    assert_eq!(files(), 1, "keyframe 0's input left the store with it");
+    drop(spilled);
+    assert_eq!(files(), 0, "a finished fusion empties its spill");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
 fn small_moves_are_not_reintegrated_and_scale_changes_are() {
     let config = config(DenseCompute::Cpu);
     let mut fuser = Fuser::new(config.clone(), None).expect("fuser");

@@ -9,6 +9,7 @@ use crate::dense::store::DenseStore;
 use crate::geometry::{PinholeCamera, Sim3};
 use crate::graph::KeyframeId;
 use crate::image::ImageF32;
+use crate::spill::{Reader, Spillable, Writer};
 use crate::{Error, Result};
 
 use super::block::pack_rgb;
@@ -30,6 +31,43 @@ pub struct FusionInput {
     /// Median valid depth (keyframe units): sets the automatic voxel size and the pose-change
     /// test.
     pub median_depth: f32,
+}
+
+/// Inputs past the re-integration budget spill to the session's store (issue 37) and are
+/// read back, bit-identical, when their keyframe moves.
+impl Spillable for FusionInput {
+    fn encode(&self, out: &mut Writer) {
+        out.u64(self.keyframe_id as u64);
+        out.f64(self.timestamp);
+        out.camera(&self.camera);
+        out.f32s(&self.depth);
+        out.f32s(&self.weight);
+        out.u32s(&self.color);
+        out.f64(f64::from(self.median_depth));
+    }
+
+    fn decode(input: &mut Reader<'_>) -> Result<Self> {
+        let value = Self {
+            keyframe_id: input.usize()?,
+            timestamp: input.f64()?,
+            camera: input.camera()?,
+            depth: input.f32s()?,
+            weight: input.f32s()?,
+            color: input.u32s()?,
+            median_depth: input.f64()? as f32,
+        };
+        let n = value.camera.width as usize * value.camera.height as usize;
+        if [value.depth.len(), value.weight.len(), value.color.len()] != [n; 3] {
+            return Err(Error::Spill(
+                "a spilled fusion input has maps of the wrong size".into(),
+            ));
+        }
+        Ok(value)
+    }
+
+    fn heap_bytes(&self) -> usize {
+        self.bytes()
+    }
 }
 
 impl FusionInput {

@@ -17,6 +17,7 @@ use crate::dense::resample::box_downsample_rgb;
 use crate::geometry::Sim3;
 use crate::gpu::GpuContext;
 use crate::graph::KeyframeId;
+use crate::spill::Spill;
 
 use super::config::FusionConfig;
 use super::fuser::{Fuser, MeshDelta};
@@ -97,7 +98,13 @@ pub struct FusionLink {
 impl FusionLink {
     /// Starts the fusion; the fuser (and its GPU pool, on `gpu`, the session's GPU) is built on
     /// the thread when `threaded`.
-    pub fn new(config: FusionConfig, threaded: bool, gpu: Option<Arc<GpuContext>>) -> Result<Self> {
+    /// Inputs past `fusion.keyframe_memory_mb` spill to `spill`'s store.
+    pub fn new(
+        config: FusionConfig,
+        threaded: bool,
+        gpu: Option<Arc<GpuContext>>,
+        spill: Spill,
+    ) -> Result<Self> {
         config.validate()?;
         let poses = LatestPoses::default();
         let spec = WorkerSpec {
@@ -108,7 +115,7 @@ impl FusionLink {
         let service_poses = poses.clone();
         let link = Link::new(threaded, spec, move || {
             Ok(FusionService {
-                fuser: Fuser::new(config.clone(), gpu)?,
+                fuser: Fuser::new(config.clone(), gpu)?.with_spill(spill),
                 config,
                 poses: service_poses,
             })

@@ -140,11 +140,15 @@ impl Pipeline {
                     world_from_keyframe,
                     image: CompactFrame::clone(&image),
                     depth,
-                    dense: self.dense_keyframes.get(&id).map(|d| DenseDepth {
-                        camera: d.camera,
-                        idepth: d.idepth.clone(),
-                        variance: d.variance.clone(),
-                    }),
+                    dense: match self.dense_keyframes.get(&id).map(|d| d.get()) {
+                        Some(Ok(d)) => Some(DenseDepth {
+                            camera: d.camera,
+                            idepth: d.idepth.clone(),
+                            variance: d.variance.clone(),
+                        }),
+                        Some(Err(e)) => return Some(Err(e)),
+                        None => None,
+                    },
                     thumbnail: kf.thumbnail.clone(),
                 }))
             })
@@ -174,7 +178,7 @@ impl Pipeline {
     pub fn dense_points(&self) -> Result<Vec<ColoredPoint>> {
         let mut points = Vec::new();
         let exported = self.exported();
-        for (kf, world_from_kf) in self.dense_keyframes() {
+        for (kf, world_from_kf) in self.dense_keyframes()? {
             if !exported[kf.keyframe_id] {
                 continue;
             }

@@ -143,7 +143,8 @@ impl Pipeline {
                     timings: DenseTimings::default(),
                     stages: None,
                 });
-                self.dense_keyframes.insert(kf.id, dense.clone());
+                self.dense_keyframes
+                    .insert(kf.id, Stored::new(&self.spill, dense.clone()));
                 if let Some(fusion) = &mut self.fusion {
                     fusion.send(FusionJob {
                         keyframe: dense,

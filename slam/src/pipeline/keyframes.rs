@@ -330,6 +330,11 @@ impl Pipeline {
             }
             if id + held < n {
                 record.data.spill();
+                if let Some(dense) = self.dense_keyframes.get(&id)
+                    && let Err(e) = dense.spill()
+                {
+                    tracing::warn!(keyframe = id, error = %e, "dense keyframe kept in memory: spilling failed");
+                }
             }
         }
     }

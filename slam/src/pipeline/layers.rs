@@ -14,6 +14,7 @@ use crate::fusion::MeshDelta;
 use crate::fusion::worker::{FusionJob, FusionLink, FusionReply};
 use crate::geometry::Sim3;
 use crate::graph::{BackendCommand, KeyframeId};
+use crate::spill::Stored;
 
 impl Pipeline {
     /// Hands a finished keyframe to the dense layer (handled at once in step; dropped and
@@ -75,7 +76,8 @@ impl Pipeline {
                 mode: kf.mode,
                 keyframe: kf.clone(),
             });
-            self.dense_keyframes.insert(id, kf.clone());
+            self.dense_keyframes
+                .insert(id, Stored::new(&self.spill, kf.clone()));
             self.fuse(kf)?;
         }
         Ok(())

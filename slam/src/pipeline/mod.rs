@@ -53,7 +53,7 @@ use crate::gpu::GpuContext;
 use crate::graph::{Backend, BackendLink, KeyframeId};
 use crate::image::ImageF32;
 use crate::mapping::DepthMap;
-use crate::spill::Spill;
+use crate::spill::{Spill, Stored};
 use crate::tracking::SE3Tracker;
 use extend::MapOrigin;
 use keyframes::{FrameRecord, KeyframeRecord};
@@ -125,8 +125,11 @@ pub struct KeyframeMemory {
     pub spill: crate::spill::SpillFigures,
     /// Bytes the full frames and tracking references held add.
     pub resident_bytes: usize,
-    /// Bytes of the dense keyframes' maps (depth and variance; the stages when kept).
+    /// Bytes of the dense keyframes' maps held in memory (depth and variance; the stages when
+    /// kept).
     pub dense_bytes: usize,
+    /// Dense keyframes whose maps are spilled to the session's store.
+    pub dense_spilled: usize,
     /// The back end's figures, when it is at hand (in step, or after `finish`).
     pub backend: Option<crate::graph::backend::KeyframeMemory>,
 }
@@ -146,7 +149,8 @@ pub struct Pipeline {
     dense: Option<Link<DenseLayer>>,
     fusion: Option<FusionLink>,
     /// The latest dense result of each keyframe, by keyframe id.
-    dense_keyframes: BTreeMap<KeyframeId, Arc<DenseKeyframe>>,
+    /// Dense results, spilled with their keyframe's compact data (`retire_keyframes`).
+    dense_keyframes: BTreeMap<KeyframeId, Arc<Stored<DenseKeyframe>>>,
     /// Events produced outside a frame's own processing (dense results, pose-graph updates),
     /// returned with the next [`Pipeline::push`] or by
     /// [`Pipeline::take_events`].
@@ -241,7 +245,7 @@ impl Pipeline {
             None
         };
         let fusion = (config.fusion.enabled && config.dense.enabled)
-            .then(|| FusionLink::new(config.fusion.clone(), threaded, gpu))
+            .then(|| FusionLink::new(config.fusion.clone(), threaded, gpu, spill.clone()))
             .transpose()?;
         // Anchoring needs the first keyframe in metres, so its depth must come from the prior.
         let metric = config.backend.metric_scale.enabled
@@ -311,7 +315,12 @@ impl Pipeline {
                         + k.reference.as_ref().map_or(0, |r| r.heap_bytes())
                 })
                 .sum(),
-            dense_bytes: self.dense_keyframes.values().map(|d| d.heap_bytes()).sum(),
+            dense_bytes: self.dense_keyframes.values().map(|d| d.held_bytes()).sum(),
+            dense_spilled: self
+                .dense_keyframes
+                .values()
+                .filter(|d| !d.is_held())
+                .count(),
             backend: self.backend.backend().map(Backend::memory),
         }
     }
@@ -428,12 +437,12 @@ impl Pipeline {
     }
 
     /// The latest dense result of every densified keyframe with its current pose (optimised
-    /// after [`Pipeline::finish`]).
-    pub fn dense_keyframes(&self) -> Vec<(Arc<DenseKeyframe>, Sim3)> {
+    /// after [`Pipeline::finish`]); spilled ones are read back.
+    pub fn dense_keyframes(&self) -> Result<Vec<(Arc<DenseKeyframe>, Sim3)>> {
         let poses = self.keyframe_poses();
         self.dense_keyframes
-            .values()
-            .map(|kf| (kf.clone(), poses[kf.keyframe_id].1))
+            .iter()
+            .map(|(id, kf)| Ok((kf.get()?, poses[*id].1)))
             .collect()
     }
 

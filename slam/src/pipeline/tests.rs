@@ -174,6 +174,10 @@ fn compact_and_spilled_keyframes_change_where_data_lives_never_results() {
         let mut config = deterministic();
         config.backend.resident_keyframes = resident;
         config.backend.held_keyframes = 0;
+        if spill {
+            // Every fusion input but the newest spills too (read back when its keyframe moves).
+            config.fusion.keyframe_memory_mb = 1e-3;
+        }
         let (camera, frames, _) = sequence();
         let mut pipeline = Pipeline::new(config, *camera, None).expect("pipeline");
         if spill {
@@ -197,6 +201,7 @@ fn compact_and_spilled_keyframes_change_where_data_lives_never_results() {
     );
     let dense = |p: &Pipeline| {
         p.dense_keyframes()
+            .expect("dense keyframes")
             .into_iter()
             .map(|(k, pose)| (k.idepth.data.clone(), pose))
             .collect::<Vec<_>>()
@@ -222,6 +227,17 @@ fn compact_and_spilled_keyframes_change_where_data_lives_never_results() {
     assert_eq!((n.spilled, nb.spilled), (n.keyframes, nb.keyframes));
     assert_eq!((n.compact_bytes, nb.compact_bytes), (0, 0));
     assert!(n.spill.spilled >= 2 * n.keyframes && n.spill.loads > 0);
+    // Dense maps spill with their keyframes, fusion inputs past the budget too.
+    assert!(
+        n.dense_spilled > 0 && n.dense_bytes < a.dense_bytes,
+        "{n:?}"
+    );
+    let fusion = none.fusion_stats().expect("in step");
+    assert!(
+        fusion.inputs_spilled > 0 && fusion.inputs_dropped == 0,
+        "{fusion:?}"
+    );
+    assert_eq!(all.fusion_stats().expect("in step").inputs_spilled, 0);
     // Superseded values (a depth map refined after it was spilled) left the store.
     let files = std::fs::read_dir(&spill_dir).expect("spill folder").count();
     assert!(
