@@ -243,6 +243,29 @@ pub struct SessionInfo {
     /// The node it runs on (`[zenoh] node`): where the cluster placed it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub node: Option<String>,
+    /// Where a running mapping session's keyframes live (issue 37), updated at each keyframe.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub memory: Option<SessionMemory>,
+}
+
+/// Where a mapping session's keyframes and fusion data live: in full, compact in memory, or
+/// spilled to the session's store.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct SessionMemory {
+    /// Keyframes held in full (the working set: pyramids, tracking references).
+    pub keyframes_resident: u64,
+    /// Keyframes whose compact image and depth are spilled to the store.
+    pub keyframes_spilled: u64,
+    /// Bytes of keyframe data held in memory (compact, full and dense maps).
+    pub keyframe_bytes: u64,
+    /// Bytes written to the store so far (compressed).
+    pub spilled_bytes: u64,
+    /// TSDF blocks allocated, and fusion inputs spilled to the store.
+    pub fusion_blocks: u64,
+    pub fusion_inputs_spilled: u64,
+    /// Pose-graph edges reaching past the working set (loop closures to old keyframes).
+    pub far_edges: u64,
 }
 
 /// A pose in events: `world_from_camera` as translation, unit quaternion `[x, y, z, w]` and

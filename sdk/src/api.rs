@@ -169,6 +169,12 @@ impl Client {
         Self::json(self.request(Method::GET, "v1/version")?).await
     }
 
+    /// `GET /metrics`: the server's Prometheus metrics (OpenMetrics text).
+    pub async fn metrics(&self) -> Result<String, ClientError> {
+        let resp = Self::send(self.request(Method::GET, "metrics")?).await?;
+        Ok(resp.text().await?)
+    }
+
     /// `GET /v1/cluster`: the nodes of the server's cluster and their load, as JSON.
     pub async fn cluster(&self) -> Result<Value, ClientError> {
         Self::json(self.request(Method::GET, "v1/cluster")?).await

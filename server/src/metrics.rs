@@ -2,7 +2,8 @@
 //!
 //! Counters: `frames_received_total`, `frames_dropped_total`, `frames_processed_total`,
 //! `gpu_jobs_total`. Gauges: `sessions_active`, `frame_queue_depth` (frames waiting in all
-//! sessions' queues), `gpu_queue_depth` (jobs waiting in the GPU pool). Histogram:
+//! sessions' queues), `gpu_queue_depth` (jobs waiting in the GPU pool), `resident_memory_bytes`
+//! (the process's RSS when scraped). Histogram:
 //! `stage_latency_seconds{stage="decode|tracking|mapping|frame_to_pose|prior"}`.
 //! Names carry no prefix so that they read the same in the API docs and in dashboards.
 
@@ -61,6 +62,8 @@ pub struct Metrics {
     pub sessions_active: Gauge,
     pub frame_queue_depth: Gauge,
     pub gpu_queue_depth: Gauge,
+    /// The process's resident memory, read when the metrics are rendered.
+    resident_memory: Gauge,
     stage_latency: Family<StageLabels, Histogram, fn() -> Histogram>,
 }
 
@@ -91,6 +94,7 @@ impl Metrics {
         let sessions_active = Gauge::default();
         let frame_queue_depth = Gauge::default();
         let gpu_queue_depth = Gauge::default();
+        let resident_memory = Gauge::default();
         let stage_latency =
             Family::<StageLabels, Histogram, fn() -> Histogram>::new_with_constructor(
                 latency_histogram,
@@ -131,6 +135,11 @@ impl Metrics {
             gpu_queue_depth.clone(),
         );
         registry.register(
+            "resident_memory_bytes",
+            "Resident memory of the process (what the memory budget bounds)",
+            resident_memory.clone(),
+        );
+        registry.register(
             "stage_latency_seconds",
             "Latency of pipeline stages",
             stage_latency.clone(),
@@ -144,6 +153,7 @@ impl Metrics {
             sessions_active,
             frame_queue_depth,
             gpu_queue_depth,
+            resident_memory,
             stage_latency,
         }
     }
@@ -159,6 +169,10 @@ impl Metrics {
 
     /// The text exposition served at `/metrics`.
     pub fn render(&self) -> String {
+        if let Some(bytes) = crate::memory::resident_bytes() {
+            self.resident_memory
+                .set(i64::try_from(bytes).unwrap_or(i64::MAX));
+        }
         let mut out = String::new();
         // Writing into a String cannot fail.
         let _ = prometheus_client::encoding::text::encode(&mut out, &self.registry);
@@ -190,5 +204,11 @@ mod tests {
         ] {
             assert!(text.contains(needle), "{needle} missing in\n{text}");
         }
+        let rss: u64 = text
+            .lines()
+            .find_map(|l| l.strip_prefix("resident_memory_bytes "))
+            .and_then(|v| v.trim().parse().ok())
+            .expect("resident_memory_bytes");
+        assert!(rss > 1 << 20, "{rss}");
     }
 }

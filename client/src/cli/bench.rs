@@ -37,6 +37,10 @@ pub enum BenchCommand {
     Viewer(super::bench_viewer::ViewerArgs),
     /// A saved map: load and save times, size on disk per keyframe, memory once loaded.
     Map(super::bench_map::MapArgs),
+    /// A session of minutes to hours against a running relfusiond (a synthetic hand-held loop
+    /// streamed live): server RSS, keyframes resident/spilled, latency per interval; ATE and
+    /// mesh at the end (issue 37).
+    Long(super::bench_long::LongArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -71,6 +75,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Fusion(args) => super::bench_fusion::fusion(&args),
         BenchCommand::Viewer(args) => super::bench_viewer::viewer(&args),
         BenchCommand::Map(args) => super::bench_map::map(&args),
+        BenchCommand::Long(args) => super::bench_long::long(&args),
     }
 }
 

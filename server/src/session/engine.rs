@@ -73,6 +73,24 @@ impl Engine {
         }
     }
 
+    /// Where a mapping engine's keyframes and fusion data live, for the session's info.
+    pub fn memory(&self) -> Option<relfusion_proto::http::SessionMemory> {
+        let Engine::Map(pipeline) = self else {
+            return None;
+        };
+        let m = pipeline.keyframe_memory();
+        let fusion = pipeline.fusion_stats().unwrap_or_default();
+        Some(relfusion_proto::http::SessionMemory {
+            keyframes_resident: m.resident as u64,
+            keyframes_spilled: m.spilled as u64,
+            keyframe_bytes: (m.compact_bytes + m.resident_bytes + m.dense_bytes) as u64,
+            spilled_bytes: m.spill.spilled_bytes,
+            fusion_blocks: fusion.blocks as u64,
+            fusion_inputs_spilled: fusion.inputs_spilled as u64,
+            far_edges: m.backend.map_or(0, |b| b.far_edges as u64),
+        })
+    }
+
     /// Why the session's store refused spilled keyframes, once it has.
     pub fn spill_failure(&self) -> Option<String> {
         match self {

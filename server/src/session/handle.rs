@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 
-use relfusion_proto::http::MapStart;
+use relfusion_proto::http::{MapStart, SessionMemory};
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 use tokio::sync::broadcast;
@@ -83,6 +83,8 @@ pub struct Session {
     pub(crate) node: String,
     total_frames: Option<u64>,
     pub(crate) counters: Counters,
+    /// Where the running pipeline's keyframes live (set by the worker at each keyframe).
+    pub(crate) memory: Mutex<Option<SessionMemory>>,
     /// Live sessions: frames waiting for the pipeline.
     pub(crate) queue: Option<FrameQueue<QueuedFrame>>,
     /// Serialises pushes so frames enter the queue in id order; holds the last frame's id
@@ -121,7 +123,7 @@ impl std::fmt::Debug for Session {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
@@ -162,6 +164,7 @@ impl Session {
             node: meta.node.unwrap_or_default(),
             total_frames: meta.total_frames,
             counters: Counters::restore(&meta.counters),
+            memory: Mutex::new(None),
             queue,
             push_order: tokio::sync::Mutex::new(None),
             max_timestamp_step: spec.max_timestamp_step,
@@ -236,6 +239,7 @@ impl Session {
             max_keyframes: Some(self.max_keyframes as u64),
             map: self.map.clone(),
             node: (!self.node.is_empty()).then(|| self.node.clone()),
+            memory: *lock(&self.memory),
         }
     }
 

@@ -146,6 +146,7 @@ impl SessionMeta {
             max_keyframes: None,
             map: self.map.clone(),
             node: self.node.clone(),
+            memory: None,
         }
     }
 }

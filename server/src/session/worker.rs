@@ -365,6 +365,7 @@ impl Runner<'_> {
                         pose: k.world_from_keyframe,
                     });
                     self.since_checkpoint += 1;
+                    *super::handle::lock(&s.memory) = self.engine.memory();
                 }
                 event => self.emit_background(event),
             }

@@ -20,7 +20,7 @@ use crate::graph::KeyframeId;
 use crate::spill::Spill;
 
 use super::config::FusionConfig;
-use super::fuser::{Fuser, MeshDelta};
+use super::fuser::{Fuser, FusionStats, MeshDelta};
 use super::input::FusionInput;
 
 /// One densified keyframe to fuse, with the frame's colour image (if it had one).
@@ -44,6 +44,8 @@ pub struct FusionService {
     fuser: Fuser,
     config: FusionConfig,
     poses: LatestPoses,
+    /// The fuser's figures after its latest step, readable while it runs on its thread.
+    stats: Arc<Mutex<FusionStats>>,
 }
 
 impl FusionService {
@@ -62,7 +64,11 @@ impl FusionService {
             let input = FusionInput::from_dense(kf, colors.as_deref(), &self.config)?;
             self.fuser.add_keyframe(input, job.pose)?;
         }
-        self.fuser.take_delta()
+        let delta = self.fuser.take_delta();
+        if let Ok(mut stats) = self.stats.lock() {
+            *stats = self.fuser.stats();
+        }
+        delta
     }
 }
 
@@ -93,6 +99,7 @@ impl Service for FusionService {
 pub struct FusionLink {
     link: Link<FusionService>,
     poses: LatestPoses,
+    stats: Arc<Mutex<FusionStats>>,
 }
 
 impl FusionLink {
@@ -113,14 +120,22 @@ impl FusionLink {
             queue: config.queue,
         };
         let service_poses = poses.clone();
+        let stats = Arc::new(Mutex::new(FusionStats::default()));
+        let service_stats = stats.clone();
         let link = Link::new(threaded, spec, move || {
             Ok(FusionService {
                 fuser: Fuser::new(config.clone(), gpu)?.with_spill(spill),
                 config,
                 poses: service_poses,
+                stats: service_stats,
             })
         })?;
-        Ok(Self { link, poses })
+        Ok(Self { link, poses, stats })
+    }
+
+    /// The fuser's figures as of its latest step (also while it runs on its thread).
+    pub fn stats(&self) -> FusionStats {
+        self.stats.lock().map(|s| s.clone()).unwrap_or_default()
     }
 
     /// Posts the latest keyframe poses (replacing any not yet applied).

@@ -126,6 +126,10 @@ pub struct KeyframeMemory {
     pub spilled: usize,
     /// Bytes the resident full forms add.
     pub resident_bytes: usize,
+    /// Pose-graph edges between keyframes more than `resident_keyframes + held_keyframes`
+    /// apart: loop closures and re-visits that reached past the working set (to keyframes
+    /// that were spilled or compact when they were found).
+    pub far_edges: usize,
 }
 
 /// Graph bookkeeping of one keyframe.
@@ -510,6 +514,15 @@ impl Backend {
                 .filter(|e| !e.kept.data.is_held())
                 .count(),
             resident_bytes: self.resident.heap_bytes(),
+            far_edges: {
+                let window = self.config.resident_keyframes + self.config.held_keyframes;
+                let graph = self.graph();
+                graph
+                    .edges()
+                    .iter()
+                    .filter(|e| e.from.abs_diff(e.to) > window)
+                    .count()
+            },
         }
     }
 

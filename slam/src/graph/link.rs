@@ -6,7 +6,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
 
 use super::KeyframeId;
-use super::backend::{Backend, NewKeyframe};
+use super::backend::{Backend, KeyframeMemory, NewKeyframe};
 use super::config::BackendConfig;
 use crate::Result;
 use crate::background::{Link, Priority, Service, WorkerSpec};
@@ -40,6 +40,8 @@ type Published = Arc<RwLock<HashMap<KeyframeId, Sim3>>>;
 pub struct BackendService {
     backend: Backend,
     published: Published,
+    /// Its memory figures after the latest batch, readable while it runs on its thread.
+    memory: Arc<std::sync::Mutex<KeyframeMemory>>,
 }
 
 impl Service for BackendService {
@@ -79,6 +81,9 @@ impl Service for BackendService {
         if let Ok(mut poses) = self.published.write() {
             *poses = self.backend.poses();
         }
+        if let Ok(mut memory) = self.memory.lock() {
+            *memory = self.backend.memory();
+        }
         match first_error {
             Some(e) => Err(e),
             None => processed,
@@ -91,6 +96,7 @@ impl Service for BackendService {
 pub struct BackendLink {
     link: Link<BackendService>,
     published: Published,
+    memory: Arc<std::sync::Mutex<KeyframeMemory>>,
 }
 
 impl BackendLink {
@@ -108,13 +114,16 @@ impl BackendLink {
             queue: backend.config().channel_capacity,
         };
         let published = Published::default();
+        let memory = Arc::new(std::sync::Mutex::new(backend.memory()));
         let service = BackendService {
             backend,
             published: published.clone(),
+            memory: memory.clone(),
         };
         Ok(Self {
             link: Link::new(threaded, spec, move || Ok(service))?,
             published,
+            memory,
         })
     }
 
@@ -132,6 +141,15 @@ impl BackendLink {
     /// The latest optimised poses (never waits for an optimisation).
     pub fn poses(&self) -> HashMap<KeyframeId, Sim3> {
         self.published.read().map(|p| p.clone()).unwrap_or_default()
+    }
+
+    /// The back end's memory figures: current when it is at hand, as of its latest batch
+    /// while it runs on its thread.
+    pub fn memory(&self) -> KeyframeMemory {
+        match self.backend() {
+            Some(backend) => backend.memory(),
+            None => self.memory.lock().map(|m| *m).unwrap_or_default(),
+        }
     }
 
     /// Commands handled so far on the thread (in step: 0).

@@ -130,7 +130,7 @@ pub struct KeyframeMemory {
     pub dense_bytes: usize,
     /// Dense keyframes whose maps are spilled to the session's store.
     pub dense_spilled: usize,
-    /// The back end's figures, when it is at hand (in step, or after `finish`).
+    /// The back end's figures (as of its latest batch while it runs on its thread).
     pub backend: Option<crate::graph::backend::KeyframeMemory>,
 }
 
@@ -321,7 +321,7 @@ impl Pipeline {
                 .values()
                 .filter(|d| !d.is_held())
                 .count(),
-            backend: self.backend.backend().map(Backend::memory),
+            backend: Some(self.backend.memory()),
         }
     }
 
@@ -456,12 +456,15 @@ impl Pipeline {
         Ok((!mesh.is_empty()).then_some(mesh))
     }
 
-    /// The fusion's figures (voxel size, blocks, timings), when the fuser is at hand (in step,
-    /// or after [`Pipeline::finish`]).
+    /// The fusion's figures (voxel size, blocks, timings): current when the fuser is at hand
+    /// (in step, or after [`Pipeline::finish`]), as of its latest keyframe while it runs on
+    /// its thread; `None` without fusion.
     pub fn fusion_stats(&self) -> Option<FusionStats> {
-        self.fusion
-            .as_ref()
-            .and_then(FusionLink::fuser_ref)
-            .map(|f| f.stats())
+        let fusion = self.fusion.as_ref()?;
+        Some(
+            fusion
+                .fuser_ref()
+                .map_or_else(|| fusion.stats(), |f| f.stats()),
+        )
     }
 }

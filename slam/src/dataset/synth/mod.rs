@@ -103,7 +103,8 @@ impl SynthConfig {
         }
     }
 
-    fn validate(&self) -> Result<()> {
+    /// Refuses sizes, rates and sample counts outside their ranges.
+    pub fn validate(&self) -> Result<()> {
         if self.frames == 0 {
             return Err(Error::Config("synth: frames must be at least 1".into()));
         }
