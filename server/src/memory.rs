@@ -13,8 +13,9 @@
 //! per pixel (34 MB at 640×480), but only the `backend.resident_keyframes` newest are held in
 //! full (issue 37); the next `backend.held_keyframes` keep a compact form (colour image, depth
 //! map by its estimates, descriptor) of under 20 B per pixel in memory, and every older one
-//! spills that to the session's store (`session::spill`), keeping its descriptor, pose and
-//! dense map. The estimate below rounds each term up.
+//! spills that and its dense maps to the session's store (`session::spill`), keeping its
+//! descriptor, pose and graph entries. The fusion keeps the inputs of re-integration up to
+//! `fusion.keyframe_memory_mb` and spills older ones. The estimate below rounds each term up.
 
 use crate::config::Limits;
 
@@ -39,42 +40,98 @@ const COMPACT_PER_PIXEL: u64 = 24;
 /// Bytes per camera pixel of every older keyframe, spilled to the store: its descriptor,
 /// graph bookkeeping and the records of the frames tracked against it (measured: a few kB).
 const KEYFRAME_PER_PIXEL: u64 = 1;
-/// Bytes per dense-resolution pixel of one densified keyframe: dense depth and variance, its
-/// fusion input kept for re-integration, and its mesh blocks.
-const KEYFRAME_PER_DENSE_PIXEL: u64 = 56;
+/// Bytes per dense-resolution pixel of one densified, spilled keyframe: the fusion's record
+/// of the blocks it went into, its share of the mesh and of the heap the allocator keeps
+/// between checkpoints. The 56 measured before minus the dense maps and fusion input that
+/// now spill; with it the model gives 3.0 GB for the 526 keyframes of a 640×480 session that
+/// peaked at 2.96 GB (docs/tuning.md, third stage).
+const KEYFRAME_PER_DENSE_PIXEL: u64 = 36;
+/// Bytes per dense pixel of a fusion input held for re-integration (depth, weight, colour),
+/// up to `fusion.keyframe_memory_mb`.
+const FUSION_INPUT_PER_DENSE_PIXEL: u64 = 12;
+/// Building a checkpoint's point cloud: about a quarter of a keyframe's pixels are semi-dense
+/// points, 32 B each with their PLY bytes, up to `session::engine::POINTCLOUD_MAX_POINTS`.
+const POINTCLOUD_PER_PIXEL: u64 = 8;
+const POINTCLOUD_CAP: u64 = 128 * MIB;
 
 /// Fewest keyframes a session's share must hold for the session to be worth starting.
 pub const MIN_KEYFRAMES: usize = 16;
 
-/// What one session costs.
+/// What one session costs: `base + per_keyframe · n + min(input · n, input_cap)` for a map
+/// of `n` keyframes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct SessionCost {
     pub base: u64,
     pub per_keyframe: u64,
+    /// What grows with the keyframes only up to `input_cap`: the fusion inputs held for
+    /// re-integration (`fusion.keyframe_memory_mb`) and the checkpoint's point cloud.
+    pub input: u64,
+    pub input_cap: u64,
+}
+
+/// What a session's map is made of, for [`SessionCost::estimate`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MapShape {
+    /// Camera pixels.
+    pub pixels: u64,
+    /// Dense-layer pixels (`None`: the dense layer is off).
+    pub dense_pixels: Option<u64>,
+    /// Keyframes held in full (`backend.resident_keyframes`) and compact
+    /// (`backend.held_keyframes`).
+    pub resident: usize,
+    pub held: usize,
+    /// `fusion.keyframe_memory_mb` in bytes (`None`: no fusion).
+    pub fusion_inputs: Option<u64>,
 }
 
 impl SessionCost {
-    /// The estimate for a camera of `pixels` with the dense layer at `dense_pixels` (`None`
-    /// when the dense layer is off), holding `resident` keyframes in full and `held` more in
-    /// compact form; every other one is spilled.
-    pub fn estimate(pixels: u64, dense_pixels: Option<u64>, resident: usize, held: usize) -> Self {
-        let dense = dense_pixels.unwrap_or(0);
-        let working = RESIDENT_PER_PIXEL * resident as u64 + COMPACT_PER_PIXEL * held as u64;
+    /// The estimate for a map of `shape`; every keyframe past the working set is spilled.
+    pub fn estimate(shape: MapShape) -> Self {
+        let dense = shape.dense_pixels.unwrap_or(0);
+        let working =
+            RESIDENT_PER_PIXEL * shape.resident as u64 + COMPACT_PER_PIXEL * shape.held as u64;
+        let fused = shape.fusion_inputs.is_some() && shape.dense_pixels.is_some();
         Self {
             base: BASE_FIXED
-                + (BASE_PER_PIXEL + working) * pixels
-                + if dense_pixels.is_some() {
+                + (BASE_PER_PIXEL + working) * shape.pixels
+                + if shape.dense_pixels.is_some() {
                     BASE_DENSE
                 } else {
                     0
                 },
-            per_keyframe: KEYFRAME_PER_PIXEL * pixels + KEYFRAME_PER_DENSE_PIXEL * dense,
+            per_keyframe: KEYFRAME_PER_PIXEL * shape.pixels + KEYFRAME_PER_DENSE_PIXEL * dense,
+            input: POINTCLOUD_PER_PIXEL * shape.pixels
+                + if fused {
+                    FUSION_INPUT_PER_DENSE_PIXEL * dense
+                } else {
+                    0
+                },
+            input_cap: POINTCLOUD_CAP
+                + if fused {
+                    shape.fusion_inputs.unwrap_or(0)
+                } else {
+                    0
+                },
         }
     }
 
     /// Memory of a map of `keyframes`.
     pub fn at(&self, keyframes: usize) -> u64 {
-        self.base + self.per_keyframe * keyframes as u64
+        let n = keyframes as u64;
+        self.base + self.per_keyframe * n + (self.input * n).min(self.input_cap)
+    }
+
+    /// The most keyframes whose map fits in `bytes`.
+    fn keyframes_within(&self, bytes: u64) -> u64 {
+        let room = bytes.saturating_sub(self.base);
+        let per = self.per_keyframe.max(1);
+        // Past the cap a keyframe costs only its own part; before it, its input too.
+        let past_cap = room.saturating_sub(self.input_cap) / per;
+        if self.input == 0 || past_cap.saturating_mul(self.input) >= self.input_cap {
+            past_cap
+        } else {
+            room / (per + self.input)
+        }
     }
 }
 
@@ -107,8 +164,7 @@ impl MemoryPlan {
     /// How many keyframes a session of `cost` may hold: what its share takes, capped by
     /// `limits.max_keyframes`; `Err` with the reason when fewer than [`MIN_KEYFRAMES`] fit.
     pub fn keyframes_for(&self, cost: SessionCost) -> Result<usize, String> {
-        let fits = self.share.saturating_sub(cost.base) / cost.per_keyframe.max(1);
-        let fits = usize::try_from(fits).unwrap_or(usize::MAX);
+        let fits = usize::try_from(cost.keyframes_within(self.share)).unwrap_or(usize::MAX);
         let allowed = match self.max_keyframes {
             0 => fits,
             n => n.min(fits),
@@ -149,6 +205,21 @@ pub fn available_memory() -> u64 {
     cgroup.map_or(physical, |c| c.min(physical))
 }
 
+/// Hands the heap's free pages back to the system. glibc keeps what threads free in their
+/// arenas: in a 640×480 session of 255 keyframes half the server's RSS (1.4 of 2.8 GB) was
+/// such free memory (docs/tuning.md, "third stage"), which the budget and `/healthz` count as
+/// used. Called after each checkpoint; a no-op elsewhere than glibc.
+pub fn release_free_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        #[allow(unsafe_code)]
+        // SAFETY: `malloc_trim` takes an integer and only walks the allocator's own lists.
+        unsafe {
+            libc::malloc_trim(0);
+        }
+    }
+}
+
 /// The process's resident memory in bytes (Linux), for metrics and health.
 pub fn resident_bytes() -> Option<u64> {
     let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
@@ -172,20 +243,31 @@ mod tests {
     #[test]
     fn shares_set_the_map_size_and_large_cameras_are_refused() {
         let plan = MemoryPlan::new(&limits(16 * 1024, 4, 0));
-        let vga = SessionCost::estimate(640 * 480, Some(320 * 240), 8, 24);
-        let qvga = SessionCost::estimate(320 * 240, Some(320 * 240), 8, 24);
+        let shape = |pixels: u64, dense: Option<u64>| MapShape {
+            pixels,
+            dense_pixels: dense,
+            resident: 8,
+            held: 24,
+            fusion_inputs: Some(512 * MIB),
+        };
+        let vga = SessionCost::estimate(shape(640 * 480, Some(320 * 240)));
+        let qvga = SessionCost::estimate(shape(320 * 240, Some(320 * 240)));
         let vga_kf = plan.keyframes_for(vga).expect("fits");
         let qvga_kf = plan.keyframes_for(qvga).expect("fits");
         assert!(
             vga_kf >= MIN_KEYFRAMES && qvga_kf > vga_kf,
             "{vga_kf} {qvga_kf}"
         );
-        // Spilled keyframes cost their dense maps, not their images: without the dense layer
-        // a session holds thousands.
-        let sparse = SessionCost::estimate(640 * 480, None, 8, 24);
-        assert!(plan.keyframes_for(sparse).expect("fits") > 2000);
+        // Spilled keyframes cost neither their images nor their dense maps, and the fusion's
+        // inputs stop at their cap: without the dense layer a share holds thousands.
+        let sparse = SessionCost::estimate(shape(640 * 480, None));
+        assert!(plan.keyframes_for(sparse).expect("fits") > 5000);
         assert!(vga.at(vga_kf) <= plan.share, "the map fits its share");
-        let huge = SessionCost::estimate(8192 * 8192, Some(320 * 240), 8, 24);
+        assert!(vga.at(vga_kf + 1) > plan.share, "and uses it");
+        // Before the cap each keyframe also costs its fusion input.
+        assert_eq!(vga.at(10) - vga.at(9), vga.per_keyframe + vga.input);
+        assert_eq!(vga.at(100_000) - vga.at(99_999), vga.per_keyframe);
+        let huge = SessionCost::estimate(shape(8192 * 8192, Some(320 * 240)));
         let e = plan.keyframes_for(huge).expect_err("8192² does not fit");
         assert!(e.contains("smaller image"), "{e}");
         let capped = MemoryPlan::new(&limits(16 * 1024, 4, 20));

@@ -150,7 +150,6 @@ struct Received {
     all_ms: Vec<f64>,
     poses: u64,
     error: Option<String>,
-    done: bool,
 }
 
 /// One streaming session.
@@ -290,7 +289,6 @@ async fn start(
                 }
             }
         }
-        received_w.lock().expect("received").done = true;
     });
     Ok(Running {
         id: info.id,
@@ -355,17 +353,19 @@ async fn finish(client: &Client, s: Running, lap: &Lap, fps: f64) -> Value {
         Err(_) => Err("the session did not finish in time".to_string()),
     };
     let _ = tokio::time::timeout(Duration::from_secs(30), s.receiver).await;
-    let r = s.received.lock().expect("received");
-    let mut all = r.all_ms.clone();
-    all.sort_by(f64::total_cmp);
-    let mut out = json!({
-        "id": s.id,
-        "frames_sent": sent,
-        "poses": r.poses,
-        "p50_ms": percentile(&all, 0.5),
-        "p99_ms": percentile(&all, 0.99),
-        "stream_error": r.error.clone().or(sender_error),
-    });
+    let mut out = {
+        let r = s.received.lock().expect("received");
+        let mut all = r.all_ms.clone();
+        all.sort_by(f64::total_cmp);
+        json!({
+            "id": s.id,
+            "frames_sent": sent,
+            "poses": r.poses,
+            "p50_ms": percentile(&all, 0.5),
+            "p99_ms": percentile(&all, 0.99),
+            "stream_error": r.error.clone().or(sender_error),
+        })
+    };
     match info {
         Ok(info) => {
             out["state"] = json!(info.state);
@@ -389,7 +389,13 @@ async fn finish(client: &Client, s: Running, lap: &Lap, fps: f64) -> Value {
                 world_from_camera: *p,
             })
             .collect();
-        let path = path_length(&lap.truth[..(sent as usize).min(lap.truth.len())]);
+        // The path the estimate covers (a session that ended early covers less than was sent).
+        let last = est
+            .iter()
+            .map(|p| (p.timestamp * fps).round() as usize)
+            .max()
+            .unwrap_or(0);
+        let path = path_length(&lap.truth[..(last + 1).min(lap.truth.len())]);
         if let Ok(result) = ate(&gt, &est, AlignMode::Sim3) {
             out["ate_m"] = json!(result.rmse);
             out["ate_matched"] = json!(result.matched);

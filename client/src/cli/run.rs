@@ -226,7 +226,8 @@ pub(super) fn write_results(
     }
     let t_map = Instant::now();
     let map_dir = out.join("map");
-    relfusion_slam::map::write_map(&map_dir, &pipeline.saved_map()?)
+    pipeline
+        .write_map(&map_dir)
         .with_context(|| format!("writing {}", map_dir.display()))?;
     let map_save_s = t_map.elapsed().as_secs_f64();
     Ok(Written {

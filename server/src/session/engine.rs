@@ -13,6 +13,15 @@ use relfusion_slam::pipeline::{
 use crate::convert::points_ply;
 use crate::storage::ObjectStore;
 
+/// Most points of a session's `pointcloud.ply`: 4 M points (64 MB as PLY, about 200 keyframes
+/// at 640×480 in full); longer sessions keep an equal share of every keyframe's points, so the
+/// file and the memory to build it stay bounded however long the session runs (issue 37).
+pub const POINTCLOUD_MAX_POINTS: usize = 4_000_000;
+
+/// A mapping session's trajectory and keyframes (TUM text) and point cloud (PLY; `None` when
+/// not rebuilt).
+pub type ResultFiles = (String, String, Option<Vec<u8>>);
+
 /// The optimised keyframe poses and the events finishing produced.
 type Finished = (Vec<(usize, Sim3)>, Vec<Event>);
 
@@ -186,16 +195,21 @@ impl Engine {
 
     /// The trajectory, keyframes and semi-dense cloud as result files; `None` for a localiser
     /// (whose trajectory is the poses it reported).
-    pub fn result_files(&self) -> Result<Option<(String, String, Vec<u8>)>, String> {
+    /// The point cloud (`pointcloud`: else `None`) holds at most [`POINTCLOUD_MAX_POINTS`].
+    pub fn result_files(&self, pointcloud: bool) -> Result<Option<ResultFiles>, String> {
         match self {
             Engine::Map(pipeline) => Ok(Some((
                 crate::convert::tum_text(&pipeline.trajectory()),
                 crate::convert::tum_text(&pipeline.keyframe_trajectory()),
-                points_ply(
-                    &pipeline
-                        .semidense_points()
-                        .map_err(|e| format!("the point cloud: {e}"))?,
-                ),
+                if pointcloud {
+                    Some(points_ply(
+                        &pipeline
+                            .semidense_points_at_most(POINTCLOUD_MAX_POINTS)
+                            .map_err(|e| format!("the point cloud: {e}"))?,
+                    ))
+                } else {
+                    None
+                },
             ))),
             Engine::Localize { .. } => Ok(None),
         }
@@ -207,12 +221,12 @@ impl Engine {
         let Engine::Map(pipeline) = self else {
             return Ok(0);
         };
-        let map = pipeline.saved_map().map_err(|e| e.to_string())?;
-        if map.keyframes.is_empty() {
+        if pipeline.keyframe_poses().is_empty() {
             return Ok(0);
         }
+        // Keyframe by keyframe: a long session's spilled keyframes are read back one at a time.
         crate::folders::store(store, key, |dir| {
-            relfusion_slam::map::write_map(dir, &map).map_err(|e| e.to_string())
+            pipeline.write_map(dir).map_err(|e| e.to_string())
         })
     }
 }

@@ -156,7 +156,8 @@ impl SessionMeta {
 pub struct Results {
     pub trajectory: String,
     pub keyframes: String,
-    pub pointcloud: Vec<u8>,
+    /// `None`: the stored point cloud is left as it is (a checkpoint that does not rebuild it).
+    pub pointcloud: Option<Vec<u8>>,
     /// The fused mesh as PLY and GLB (absent until the first mesh update).
     pub mesh: Option<(Vec<u8>, Vec<u8>)>,
     pub summary: serde_json::Value,
@@ -169,8 +170,10 @@ impl Results {
         let mut files: Vec<(&str, &[u8])> = vec![
             ("trajectory.txt", self.trajectory.as_bytes()),
             ("keyframes.txt", self.keyframes.as_bytes()),
-            ("pointcloud.ply", &self.pointcloud),
         ];
+        if let Some(ply) = &self.pointcloud {
+            files.push(("pointcloud.ply", ply));
+        }
         if let Some((ply, glb)) = &self.mesh {
             files.push(("mesh.ply", ply));
             files.push(("mesh.glb", glb));

@@ -13,6 +13,7 @@
 //! Results that cannot be stored (a full disk) are retried until they can be, or until the
 //! server shuts down (an upload then re-runs on restart): acknowledged work is not lost.
 
+use std::cell::Cell;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
@@ -105,6 +106,7 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         engine,
         last_stats: Stats::default(),
         since_checkpoint: 0,
+        pointcloud: Cell::new((0, 0)),
         keyframe_frames: std::collections::HashMap::new(),
         mapping_ended: false,
     };
@@ -137,6 +139,10 @@ struct Runner<'a> {
     engine: Engine,
     last_stats: Stats,
     since_checkpoint: usize,
+    /// Keyframes and bytes of the point cloud last written: checkpoints rebuild it only when
+    /// the keyframes have doubled since, so a session's checkpoints read its spilled keyframes
+    /// back O(log n) times, not once per checkpoint (issue 37).
+    pointcloud: Cell<(u64, u64)>,
     /// Client frame id and timestamp of each keyframe, for pose-graph updates.
     keyframe_frames: std::collections::HashMap<u64, (u64, f64)>,
     /// Mapping ended early (the map limit, or a store that refused spilled keyframes): no more
@@ -402,6 +408,7 @@ impl Runner<'_> {
                 tracing::error!(session = %s.id(), "checkpoint: {e}");
             }
             s.persist_meta();
+            crate::memory::release_free_memory();
         }
         Ok(())
     }
@@ -413,15 +420,25 @@ impl Runner<'_> {
             return Err("the session was deleted".into());
         }
         let stats = self.engine.stats();
+        let keyframe_count = s.counters.keyframes.load(Ordering::Relaxed);
+        let (written_at, written_bytes) = self.pointcloud.get();
+        let rebuild = final_ || written_at == 0 || keyframe_count >= 2 * written_at;
         // A localising session's trajectory is the poses it reported, in the map's frame.
         let (trajectory, keyframes, pointcloud) =
-            self.engine.result_files()?.unwrap_or_else(|| {
+            self.engine.result_files(rebuild)?.unwrap_or_else(|| {
                 (
                     s.trajectory_tum(),
                     String::new(),
-                    crate::convert::points_ply(&[]),
+                    Some(crate::convert::points_ply(&[])),
                 )
             });
+        let kept_bytes = match &pointcloud {
+            Some(ply) => {
+                self.pointcloud.set((keyframe_count, ply.len() as u64));
+                0
+            }
+            None => written_bytes,
+        };
         let results = Results {
             trajectory,
             keyframes,
@@ -448,9 +465,10 @@ impl Runner<'_> {
                 "keyframe_memory": self.engine.keyframe_memory(),
             }),
         };
-        let mut bytes = results
-            .save(s.store.as_ref(), s.id())
-            .map_err(|e| e.to_string())?;
+        let mut bytes = kept_bytes
+            + results
+                .save(s.store.as_ref(), s.id())
+                .map_err(|e| e.to_string())?;
         if final_ {
             // The map, to keep with `POST /v1/maps` (docs/map-format.md).
             let key = super::persist::result_key(s.id(), "map");
@@ -537,7 +555,9 @@ impl Runner<'_> {
             save_s = t0.elapsed().as_secs_f64() - optimise_s,
             "finished"
         );
-        self.since_checkpoint = 0;
+        // The pipeline goes before the session is reported finished: what it spilled leaves
+        // the store with it.
+        drop(self);
         s.conclude(SessionState::Finished, None);
         Outcome::Finished
     }

@@ -23,7 +23,7 @@ use crate::mapping::CompactDepth;
 use crate::{Error, Result};
 
 pub use localize::{Localization, LocalizationState, LocalizeConfig, Localizer};
-pub use store::{disk_bytes_by_file, read_keyframe_poses, read_map, write_map};
+pub use store::{disk_bytes_by_file, read_keyframe_poses, read_map, write_map, write_map_streamed};
 
 /// Version of the on-disk layout; a reader refuses any other (the layout says what each
 /// version holds, `docs/map-format.md`).
@@ -74,8 +74,17 @@ impl SavedMap {
     /// Checks what a reader must be able to rely on: keyframe ids `0..n` in order, sizes of
     /// every map equal to the keyframe camera's, edges between existing keyframes, finite poses.
     pub fn validate(&self) -> Result<()> {
-        let undistorted = self.camera.undistorted();
         for (i, kf) in self.keyframes.iter().enumerate() {
+            self.check_keyframe(i, kf)?;
+        }
+        self.check_edges(self.keyframes.len())
+    }
+
+    /// The checks of [`SavedMap::validate`] on keyframe `i` of this map's camera (a map
+    /// written keyframe by keyframe checks each as it comes).
+    pub fn check_keyframe(&self, i: usize, kf: &MapKeyframe) -> Result<()> {
+        let undistorted = self.camera.undistorted();
+        {
             let bad = |why: String| Err(Error::Map(format!("keyframe {i}: {why}")));
             if kf.id != i {
                 return bad(format!("has id {}", kf.id));
@@ -102,6 +111,11 @@ impl SavedMap {
                 return bad("its pose is not a finite similarity".into());
             }
         }
+        Ok(())
+    }
+
+    /// The edges join existing keyframes of a map of `keyframes` with finite similarities.
+    pub fn check_edges(&self, keyframes: usize) -> Result<()> {
         for e in &self.edges {
             if !valid_sim3(&e.to_from_from) {
                 return Err(Error::Map(format!(
@@ -109,7 +123,7 @@ impl SavedMap {
                     e.from, e.to
                 )));
             }
-            if e.from >= self.keyframes.len() || e.to >= self.keyframes.len() || e.from == e.to {
+            if e.from >= keyframes || e.to >= keyframes || e.from == e.to {
                 return Err(Error::Map(format!(
                     "edge {} → {} names a missing keyframe",
                     e.from, e.to

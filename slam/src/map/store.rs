@@ -78,6 +78,22 @@ fn keyframe_dir(root: &Path, id: usize) -> PathBuf {
 /// Writes `map` to the folder `dir` atomically (replacing a map already there).
 pub fn write_map(dir: &Path, map: &SavedMap) -> Result<()> {
     map.validate()?;
+    write_map_streamed(dir, map, map.keyframes.len(), |i| {
+        Ok(map.keyframes[i].clone())
+    })
+}
+
+/// [`write_map`] of `header` (camera, edges, voxel size; its `keyframes` are ignored) with
+/// `count` keyframes that `keyframe(i)` makes one at a time: a session of an hour has thousands
+/// of keyframes, most of them spilled, and its map is written without holding them all in
+/// memory (issue 37). Each keyframe is checked as it comes.
+pub fn write_map_streamed(
+    dir: &Path,
+    header: &SavedMap,
+    count: usize,
+    keyframe: impl FnMut(usize) -> Result<MapKeyframe>,
+) -> Result<()> {
+    header.check_edges(count)?;
     let parent = match dir.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
@@ -96,8 +112,8 @@ pub fn write_map(dir: &Path, map: &SavedMap) -> Result<()> {
             .map_or(0, |d| d.as_nanos())
     );
     let tmp = parent.join(format!(".{name}.tmp-{unique}"));
-    let result =
-        write_contents(&tmp, map).and_then(|()| replace_dir(&tmp, dir, &parent, &name, &unique));
+    let result = write_contents(&tmp, header, count, keyframe)
+        .and_then(|()| replace_dir(&tmp, dir, &parent, &name, &unique));
     if result.is_err() {
         let _ = std::fs::remove_dir_all(&tmp);
     }
@@ -119,10 +135,17 @@ fn replace_dir(tmp: &Path, dir: &Path, parent: &Path, name: &str, unique: &str) 
     Ok(())
 }
 
-fn write_contents(root: &Path, map: &SavedMap) -> Result<()> {
+fn write_contents(
+    root: &Path,
+    map: &SavedMap,
+    count: usize,
+    mut keyframe: impl FnMut(usize) -> Result<MapKeyframe>,
+) -> Result<()> {
     std::fs::create_dir_all(root.join("keyframes")).map_err(|e| Error::io(root, e))?;
-    let mut keyframes = Vec::with_capacity(map.keyframes.len());
-    for kf in &map.keyframes {
+    let mut keyframes = Vec::with_capacity(count);
+    for i in 0..count {
+        let kf = keyframe(i)?;
+        map.check_keyframe(i, &kf)?;
         let dir = keyframe_dir(root, kf.id);
         std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
         let rgb = match (&kf.image.rgb, kf.image.gray()) {

@@ -75,8 +75,16 @@ impl Pipeline {
     /// The semi-dense points of every keyframe at its current pose, coloured from its image.
     /// Spilled keyframes are read back.
     pub fn semidense_points(&self) -> Result<Vec<ColoredPoint>> {
+        self.semidense_points_at_most(usize::MAX)
+    }
+
+    /// [`Pipeline::semidense_points`] thinned to at most `max_points`: each keyframe gives an
+    /// equal share, every k-th of its points. A session of an hour has billions of semi-dense
+    /// points; its checkpoints and downloads stay bounded this way (issue 37).
+    pub fn semidense_points_at_most(&self, max_points: usize) -> Result<Vec<ColoredPoint>> {
         let poses = self.keyframe_poses();
         let exported = self.exported();
+        let share = max_points / exported.iter().filter(|e| **e).count().max(1);
         let mut points = Vec::new();
         let current_depth = self.current.zip(self.mapper.latest_depth());
         for (id, (kf, (_, world_from_kf))) in self.keyframes.iter().zip(poses).enumerate() {
@@ -89,6 +97,7 @@ impl Pipeline {
             };
             let image = kf.data.image.get()?;
             let rgb = image.rgb.as_deref();
+            let start = points.len();
             back_project(
                 &kf.camera,
                 &world_from_kf,
@@ -98,6 +107,16 @@ impl Pipeline {
                 |x, y| rgb.map_or(NO_COLOUR, |rgb| rgb.get_pixel(x as u32, y as u32).0),
                 &mut points,
             );
+            let added = points.len() - start;
+            if added > share {
+                let step = added.div_ceil(share.max(1));
+                let mut kept = start;
+                for i in (start..points.len()).step_by(step) {
+                    points[kept] = points[i];
+                    kept += 1;
+                }
+                points.truncate(kept);
+            }
         }
         Ok(points)
     }
@@ -105,54 +124,45 @@ impl Pipeline {
     /// The map as it stands, to save (`map::write_map`): every keyframe of the main fragment
     /// (renumbered `0..n` in order) with its current pose, semi-dense and dense depth and
     /// descriptor, the pose graph's edges between them, the voxel size. Needs the back end at
-    /// hand: after [`Pipeline::finish`], or in step.
+    /// hand: after [`Pipeline::finish`], or in step. Spilled keyframes are read back; a long
+    /// session writes its map with [`Pipeline::write_map`] instead.
     pub fn saved_map(&self) -> Result<SavedMap> {
+        let (mut map, ids) = self.map_plan()?;
+        map.keyframes = ids
+            .iter()
+            .enumerate()
+            .map(|(new, (old, pose))| self.map_keyframe(*old, new, *pose))
+            .collect::<Result<_>>()?;
+        Ok(map)
+    }
+
+    /// Writes [`Pipeline::saved_map`] into `dir` one keyframe at a time: however many keyframes
+    /// are spilled, one is read back at a time (issue 37).
+    pub fn write_map(&self, dir: &std::path::Path) -> Result<()> {
+        let (header, ids) = self.map_plan()?;
+        crate::map::write_map_streamed(dir, &header, ids.len(), |new| {
+            let (old, pose) = ids[new];
+            self.map_keyframe(old, new, pose)
+        })
+    }
+
+    /// The saved map without its keyframes (camera, renumbered edges, voxel size), and the
+    /// keyframes it takes, in order: their ids in the pipeline and current poses.
+    fn map_plan(&self) -> Result<(SavedMap, Vec<(KeyframeId, Sim3)>)> {
         let backend = self.backend.backend().ok_or_else(|| {
             Error::Backend("the pose graph is on its thread: finish the run first".into())
         })?;
-        let poses = self.keyframe_poses();
         let exported = self.exported();
-        let renumbered: HashMap<KeyframeId, KeyframeId> = (0..self.keyframes.len())
-            .filter(|id| exported[*id])
-            .enumerate()
-            .map(|(new, old)| (old, new))
+        let ids: Vec<(KeyframeId, Sim3)> = self
+            .keyframe_poses()
+            .into_iter()
+            .filter(|(id, _)| exported[*id])
             .collect();
-        let current_depth = self.current.zip(self.mapper.latest_depth());
-        let keyframes = self
-            .keyframes
+        let renumbered: HashMap<KeyframeId, KeyframeId> = ids
             .iter()
-            .zip(poses)
-            .filter_map(|(kf, (id, world_from_keyframe))| {
-                let new_id = *renumbered.get(&id)?;
-                let depth = match &current_depth {
-                    Some((current, depth)) if *current == id => {
-                        Ok(Arc::new(CompactDepth::of(depth)))
-                    }
-                    _ => kf.data.depth.get(),
-                };
-                let (image, depth) = match (kf.data.image.get(), depth) {
-                    (Ok(image), Ok(depth)) => (image, depth),
-                    (Err(e), _) | (_, Err(e)) => return Some(Err(e)),
-                };
-                Some(Ok(MapKeyframe {
-                    id: new_id,
-                    timestamp: kf.timestamp,
-                    world_from_keyframe,
-                    image: CompactFrame::clone(&image),
-                    depth,
-                    dense: match self.dense_keyframes.get(&id).map(|d| d.get()) {
-                        Some(Ok(d)) => Some(DenseDepth {
-                            camera: d.camera,
-                            idepth: d.idepth.clone(),
-                            variance: d.variance.clone(),
-                        }),
-                        Some(Err(e)) => return Some(Err(e)),
-                        None => None,
-                    },
-                    thumbnail: kf.thumbnail.clone(),
-                }))
-            })
-            .collect::<Result<Vec<_>>>()?;
+            .enumerate()
+            .map(|(new, (old, _))| (*old, new))
+            .collect();
         let edges = backend
             .graph()
             .edges()
@@ -165,11 +175,46 @@ impl Pipeline {
                 })
             })
             .collect();
-        Ok(SavedMap {
+        let header = SavedMap {
             camera: self.camera,
-            keyframes,
+            keyframes: Vec::new(),
             edges,
             voxel_size: self.fusion_stats().map(|f| f.voxel_size as f32),
+        };
+        Ok((header, ids))
+    }
+
+    /// Keyframe `id` as keyframe `new_id` of a saved map, at `world_from_keyframe`.
+    fn map_keyframe(
+        &self,
+        id: KeyframeId,
+        new_id: KeyframeId,
+        world_from_keyframe: Sim3,
+    ) -> Result<MapKeyframe> {
+        let kf = &self.keyframes[id];
+        let depth = match self.current.zip(self.mapper.latest_depth()) {
+            Some((current, depth)) if current == id => Arc::new(CompactDepth::of(&depth)),
+            _ => kf.data.depth.get()?,
+        };
+        let dense = match self.dense_keyframes.get(&id) {
+            Some(d) => {
+                let d = d.get()?;
+                Some(DenseDepth {
+                    camera: d.camera,
+                    idepth: d.idepth.clone(),
+                    variance: d.variance.clone(),
+                })
+            }
+            None => None,
+        };
+        Ok(MapKeyframe {
+            id: new_id,
+            timestamp: kf.timestamp,
+            world_from_keyframe,
+            image: CompactFrame::clone(&*kf.data.image.get()?),
+            depth,
+            dense,
+            thumbnail: kf.thumbnail.clone(),
         })
     }
 

@@ -246,6 +246,34 @@ fn compact_and_spilled_keyframes_change_where_data_lives_never_results() {
         n.keyframes,
         n.spill.spilled
     );
+    // The map written keyframe by keyframe from spilled data is the map held in memory.
+    let (held_map, streamed_map) = (spill_dir.join("map-held"), spill_dir.join("map-streamed"));
+    crate::map::write_map(&held_map, &all.saved_map().expect("map")).expect("write");
+    none.write_map(&streamed_map).expect("write streamed");
+    fn map_files(dir: &std::path::Path, root: &std::path::Path, out: &mut Vec<(String, Vec<u8>)>) {
+        let mut entries: Vec<_> = std::fs::read_dir(dir)
+            .expect("map folder")
+            .map(|e| e.expect("entry").path())
+            .collect();
+        entries.sort();
+        for path in entries {
+            if path.is_dir() {
+                map_files(&path, root, out);
+            } else {
+                let name = path
+                    .strip_prefix(root)
+                    .expect("inside")
+                    .display()
+                    .to_string();
+                out.push((name, std::fs::read(&path).expect("read")));
+            }
+        }
+    }
+    let (mut held_files, mut streamed_files) = (Vec::new(), Vec::new());
+    map_files(&held_map, &held_map, &mut held_files);
+    map_files(&streamed_map, &streamed_map, &mut streamed_files);
+    assert!(held_files.len() > 2 * n.keyframes);
+    assert!(held_files == streamed_files, "the two maps differ");
     // A full keyframe (pyramid, tracking reference, alignment levels) costs several times
     // its compact form.
     let full = (a.resident_bytes + ab.resident_bytes) / a.keyframes;

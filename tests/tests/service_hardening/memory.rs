@@ -231,3 +231,82 @@ fn compact_keyframes_let_a_session_map_past_the_old_limit_within_its_budget() {
         "a deleted session's spilled keyframes are removed"
     );
 }
+
+/// Issue 37, item 5: `relfusion bench long` on a short run. A synthetic loop streamed live at
+/// 30 fps for 15 s to a real relfusiond: every report line carries the server's RSS and where
+/// the session's keyframes live; with `held_keyframes` 0 the old ones spill while it runs;
+/// the summary scores the trajectory against the rendered truth, and the finished session's
+/// store holds nothing spilled any more.
+#[test]
+fn bench_long_streams_a_loop_and_reports_memory_and_accuracy() {
+    let server = spawn("bench-long", None, &[]);
+    let dir = temp_dir("bench-long-cli");
+    let config = dir.join("config.json");
+    std::fs::write(&config, r#"{"backend": {"held_keyframes": 0}}"#).expect("config");
+    let output = std::process::Command::new(relfusion_tests::bin_path("relfusion"))
+        .args([
+            "bench",
+            "long",
+            "--server",
+            &server.url(),
+            "--minutes",
+            "0.25",
+        ])
+        .args([
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--report-s",
+            "5",
+            "--config",
+        ])
+        .arg(&config)
+        .output()
+        .expect("run relfusion bench long");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let lines: Vec<Value> = stdout
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("JSON line"))
+        .collect();
+    assert_eq!(lines[0]["frames"], 450, "{stdout}");
+    let reports: Vec<&Value> = lines.iter().filter(|l| l.get("minute").is_some()).collect();
+    assert!(reports.len() >= 2, "{stdout}");
+    for r in &reports {
+        assert!(r["rss_mb"].as_f64().is_some_and(|mb| mb > 10.0), "{r}");
+    }
+    let last = &reports.last().expect("a report")["sessions"][0];
+    let memory = &last["memory"];
+    assert!(
+        memory["keyframes_spilled"].as_u64().is_some_and(|n| n > 0)
+            && memory["spilled_bytes"].as_u64().is_some_and(|b| b > 0),
+        "old keyframes spill while the session runs: {last}"
+    );
+    assert!(
+        memory["keyframes_resident"]
+            .as_u64()
+            .is_some_and(|n| n <= 9),
+        "{last}"
+    );
+    let summary = &lines.last().expect("summary")["summary"]["sessions"][0];
+    assert_eq!(summary["state"], "finished", "{summary}");
+    assert_eq!(summary["frames_sent"], 450, "{summary}");
+    assert!(
+        summary["poses"].as_u64().is_some_and(|p| p > 300),
+        "{summary}"
+    );
+    let ate = summary["ate_percent_of_path"].as_f64().expect("ATE");
+    assert!(ate < 5.0, "ATE {ate} % of the path: {summary}");
+    let id = summary["id"].as_str().expect("id");
+    let spill = server.data_dir().join("sessions").join(id).join("spill");
+    assert_eq!(
+        std::fs::read_dir(&spill).map_or(0, |d| d.count()),
+        0,
+        "the finished session's spill is empty"
+    );
+}

@@ -40,7 +40,7 @@ use super::worker::{self, Outcome, WorkerEnv};
 use crate::config::Config;
 use crate::gpu_pool::{GpuPool, device_count};
 use crate::maps::MapStore;
-use crate::memory::{MemoryPlan, SessionCost, resident_bytes};
+use crate::memory::{MapShape, MemoryPlan, SessionCost, resident_bytes};
 use crate::metrics::Metrics;
 use crate::storage::ObjectStore;
 use crate::{ApiError, ServerError};
@@ -256,12 +256,16 @@ impl SessionManager {
         let dense = &config.dense;
         let dense_pixels = dense.enabled.then(|| (dense.width * dense.height) as u64);
         self.memory
-            .keyframes_for(SessionCost::estimate(
+            .keyframes_for(SessionCost::estimate(MapShape {
                 pixels,
                 dense_pixels,
-                config.backend.resident_keyframes,
-                config.backend.held_keyframes,
-            ))
+                resident: config.backend.resident_keyframes,
+                held: config.backend.held_keyframes,
+                fusion_inputs: config
+                    .fusion
+                    .enabled
+                    .then_some((config.fusion.keyframe_memory_mb * 1024.0 * 1024.0) as u64),
+            }))
             .map_err(ApiError::bad_request)
     }
 
