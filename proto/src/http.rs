@@ -261,8 +261,9 @@ pub struct SessionMemory {
     pub keyframe_bytes: u64,
     /// Bytes written to the store so far (compressed).
     pub spilled_bytes: u64,
-    /// TSDF blocks allocated, and fusion inputs spilled to the store.
+    /// TSDF blocks allocated.
     pub fusion_blocks: u64,
+    /// Fusion inputs spilled to the store (read back when their keyframe moves).
     pub fusion_inputs_spilled: u64,
     /// Pose-graph edges reaching past the working set (loop closures to old keyframes).
     pub far_edges: u64,
