@@ -17,7 +17,7 @@ use crate::frame::CompactFrame;
 use crate::geometry::{PinholeCamera, Sim3};
 use crate::graph::{Constraint, KeyframeId};
 use crate::map::{DenseDepth, MapKeyframe, SavedMap};
-use crate::mapping::CompactDepth;
+use crate::mapping::{CompactDepth, DepthMap};
 use crate::{Error, Result};
 
 /// Grey for points of keyframes without a colour image.
@@ -128,10 +128,11 @@ impl Pipeline {
     /// session writes its map with [`Pipeline::write_map`] instead.
     pub fn saved_map(&self) -> Result<SavedMap> {
         let (mut map, ids) = self.map_plan()?;
+        let current = self.current.zip(self.mapper.latest_depth());
         map.keyframes = ids
             .iter()
             .enumerate()
-            .map(|(new, (old, pose))| self.map_keyframe(*old, new, *pose))
+            .map(|(new, (old, pose))| self.map_keyframe(*old, new, *pose, current.as_ref()))
             .collect::<Result<_>>()?;
         Ok(map)
     }
@@ -140,9 +141,10 @@ impl Pipeline {
     /// are spilled, one is read back at a time (issue 37).
     pub fn write_map(&self, dir: &std::path::Path) -> Result<()> {
         let (header, ids) = self.map_plan()?;
+        let current = self.current.zip(self.mapper.latest_depth());
         crate::map::write_map_streamed(dir, &header, ids.len(), |new| {
             let (old, pose) = ids[new];
-            self.map_keyframe(old, new, pose)
+            self.map_keyframe(old, new, pose, current.as_ref())
         })
     }
 
@@ -184,16 +186,18 @@ impl Pipeline {
         Ok((header, ids))
     }
 
-    /// Keyframe `id` as keyframe `new_id` of a saved map, at `world_from_keyframe`.
+    /// Keyframe `id` as keyframe `new_id` of a saved map, at `world_from_keyframe`; `current`:
+    /// the current keyframe and its latest depth (read once per map).
     fn map_keyframe(
         &self,
         id: KeyframeId,
         new_id: KeyframeId,
         world_from_keyframe: Sim3,
+        current: Option<&(KeyframeId, Arc<DepthMap>)>,
     ) -> Result<MapKeyframe> {
         let kf = &self.keyframes[id];
-        let depth = match self.current.zip(self.mapper.latest_depth()) {
-            Some((current, depth)) if current == id => Arc::new(CompactDepth::of(&depth)),
+        let depth = match current {
+            Some((current, depth)) if *current == id => Arc::new(CompactDepth::of(depth)),
             _ => kf.data.depth.get()?,
         };
         let dense = match self.dense_keyframes.get(&id) {
