@@ -41,6 +41,9 @@ pub enum BenchCommand {
     /// streamed live): server RSS, keyframes resident/spilled, latency per interval; ATE and
     /// mesh at the end (issue 37).
     Long(super::bench_long::LongArgs),
+    /// The pose graph of a long looping session at growing sizes: factor size in the solver's
+    /// minimum-degree order vs insertion order, time of a full optimisation, error vs truth.
+    Graph(super::bench_graph::GraphArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -76,6 +79,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Viewer(args) => super::bench_viewer::viewer(&args),
         BenchCommand::Map(args) => super::bench_map::map(&args),
         BenchCommand::Long(args) => super::bench_long::long(&args),
+        BenchCommand::Graph(args) => super::bench_graph::graph(&args),
     }
 }
 

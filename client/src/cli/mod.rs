@@ -6,6 +6,7 @@ pub mod bench_cluster;
 pub mod bench_dense;
 pub mod bench_densify;
 pub mod bench_fusion;
+pub mod bench_graph;
 pub mod bench_long;
 pub mod bench_map;
 pub mod bench_odometry;
