@@ -267,6 +267,13 @@ pub struct SessionMemory {
     pub fusion_inputs_spilled: u64,
     /// Pose-graph edges reaching past the working set (loop closures to old keyframes).
     pub far_edges: u64,
+    /// Keyframes whose full constraint search waits because the back end fell behind.
+    #[serde(default)]
+    pub searches_deferred: u64,
+    /// Deferred searches given up so far (the back end stayed behind; those keyframes keep
+    /// their tracking edge and remain candidates of later searches).
+    #[serde(default)]
+    pub searches_given_up: u64,
 }
 
 /// A pose in events: `world_from_camera` as translation, unit quaternion `[x, y, z, w]` and

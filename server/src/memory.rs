@@ -42,10 +42,12 @@ const COMPACT_PER_PIXEL: u64 = 24;
 const KEYFRAME_PER_PIXEL: u64 = 1;
 /// Bytes per dense-resolution pixel of one densified, spilled keyframe: the fusion's record
 /// of the blocks it went into, its share of the mesh and of the heap the allocator keeps
-/// between checkpoints. The 56 measured before minus the dense maps and fusion input that
-/// now spill; with it the model gives 3.0 GB for the 526 keyframes of a 640×480 session that
-/// peaked at 2.96 GB (docs/tuning.md, third stage).
-const KEYFRAME_PER_DENSE_PIXEL: u64 = 36;
+/// between checkpoints. Measured on a 20-minute 640×480 session once the back end no longer
+/// fell behind (its queued commands had held frames and depth maps: 36 B was charged then):
+/// RSS rose 0.26 MB per keyframe from minute 5 to 14 and peaked at 1.74 GB with 741
+/// keyframes; 8 B (0.92 MB per keyframe with the per-pixel term) is over three times that
+/// (docs/tuning.md, "Long sessions, issue 37 — fourth stage").
+const KEYFRAME_PER_DENSE_PIXEL: u64 = 8;
 /// Bytes per dense pixel of a fusion input held for re-integration (depth, weight, colour),
 /// up to `fusion.keyframe_memory_mb`.
 const FUSION_INPUT_PER_DENSE_PIXEL: u64 = 12;

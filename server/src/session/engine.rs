@@ -97,6 +97,8 @@ impl Engine {
             fusion_blocks: fusion.blocks as u64,
             fusion_inputs_spilled: fusion.inputs_spilled as u64,
             far_edges: m.backend.map_or(0, |b| b.far_edges as u64),
+            searches_deferred: m.backend.map_or(0, |b| b.searches_deferred as u64),
+            searches_given_up: m.backend.map_or(0, |b| b.searches_given_up as u64),
         })
     }
 

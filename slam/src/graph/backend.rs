@@ -31,7 +31,9 @@ use crate::metric_scale::ScaleObservation;
 use crate::{Error, Result};
 
 mod candidates;
+mod schedule;
 use candidates::Source;
+pub use schedule::Budget;
 
 /// The tracking estimate of a new keyframe relative to the keyframe it was tracked against.
 #[derive(Clone, Debug, PartialEq)]
@@ -104,6 +106,13 @@ pub struct ProcessReport {
     pub constraints_refreshed: usize,
     /// Fragments joined to an older one by a constraint found between them.
     pub fragments_merged: usize,
+    /// Keyframes searched against their parent only, their full search deferred, because the
+    /// back end was behind ([`Budget::Behind`]).
+    pub searches_deferred: usize,
+    /// Deferred searches and depth refreshes given up because more than
+    /// [`BackendConfig::deferred_max`] were waiting (their keyframes stay candidates of later
+    /// searches).
+    pub searches_dropped: usize,
     /// The optimisation run, if any.
     pub optimize: Option<OptimizeReport>,
     /// The windowed bundle adjustment run, if any.
@@ -130,6 +139,10 @@ pub struct KeyframeMemory {
     /// apart: loop closures and re-visits that reached past the working set (to keyframes
     /// that were spilled or compact when they were found).
     pub far_edges: usize,
+    /// Full constraint searches deferred while the back end is behind (`schedule`).
+    pub searches_deferred: usize,
+    /// Deferred searches and refreshes given up so far.
+    pub searches_given_up: usize,
 }
 
 /// Graph bookkeeping of one keyframe.
@@ -162,6 +175,11 @@ pub struct Backend {
     pending: Vec<KeyframeId>,
     /// Keyframes whose depth changed: their existing constraints are re-estimated.
     refresh: Vec<KeyframeId>,
+    /// Keyframes searched only against their parent while the back end was behind, oldest
+    /// first: their full search follows when it catches up ([`Budget`]).
+    deferred: std::collections::VecDeque<KeyframeId>,
+    /// Deferred searches and refreshes given up so far.
+    searches_given_up: usize,
     /// The window's edge of each consecutive pair `(newer, older)` it optimised, as in the
     /// graph (replaced by the next window over the same pair).
     window_edges: HashMap<(KeyframeId, KeyframeId), Constraint>,
@@ -184,6 +202,8 @@ impl Backend {
             keyframes: BTreeMap::new(),
             pending: Vec::new(),
             refresh: Vec::new(),
+            deferred: std::collections::VecDeque::new(),
+            searches_given_up: 0,
             window_edges: HashMap::new(),
             scale_observed: false,
         })
@@ -343,43 +363,12 @@ impl Backend {
         Ok(())
     }
 
-    /// Searches constraints for every pending keyframe (in arrival order), re-estimates those of
-    /// keyframes whose depth was updated, and optimises the graph when edges or scale factors
-    /// changed.
-    /// Deterministic: same inputs, same outputs.
-    pub fn process(&mut self) -> Result<ProcessReport> {
-        let mut report = ProcessReport::default();
-        let mut added = false;
-        let searched = !self.pending.is_empty();
-        for id in std::mem::take(&mut self.pending) {
-            report.keyframes_searched += 1;
-            added |= self.search(id, &mut report)?;
-        }
-        for id in std::mem::take(&mut self.refresh) {
-            added |= self.refresh_constraints(id, &mut report)?;
-        }
-        added |= std::mem::take(&mut self.scale_observed);
-        if added {
-            report.optimize = Some(
-                self.graph
-                    .optimize(self.config.max_optimization_iterations)?,
-            );
-        }
-        if searched && self.config.window.enabled && self.run_window(&mut report)? {
-            report.optimize = Some(
-                self.graph
-                    .optimize(self.config.max_optimization_iterations)?,
-            );
-        }
-        Ok(report)
-    }
-
     /// Runs the windowed bundle adjustment over the latest keyframes (from their graph poses)
     /// and puts its relative Sim(3) of each consecutive pair into the graph, replacing the
     /// previous window's edge of that pair. The edge's information is
     /// [`crate::window::WindowConfig::edge_weight`] times that of the pair's strongest Sim(3)
     /// edge. Returns whether edges changed.
-    fn run_window(&mut self, report: &mut ProcessReport) -> Result<bool> {
+    pub(super) fn run_window(&mut self, report: &mut ProcessReport) -> Result<bool> {
         let config = &self.config.window;
         // Only the newest keyframe's fragment: poses of another are in another frame.
         let Some(newest) = self.keyframes.values().max_by_key(|e| e.order) else {
@@ -523,6 +512,8 @@ impl Backend {
                     .filter(|e| e.from.abs_diff(e.to) > window)
                     .count()
             },
+            searches_deferred: self.deferred.len(),
+            searches_given_up: self.searches_given_up,
         }
     }
 
@@ -531,12 +522,22 @@ impl Backend {
         &self.pending
     }
 
-    /// Runs the constraint search of keyframe `id`; returns whether edges were added.
-    fn search(&mut self, id: KeyframeId, report: &mut ProcessReport) -> Result<bool> {
+    /// Runs the constraint search of keyframe `id` (the parent test only unless
+    /// `with_candidates`); returns whether edges were added.
+    fn search(
+        &mut self,
+        id: KeyframeId,
+        with_candidates: bool,
+        report: &mut ProcessReport,
+    ) -> Result<bool> {
         let Some(pose) = self.graph.pose(id) else {
             return Ok(false);
         };
-        let candidates = self.candidates(id);
+        let candidates = if with_candidates {
+            self.candidates(id)
+        } else {
+            Vec::new()
+        };
         let mut accepted: Vec<(Constraint, Constraint)> = Vec::new();
         let mut failed: Vec<(KeyframeId, Sim3)> = Vec::new();
         {
@@ -623,7 +624,11 @@ impl Backend {
 
     /// Re-tests keyframe `id` against each neighbour from the current relative pose and
     /// replaces the pair of edges when accepted.
-    fn refresh_constraints(&mut self, id: KeyframeId, report: &mut ProcessReport) -> Result<bool> {
+    pub(super) fn refresh_constraints(
+        &mut self,
+        id: KeyframeId,
+        report: &mut ProcessReport,
+    ) -> Result<bool> {
         let Some(entry) = self.keyframes.get(&id) else {
             return Ok(false);
         };

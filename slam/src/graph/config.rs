@@ -106,6 +106,15 @@ pub struct BackendConfig {
     /// behind under overload, and a short queue then stalls the frame path (docs/tuning.md);
     /// the commands hold shared maps the graph keeps anyway.
     pub channel_capacity: usize,
+    /// Full constraint searches per back-end pass while it is behind (more new keyframes than
+    /// this queued since its last pass), and deferred searches caught up per pass otherwise
+    /// (`graph::backend::schedule`). Default 2: a pass with one or two new keyframes is the
+    /// normal case and is searched in full, as LSD-SLAM does.
+    pub catch_up_searches: usize,
+    /// Deferred searches (and depth refreshes) kept waiting at most; older ones are given up,
+    /// their keyframes staying candidates of later searches. Default 64, about a minute of
+    /// hand-held 640×480 keyframes.
+    pub deferred_max: usize,
     /// Keyframes held in full (pyramid, alignment levels; about 16 MB at 640×480) by the back
     /// end and, for relocalisation, by the pipeline; older ones keep a compact form (colour
     /// image, depth map, descriptor) and are rebuilt, identical, when a constraint search or
@@ -155,6 +164,8 @@ impl Default for BackendConfig {
             max_optimization_iterations: 100,
             pose_graph_huber: Some(5.0 * (6000.0f64 * 1.5).sqrt()),
             channel_capacity: 256,
+            catch_up_searches: 2,
+            deferred_max: 64,
             resident_keyframes: 8,
             held_keyframes: 24,
             metric_scale: MetricScaleConfig::default(),
@@ -212,6 +223,11 @@ impl BackendConfig {
                     "backend: {name} must be > 0, got {v}"
                 )));
             }
+        }
+        if self.catch_up_searches == 0 {
+            return Err(Error::Config(
+                "backend: catch_up_searches must be ≥ 1".into(),
+            ));
         }
         if self.channel_capacity == 0 {
             return Err(Error::Config(

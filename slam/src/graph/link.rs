@@ -1,12 +1,14 @@
 //! The back end as a background [`Service`] ([`BackendLink`]): in step with the frames
 //! (deterministic runs) or on its own thread, where it processes the commands that queued up
-//! while it worked as one batch and publishes the optimised poses after each.
+//! while it worked as one batch, within a [`Budget`] that the batch's new keyframes set (so
+//! a back end that fell behind catches up instead of stalling the frame path), and publishes
+//! the optimised poses after each.
 
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
 
 use super::KeyframeId;
-use super::backend::{Backend, KeyframeMemory, NewKeyframe};
+use super::backend::{Backend, Budget, KeyframeMemory, NewKeyframe};
 use super::config::BackendConfig;
 use crate::Result;
 use crate::background::{Link, Priority, Service, WorkerSpec};
@@ -54,6 +56,10 @@ impl Service for BackendService {
     fn handle(&mut self, commands: Vec<BackendCommand>, _: &mut dyn FnMut(())) -> Result<()> {
         let mut first_error = None;
         let mut optimize = false;
+        let new_keyframes = commands
+            .iter()
+            .filter(|c| matches!(c, BackendCommand::AddKeyframe(_)))
+            .count();
         for command in commands {
             let applied = match command {
                 BackendCommand::AddKeyframe(k) => self.backend.add_keyframe(*k),
@@ -76,7 +82,8 @@ impl Service for BackendService {
         let processed = if optimize {
             self.backend.optimize_full().map(|_| ())
         } else {
-            self.backend.process().map(|_| ())
+            let budget = Budget::for_pass(new_keyframes, self.backend.config().catch_up_searches);
+            self.backend.process_within(budget).map(|_| ())
         };
         if let Ok(mut poses) = self.published.write() {
             *poses = self.backend.poses();

@@ -30,7 +30,7 @@ pub mod sim3_tracker;
 /// Keyframes are identified by the pipeline's keyframe counter.
 pub type KeyframeId = usize;
 
-pub use backend::{Backend, NewKeyframe, ParentEdge, ProcessReport};
+pub use backend::{Backend, Budget, NewKeyframe, ParentEdge, ProcessReport};
 pub use config::BackendConfig;
 pub use link::{BackendCommand, BackendLink};
 pub use pose_graph::{Constraint, OptimizeReport, PoseGraph, ScalePrior};

@@ -445,3 +445,70 @@ fn backend_window_runs_per_keyframe_and_replaces_its_edges() {
     );
     assert!(with_s < base_s + 0.02, "scale error {with_s} vs {base_s}");
 }
+
+#[test]
+fn a_back_end_behind_defers_full_searches_and_catches_up_to_the_same_loop() {
+    use crate::graph::Budget;
+    let keyframes = loop_keyframes();
+    let inputs = drifting_inputs(keyframes);
+    let mut backend = Backend::new(test_config()).expect("valid config");
+    for input in &inputs {
+        backend.add_keyframe(input.clone()).expect("add");
+    }
+    // All ten queued at once: only the two newest are searched in full.
+    let behind = Budget::for_pass(inputs.len(), 2);
+    assert_eq!(behind, Budget::Behind(2));
+    let report = backend.process_within(behind).expect("behind");
+    assert_eq!(report.keyframes_searched, LOOP_KEYFRAMES);
+    assert_eq!(report.searches_deferred, LOOP_KEYFRAMES - 2);
+    let deferred: Vec<KeyframeId> = backend.deferred().collect();
+    assert_eq!(deferred, (0..LOOP_KEYFRAMES - 2).collect::<Vec<_>>());
+    let edges_behind = backend.constraints().len();
+
+    // A caught-up pass takes the two oldest deferred searches.
+    let report = backend
+        .process_within(Budget::for_pass(0, 2))
+        .expect("caught up");
+    assert_eq!(report.keyframes_searched, 2);
+    assert_eq!(backend.deferred().count(), LOOP_KEYFRAMES - 4);
+
+    // The final pass does the rest and closes the loop as well as searching in step does.
+    backend.process().expect("final");
+    assert_eq!(backend.deferred().count(), 0);
+    assert!(backend.constraints().len() > edges_behind);
+    let (in_step, _) = run_in_step(&inputs);
+    let (late, timely) = (
+        errors(&backend.poses(), keyframes),
+        errors(&in_step, keyframes),
+    );
+    eprintln!("deferred searches: {late:?}; in step: {timely:?}");
+    assert!(late.0 < 0.01 && late.1 < 0.5 && late.2 < 0.01, "{late:?}");
+}
+
+#[test]
+fn deferred_searches_past_their_limit_are_given_up() {
+    use crate::graph::Budget;
+    let inputs = drifting_inputs(loop_keyframes());
+    let config = BackendConfig {
+        deferred_max: 3,
+        ..test_config()
+    };
+    let mut backend = Backend::new(config).expect("valid config");
+    for input in &inputs {
+        backend.add_keyframe(input.clone()).expect("add");
+    }
+    let report = backend.process_within(Budget::Behind(1)).expect("behind");
+    assert_eq!(report.searches_deferred, LOOP_KEYFRAMES - 1);
+    assert_eq!(report.searches_dropped, LOOP_KEYFRAMES - 1 - 3);
+    let memory = backend.memory();
+    assert_eq!(
+        (memory.searches_deferred, memory.searches_given_up),
+        (3, LOOP_KEYFRAMES - 1 - 3)
+    );
+    // The newest deferred ones are kept.
+    let kept: Vec<KeyframeId> = backend.deferred().collect();
+    assert_eq!(
+        kept,
+        vec![LOOP_KEYFRAMES - 4, LOOP_KEYFRAMES - 3, LOOP_KEYFRAMES - 2]
+    );
+}

@@ -1,0 +1,123 @@
+//! How much of its queued work the back end does in one pass ([`Budget`]).
+//!
+//! A keyframe's full constraint search and a depth refresh each run several reciprocal Sim(3)
+//! tests, some against keyframes read back from the session's store. On a loaded machine the
+//! back end then takes longer per keyframe than the front end takes to make one, falls behind
+//! without bound, fills its queue and stalls the frame path: a 640×480 session of 20 minutes
+//! on 2 cores had 520 keyframes in its pipeline and 267 in its back end, and took no frames
+//! for minutes (docs/tuning.md, "Long sessions, issue 37"). LSD-SLAM's constraint-search
+//! thread simply lags; here a pass that finds the back end behind (several new keyframes
+//! queued at once) gives the newest keyframes their full search, links the older ones to
+//! their parent only and defers their full search and their depth refreshes until a pass
+//! finds it caught up. The final pass of a session does everything, so loop closures are
+//! found late, not missed; in step (deterministic runs) every pass is a caught-up one.
+
+use super::super::KeyframeId;
+use super::{Backend, ProcessReport};
+use crate::Result;
+
+/// How much a [`Backend::process_within`] pass does.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Budget {
+    /// Everything queued and deferred (the final pass; [`Backend::process`]).
+    All,
+    /// Caught up: every new keyframe and depth update in full, then up to `n` deferred
+    /// searches or refreshes.
+    CaughtUp(usize),
+    /// Behind: full searches for the `n` newest keyframes, the parent test for the others;
+    /// depth refreshes wait.
+    Behind(usize),
+}
+
+impl Budget {
+    /// The budget of a pass that finds `new_keyframes` queued: behind when more than
+    /// `catch_up` arrived since the last pass.
+    pub fn for_pass(new_keyframes: usize, catch_up: usize) -> Self {
+        if new_keyframes > catch_up {
+            Self::Behind(catch_up)
+        } else {
+            Self::CaughtUp(catch_up)
+        }
+    }
+}
+
+impl Backend {
+    /// Searches constraints for every pending keyframe (in arrival order), re-estimates those of
+    /// keyframes whose depth was updated, and optimises the graph when edges or scale factors
+    /// changed. Deterministic: same inputs, same outputs.
+    pub fn process(&mut self) -> Result<ProcessReport> {
+        self.process_within(Budget::All)
+    }
+
+    /// [`Backend::process`] within `budget` (module docs).
+    pub fn process_within(&mut self, budget: Budget) -> Result<ProcessReport> {
+        let mut report = ProcessReport::default();
+        let mut added = false;
+        let pending = std::mem::take(&mut self.pending);
+        let searched = !pending.is_empty();
+        let full_from = match budget {
+            Budget::Behind(n) => pending.len().saturating_sub(n),
+            _ => 0,
+        };
+        for (i, id) in pending.into_iter().enumerate() {
+            report.keyframes_searched += 1;
+            let full = i >= full_from;
+            added |= self.search(id, full, &mut report)?;
+            if !full {
+                self.deferred.push_back(id);
+                report.searches_deferred += 1;
+            }
+        }
+        if !matches!(budget, Budget::Behind(_)) {
+            for id in std::mem::take(&mut self.refresh) {
+                added |= self.refresh_constraints(id, &mut report)?;
+            }
+        }
+        let catch_up = match budget {
+            Budget::All => usize::MAX,
+            Budget::CaughtUp(n) => n,
+            Budget::Behind(_) => 0,
+        };
+        for _ in 0..catch_up {
+            let Some(id) = self.deferred.pop_front() else {
+                break;
+            };
+            report.keyframes_searched += 1;
+            added |= self.search(id, true, &mut report)?;
+        }
+        while self.deferred.len() > self.config.deferred_max {
+            self.deferred.pop_front();
+            report.searches_dropped += 1;
+        }
+        while self.refresh.len() > self.config.deferred_max {
+            self.refresh.remove(0);
+            report.searches_dropped += 1;
+        }
+        self.searches_given_up += report.searches_dropped;
+        if report.searches_dropped > 0 {
+            tracing::warn!(
+                dropped = report.searches_dropped,
+                "back end far behind: deferred constraint searches given up"
+            );
+        }
+        added |= std::mem::take(&mut self.scale_observed);
+        if added {
+            report.optimize = Some(
+                self.graph
+                    .optimize(self.config.max_optimization_iterations)?,
+            );
+        }
+        if searched && self.config.window.enabled && self.run_window(&mut report)? {
+            report.optimize = Some(
+                self.graph
+                    .optimize(self.config.max_optimization_iterations)?,
+            );
+        }
+        Ok(report)
+    }
+
+    /// Keyframes whose full constraint search waits for the back end to catch up.
+    pub fn deferred(&self) -> impl Iterator<Item = KeyframeId> + '_ {
+        self.deferred.iter().copied()
+    }
+}
