@@ -84,11 +84,16 @@ impl BlockSparseSymmetric {
     /// Solves `H·x = b` by block Cholesky in a minimum-degree order; `None` when H is not
     /// positive definite.
     pub fn solve(&self, b: &[Vector7]) -> Option<Vec<Vector7>> {
+        self.solve_ordered(b, &self.minimum_degree_order())
+    }
+
+    /// [`BlockSparseSymmetric::solve`] eliminating in `order` (a permutation of the block
+    /// indices), e.g. one minimum-degree order reused for every matrix of the same structure.
+    pub fn solve_ordered(&self, b: &[Vector7], order: &[usize]) -> Option<Vec<Vector7>> {
         let n = self.size();
-        if b.len() != n {
+        if b.len() != n || order.len() != n {
             return None;
         }
-        let order = self.minimum_degree_order();
         // position[old] = new index.
         let mut position = vec![0; n];
         for (new, &old) in order.iter().enumerate() {

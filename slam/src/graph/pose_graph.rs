@@ -353,9 +353,12 @@ impl PoseGraph {
         }
         let mut cost = initial_cost;
         let mut lambda = 1e-4;
+        // The elimination order follows the edges alone: the same in every iteration.
+        let mut order: Option<Vec<usize>> = None;
         for _ in 0..max_iterations {
             report.iterations += 1;
             let (h, g) = self.normal_equations(&index, free.len());
+            let order = order.get_or_insert_with(|| h.minimum_degree_order());
             let mut improved = false;
             while lambda < 1e12 {
                 let mut damped = h.clone();
@@ -373,7 +376,7 @@ impl PoseGraph {
                     damped.add(i, i, &add);
                 }
                 let rhs: Vec<Vector7> = g.iter().map(|v| -v).collect();
-                let Some(mut step) = damped.solve(&rhs) else {
+                let Some(mut step) = damped.solve_ordered(&rhs, order) else {
                     lambda *= 10.0;
                     continue;
                 };

@@ -85,14 +85,14 @@ impl Backend {
             report.keyframes_searched += 1;
             added |= self.search(id, true, &mut report)?;
         }
-        while self.deferred.len() > self.config.deferred_max {
-            self.deferred.pop_front();
-            report.searches_dropped += 1;
-        }
-        while self.refresh.len() > self.config.deferred_max {
-            self.refresh.remove(0);
-            report.searches_dropped += 1;
-        }
+        let max = self.config.deferred_max;
+        let (old_searches, old_refreshes) = (
+            self.deferred.len().saturating_sub(max),
+            self.refresh.len().saturating_sub(max),
+        );
+        self.deferred.drain(..old_searches);
+        self.refresh.drain(..old_refreshes);
+        report.searches_dropped += old_searches + old_refreshes;
         self.searches_given_up += report.searches_dropped;
         if report.searches_dropped > 0 {
             tracing::warn!(
