@@ -274,6 +274,10 @@ pub struct SessionMemory {
     /// their tracking edge and remain candidates of later searches).
     #[serde(default)]
     pub searches_given_up: u64,
+    /// Times an old keyframe became the current one again instead of a new keyframe being
+    /// made: a camera revisiting a place adds no keyframes for it.
+    #[serde(default)]
+    pub keyframes_reactivated: u64,
 }
 
 /// A pose in events: `world_from_camera` as translation, unit quaternion `[x, y, z, w]` and

@@ -77,6 +77,8 @@ pub struct RunFigures {
     pub deterministic: bool,
     pub frames_with_pose: usize,
     pub keyframes: usize,
+    /// Old keyframes made current again instead of new ones (`pipeline.reactivation_candidates`).
+    pub keyframes_reactivated: usize,
     pub frames_batched: usize,
     pub ate_trajectory_m: Option<f64>,
     pub ate_keyframes_m: Option<f64>,
@@ -369,6 +371,7 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
         deterministic: config.pipeline.deterministic,
         frames_with_pose: trajectory.len(),
         keyframes: keyframes.len(),
+        keyframes_reactivated: stats.keyframes_reactivated,
         frames_batched: stats.frames_batched,
         ate_trajectory_m: ate_of(&trajectory),
         ate_keyframes_m: ate_of(&keyframes),

@@ -150,6 +150,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         json!({
             "frames": stats.frames,
             "keyframes": stats.keyframes,
+            "keyframes_reactivated": stats.keyframes_reactivated,
             "map": extend,
             "map_keyframes": pipeline.map_keyframes(),
             "map_load_s": map_load_s,

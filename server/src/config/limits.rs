@@ -60,7 +60,8 @@ pub struct Limits {
     /// backwards, is a 400 (a camera does not pause for an hour mid-stream).
     pub max_timestamp_step_s: f64,
     /// Results (trajectory, keyframes, point cloud) are written to the store every this many
-    /// keyframes while a session runs, so a crash loses little of a live session.
+    /// keyframe changes (new keyframes, or old ones re-activated on a revisit) while a session
+    /// runs, so a crash loses little of a live session.
     pub checkpoint_keyframes: usize,
     /// On shutdown, how long (seconds) live sessions get to finish their queued frames and
     /// persist their results before the process exits anyway.

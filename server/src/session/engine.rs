@@ -99,6 +99,7 @@ impl Engine {
             far_edges: m.backend.map_or(0, |b| b.far_edges as u64),
             searches_deferred: m.backend.map_or(0, |b| b.searches_deferred as u64),
             searches_given_up: m.backend.map_or(0, |b| b.searches_given_up as u64),
+            keyframes_reactivated: pipeline.stats().keyframes_reactivated as u64,
         })
     }
 

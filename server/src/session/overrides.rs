@@ -35,6 +35,8 @@ const SETTABLE: &[(&str, Bound)] = &[
     ("pipeline.seed", Bound::Int(0, i64::MAX)),
     ("pipeline.constant_velocity", Bound::Bool),
     ("pipeline.prior_fill", Bound::Bool),
+    // Each candidate costs one tracking per keyframe decision; revisits then add no keyframes.
+    ("pipeline.reactivation_candidates", Bound::Int(0, 8)),
     ("tracking.affine_lighting", Bound::Bool),
     ("mapping.min_use_grad", Bound::Num(0.0, 100.0)),
     ("mapping.kf_dist_weight", Bound::Num(0.5, 50.0)),

@@ -106,6 +106,7 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         engine,
         last_stats: Stats::default(),
         since_checkpoint: 0,
+        tracked_keyframe: None,
         pointcloud: Cell::new((0, 0)),
         keyframe_frames: std::collections::HashMap::new(),
         mapping_ended: false,
@@ -139,6 +140,10 @@ struct Runner<'a> {
     engine: Engine,
     last_stats: Stats,
     since_checkpoint: usize,
+    /// The keyframe the last pose was tracked against: a change (a new keyframe, or an old one
+    /// re-activated, which adds none) counts towards the next checkpoint and refreshes the
+    /// memory figures.
+    tracked_keyframe: Option<u64>,
     /// Keyframes and bytes of the point cloud last written: checkpoints rebuild it only when
     /// the keyframes have doubled since, so a session's checkpoints read its spilled keyframes
     /// back O(log n) times, not once per checkpoint (issue 37).
@@ -348,6 +353,11 @@ impl Runner<'_> {
                         s.counters.lost.fetch_add(1, Ordering::Relaxed);
                     }
                     s.record_pose(p.timestamp, p.world_from_camera, lost);
+                    let keyframe = p.keyframe_id as u64;
+                    if self.tracked_keyframe.replace(keyframe) != Some(keyframe) {
+                        self.since_checkpoint += 1;
+                        *super::handle::lock(&s.memory) = self.engine.memory();
+                    }
                     metrics
                         .observe_stage(Stage::FrameToPose, frame.received.elapsed().as_secs_f64());
                     s.emit(SessionEvent::Pose {
@@ -370,8 +380,6 @@ impl Runner<'_> {
                         timestamp: k.timestamp,
                         pose: k.world_from_keyframe,
                     });
-                    self.since_checkpoint += 1;
-                    *super::handle::lock(&s.memory) = self.engine.memory();
                 }
                 event => self.emit_background(event),
             }
@@ -451,6 +459,7 @@ impl Runner<'_> {
                 "info": s.info(),
                 "frames": stats.frames,
                 "keyframes": stats.keyframes,
+                "keyframes_reactivated": stats.keyframes_reactivated,
                 "frames_lost": stats.frames_lost,
                 "tracking_s": stats.tracking_s,
                 "mapping_s": stats.mapping_s,

@@ -20,7 +20,7 @@ use super::KeyframeId;
 use super::config::BackendConfig;
 use super::pose_graph::{Constraint, OptimizeReport, PoseGraph};
 use super::resident::Resident;
-use super::search::{CompactKeyframe, Keyframe, KeyframeData, reciprocal_test};
+use super::search::{CompactKeyframe, Keyframe, KeyframeData};
 use super::sim3_tracker::Sim3Tracker;
 use crate::frame::Frame;
 use nalgebra::Matrix6;
@@ -31,8 +31,8 @@ use crate::metric_scale::ScaleObservation;
 use crate::{Error, Result};
 
 mod candidates;
+mod edges;
 mod schedule;
-use candidates::Source;
 pub use schedule::Budget;
 
 /// The tracking estimate of a new keyframe relative to the keyframe it was tracked against.
@@ -89,6 +89,11 @@ pub struct NewKeyframe {
     /// the graph.
     pub world_from_keyframe: Sim3,
     pub parent: Option<ParentEdge>,
+    /// The tracking estimate relative to the old keyframe that took over tracking from this
+    /// one (the front end re-activated it, `pipeline.reactivation`): the frame that chose it
+    /// was tracked against both. Tested and used like the parent edge; without it the chain of
+    /// new keyframes would join the old one only through a constraint search.
+    pub handover: Option<ParentEdge>,
 }
 
 /// What one [`Backend::process`] call did.
@@ -153,6 +158,8 @@ struct Entry {
     /// Insertion index (LSD-SLAM's `idxInKeyframes`).
     order: usize,
     parent: Option<ParentEdge>,
+    /// See [`NewKeyframe::handover`].
+    handover: Option<ParentEdge>,
     /// Keyframes joined to this one by an edge.
     neighbours: BTreeSet<KeyframeId>,
     /// Candidates whose test failed, with the initial relative pose tried.
@@ -161,6 +168,13 @@ struct Entry {
     /// a parent starts a fragment (the session's first keyframe, or a new map begun after
     /// tracking was lost for good); a constraint between two fragments merges them.
     fragment: KeyframeId,
+}
+
+impl Entry {
+    /// The edges the front end measured by tracking: the parent's, then the hand-over's.
+    fn tracked(&self) -> impl Iterator<Item = &ParentEdge> {
+        self.parent.iter().chain(self.handover.as_ref())
+    }
 }
 
 /// The back end (see the module docs).
@@ -248,6 +262,7 @@ impl Backend {
                 kept,
                 order,
                 parent: new.parent,
+                handover: new.handover,
                 neighbours: BTreeSet::new(),
                 failed: Vec::new(),
                 fragment,
@@ -293,6 +308,7 @@ impl Backend {
                 kept,
                 order,
                 parent: None,
+                handover: None,
                 neighbours: BTreeSet::new(),
                 failed: Vec::new(),
                 fragment,
@@ -520,149 +536,6 @@ impl Backend {
     /// Keyframes whose constraint search has not run yet.
     pub fn pending(&self) -> &[KeyframeId] {
         &self.pending
-    }
-
-    /// Runs the constraint search of keyframe `id` (the parent test only unless
-    /// `with_candidates`); returns whether edges were added.
-    fn search(
-        &mut self,
-        id: KeyframeId,
-        with_candidates: bool,
-        report: &mut ProcessReport,
-    ) -> Result<bool> {
-        let Some(pose) = self.graph.pose(id) else {
-            return Ok(false);
-        };
-        let candidates = if with_candidates {
-            self.candidates(id)
-        } else {
-            Vec::new()
-        };
-        let mut accepted: Vec<(Constraint, Constraint)> = Vec::new();
-        let mut failed: Vec<(KeyframeId, Sim3)> = Vec::new();
-        {
-            let entry = &self.keyframes[&id];
-            let mut tests: Vec<(KeyframeId, Sim3, f64)> = Vec::new();
-            for (cid, source) in candidates {
-                let Some(cpose) = self.graph.pose(cid) else {
-                    continue;
-                };
-                let initial = match source {
-                    Source::Pose => cpose.inverse() * pose,
-                    Source::Appearance => Sim3::identity(),
-                };
-                let tried_before = entry.failed.iter().any(|(f, init)| {
-                    *f == cid
-                        && (initial * init.inverse()).log().norm() < self.config.retry_min_change
-                });
-                if !tried_before {
-                    tests.push((cid, initial, self.config.loop_closure_strictness));
-                }
-            }
-            let parent = entry.parent.as_ref().filter(|p| {
-                self.keyframes.contains_key(&p.id) && !entry.neighbours.contains(&p.id)
-            });
-            if let Some(p) = parent {
-                // candidate_from_keyframe = parent_from_keyframe.
-                tests.push((p.id, p.parent_from_keyframe, self.config.parent_strictness));
-            }
-            let this = self.resident.get(&entry.kept)?;
-            for (cid, initial, strictness) in tests {
-                report.candidates_tested += 1;
-                let candidate = self.resident.get(&self.keyframes[&cid].kept)?;
-                let check = reciprocal_test(&self.tracker, &this, &candidate, &initial, strictness);
-                tracing::debug!(
-                    keyframe = id,
-                    candidate = cid,
-                    consistency = check.consistency,
-                    failed_stage = ?check.failed_stage,
-                    "reciprocal Sim(3) test"
-                );
-                match check.constraints {
-                    Some(pair) => accepted.push(pair),
-                    None => failed.push((cid, initial)),
-                }
-            }
-        }
-        let parent_fallback = self.keyframes[&id].parent.clone().filter(|p| {
-            self.keyframes.contains_key(&p.id)
-                && !accepted.iter().any(|(a, _)| a.to == p.id)
-                && !self.keyframes[&id].neighbours.contains(&p.id)
-        });
-        let mut any = false;
-        report.constraints_accepted += accepted.len();
-        for (forward, backward) in accepted {
-            if self.merge_fragments(&forward)? {
-                report.fragments_merged += 1;
-            }
-            self.link(forward.from, forward.to);
-            self.graph.add_edge(forward)?;
-            self.graph.add_edge(backward)?;
-            any = true;
-        }
-        if let Some(p) = parent_fallback {
-            tracing::warn!(
-                keyframe = id,
-                parent = p.id,
-                "parent Sim(3) test failed; odometry edge"
-            );
-            self.link(id, p.id);
-            self.graph.add_edge(Constraint {
-                from: id,
-                to: p.id,
-                to_from_from: p.parent_from_keyframe,
-                information: p.information,
-            })?;
-            report.fallback_parent_edges += 1;
-            any = true;
-        }
-        if let Some(entry) = self.keyframes.get_mut(&id) {
-            entry.failed.extend(failed);
-        }
-        Ok(any)
-    }
-
-    /// Re-tests keyframe `id` against each neighbour from the current relative pose and
-    /// replaces the pair of edges when accepted.
-    pub(super) fn refresh_constraints(
-        &mut self,
-        id: KeyframeId,
-        report: &mut ProcessReport,
-    ) -> Result<bool> {
-        let Some(entry) = self.keyframes.get(&id) else {
-            return Ok(false);
-        };
-        let Some(pose) = self.graph.pose(id) else {
-            return Ok(false);
-        };
-        let parent = entry.parent.as_ref().map(|p| p.id);
-        let mut accepted = Vec::new();
-        let this = self.resident.get(&entry.kept)?;
-        for &n in &entry.neighbours {
-            let (Some(other), Some(npose)) = (self.keyframes.get(&n), self.graph.pose(n)) else {
-                continue;
-            };
-            let strictness = if Some(n) == parent {
-                self.config.parent_strictness
-            } else {
-                self.config.loop_closure_strictness
-            };
-            report.candidates_tested += 1;
-            let initial = npose.inverse() * pose;
-            let other = self.resident.get(&other.kept)?;
-            let check = reciprocal_test(&self.tracker, &this, &other, &initial, strictness);
-            if let Some(pair) = check.constraints {
-                accepted.push(pair);
-            }
-        }
-        let any = !accepted.is_empty();
-        report.constraints_refreshed += accepted.len();
-        for (forward, backward) in accepted {
-            self.graph.remove_edges_between(forward.from, forward.to);
-            self.graph.add_edge(forward)?;
-            self.graph.add_edge(backward)?;
-        }
-        Ok(any)
     }
 
     /// When `edge` joins two fragments, moves the younger one (the larger first id) into the

@@ -32,6 +32,10 @@ pub enum BackendCommand {
     },
     /// Process pending keyframes, then optimise the whole graph even without new edges.
     Optimize,
+    /// Nothing new: a pass that takes deferred searches. A camera that re-activates old
+    /// keyframes sends no new ones, and without this the back end would get no pass to catch
+    /// up in until the session ends.
+    CatchUp,
 }
 
 /// The latest optimised poses, published after every batch.
@@ -73,6 +77,7 @@ impl Service for BackendService {
                     optimize = true;
                     Ok(())
                 }
+                BackendCommand::CatchUp => Ok(()),
             };
             if let Err(e) = applied {
                 tracing::error!(error = %e, "back end");

@@ -125,6 +125,8 @@ impl Pipeline {
                 world_from_keyframe: kf.world_from_keyframe,
                 reference: None,
                 parent: None,
+                handover: None,
+                mean_idepth: kf.depth.mean_idepth(),
                 prior: None,
             });
             if let Some(dense) = &kf.dense {

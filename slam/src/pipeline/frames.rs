@@ -67,6 +67,9 @@ impl Pipeline {
         // Let go of the reference, so that the mapping can rebuild it in place.
         drop(mapped);
         if make_keyframe {
+            if let Some(events) = self.try_reactivation(&frame, kf_id, &result, state)? {
+                return Ok(events);
+            }
             let candidate = KeyframeCandidate {
                 frame: frame.clone(),
                 source_id: kf_id,
@@ -111,8 +114,8 @@ impl Pipeline {
             keyframe_from_frame,
             lost: state == TrackingState::Lost,
         });
-        let world_from_camera = self.keyframes[keyframe].world_from_keyframe
-            * Sim3::from_se3(&keyframe_from_frame, 1.0);
+        let world_from_camera =
+            self.tracking_pose(keyframe) * Sim3::from_se3(&keyframe_from_frame, 1.0);
         Event::Pose(PoseEvent {
             frame_id: frame.id,
             timestamp: frame.timestamp,

@@ -55,6 +55,12 @@ pub(super) struct KeyframeRecord {
     /// The tracking constraint to the keyframe it was created from (sent with it to the back
     /// end once the keyframe is finished).
     pub parent: Option<ParentEdge>,
+    /// The tracking constraint to the old keyframe re-activated when this one was left
+    /// (`super::reactivate`), sent with it like `parent`.
+    pub handover: Option<ParentEdge>,
+    /// Mean inverse depth of its semi-dense depth as last published (keyframe distances are
+    /// measured in it); `None` without estimates.
+    pub mean_idepth: Option<f64>,
     /// The prior's raw output for this image when hole filling already ran the network.
     pub prior: Option<Arc<ImageF32>>,
 }
@@ -236,6 +242,8 @@ impl Pipeline {
             world_from_keyframe,
             reference: Some(mapped.reference),
             parent,
+            handover: None,
+            mean_idepth: mapped.mean_idepth,
             prior,
         });
         self.current = Some(id);
@@ -274,6 +282,13 @@ impl Pipeline {
         let Some(id) = self.current.take() else {
             return Ok(());
         };
+        if self.reactivated.take().is_some_and(|r| r.id == id) {
+            // It was finished once and handed on; its refined depth served tracking and the
+            // propagation into the next keyframe (`super::reactivate`).
+            self.mapper.finish()?;
+            self.retire_keyframes();
+            return Ok(());
+        }
         // The final depth is what the mapping published last (its tracking reference serves
         // relocalisation from now on).
         let mapped = self
@@ -285,6 +300,7 @@ impl Pipeline {
         record.data = record.data.with_depth(CompactDepth::of(&mapped.depth));
         record.depth = Some(mapped.depth.clone());
         record.reference = Some(mapped.reference);
+        record.mean_idepth = mapped.mean_idepth;
         let new = NewKeyframe {
             id,
             frame: frame.clone(),
@@ -292,6 +308,7 @@ impl Pipeline {
             data: Some(record.data.clone()),
             world_from_keyframe: record.world_from_keyframe,
             parent: record.parent.clone(),
+            handover: record.handover.clone(),
         };
         let pose_covariance = record
             .parent

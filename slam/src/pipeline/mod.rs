@@ -18,6 +18,7 @@
 //! - [`layers`]: the dense layer's and the fusion's results coming back;
 //! - [`export`]: trajectories and point clouds at the current poses;
 //! - [`extend`]: a pipeline that starts from a saved map and extends it;
+//! - [`reactivate`]: an old keyframe made current again instead of a new one (revisits);
 //! - [`mapper`]: the current keyframe's depth mapping, in step or on its own thread.
 
 pub mod config;
@@ -30,6 +31,9 @@ mod layers;
 mod mapper;
 #[cfg(test)]
 mod metric_tests;
+mod reactivate;
+#[cfg(test)]
+mod reactivate_tests;
 #[cfg(test)]
 mod tests;
 
@@ -105,6 +109,9 @@ pub struct Stats {
     pub keyframes_not_fused: usize,
     /// Revision of the last mesh update.
     pub mesh_revision: u64,
+    /// Times an old keyframe became the current one again instead of a new keyframe being
+    /// made (`pipeline.reactivation_candidates`).
+    pub keyframes_reactivated: usize,
 }
 
 /// A keyframe's image and semi-dense depth ([`Pipeline::keyframe_depths`]).
@@ -158,6 +165,8 @@ pub struct Pipeline {
     keyframes: Vec<KeyframeRecord>,
     /// The keyframe being mapped; its depth filter is in `mapper`.
     current: Option<KeyframeId>,
+    /// The current keyframe when it is an old one re-activated (`reactivate`).
+    reactivated: Option<reactivate::Reactivated>,
     mapper: KeyframeMapper,
     /// Seconds spent creating keyframes (propagation); the mapper adds its own.
     keyframe_creation_s: f64,
@@ -269,6 +278,7 @@ impl Pipeline {
             pending_events: Vec::new(),
             keyframes: Vec::new(),
             current: None,
+            reactivated: None,
             mapper: KeyframeMapper::new(mapping_thread, config.pipeline.mapping_queue)?,
             keyframe_creation_s: 0.0,
             frames: Vec::new(),

@@ -53,7 +53,7 @@ impl Backend {
         let parent = entry.parent.as_ref().map(|p| p.id);
         let eligible = |cid: KeyframeId, c: &Entry| {
             cid != id
-                && Some(cid) != parent
+                && entry.tracked().all(|p| p.id != cid)
                 && !entry.neighbours.contains(&cid)
                 && c.order >= self.config.skip_initial_keyframes
                 && c.kept.estimates > 0

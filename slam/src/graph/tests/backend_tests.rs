@@ -63,6 +63,7 @@ fn drifting_inputs(keyframes: &[SynthKeyframe]) -> Vec<NewKeyframe> {
                 data: None,
                 world_from_keyframe,
                 parent,
+                handover: None,
             }
         })
         .collect()
@@ -199,6 +200,7 @@ fn backend_appearance_search_links_a_keyframe_with_a_wrong_pose() {
         data: None,
         world_from_keyframe: wrong,
         parent: None,
+        handover: None,
     });
     let mut backend = Backend::new(test_config()).expect("config");
     for input in inputs {
