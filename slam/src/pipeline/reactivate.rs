@@ -75,13 +75,16 @@ impl Pipeline {
         tracked: &TrackingResult,
         state: TrackingState,
     ) -> Result<Option<Vec<Event>>> {
+        if self.config.pipeline.reactivation_candidates == 0 {
+            return Ok(None);
+        }
         tracing::debug!(frame = frame.id, current, "keyframe decision");
         let world_from_frame = self.tracking_pose(current)
             * Sim3::from_se3(&tracked.frame_from_keyframe.inverse(), 1.0);
         let threshold = keyframe_threshold(&self.config.mapping, self.keyframes.len());
         let mut best: Option<Found> = None;
         for (id, guess, mean_idepth) in
-            self.reactivation_candidates(frame, &world_from_frame, current)
+            self.reactivation_candidates(frame, &world_from_frame, current, threshold)
         {
             let reference = self.keyframe_reference(id)?;
             let result = self.tracker.track(&reference, frame, &guess);
@@ -149,23 +152,21 @@ impl Pipeline {
     }
 
     /// Old keyframes that may see what `frame` (at `world_from_frame`) sees, nearest first,
-    /// each with the `frame_from_keyframe` their poses imply and its mean inverse depth.
+    /// each with the `frame_from_keyframe` their poses imply and its mean inverse depth:
+    /// those within keyframe distance (`threshold`) and the view angle.
     fn reactivation_candidates(
         &self,
         frame: &Frame,
         world_from_frame: &Sim3,
         current: KeyframeId,
+        threshold: f64,
     ) -> Vec<(KeyframeId, SE3, f64)> {
         let n = self.config.pipeline.reactivation_candidates;
-        if n == 0 {
-            return Vec::new();
-        }
         let camera = &frame.camera;
         let fov = (f64::from(camera.width) / (2.0 * camera.fx)).atan()
             + (f64::from(camera.height) / (2.0 * camera.fy)).atan();
         let min_cos = (VIEW_ANGLE_OF_FOV * fov).cos();
         let axis = world_from_frame.rotation.act(&Vector3::z());
-        let threshold = keyframe_threshold(&self.config.mapping, self.keyframes.len());
         let poses = self.backend.poses();
         let mut near: Vec<(f64, KeyframeId, SE3, f64)> = self
             .keyframes
