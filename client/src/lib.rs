@@ -3,8 +3,5 @@
 //!
 //! - [`browser`]: drives Chromium through chromedriver (`relfusion bench viewer`, the viewer's
 //!   browser test).
-//! - [`recording`] (feature `rerun`): Rerun `.rrd` recordings of a session or a local run.
 
 pub mod browser;
-#[cfg(feature = "rerun")]
-pub mod recording;

@@ -14,8 +14,13 @@ const REQUIRED: [(&str, &str); 3] = [
     ("keyframes", "keyframes.txt"),
     ("pointcloud.ply", "pointcloud.ply"),
 ];
-/// Results a session may not have yet (no mesh before the fusion stage has run).
-const OPTIONAL: [(&str, &str); 2] = [("mesh.ply", "mesh.ply"), ("mesh.glb", "mesh.glb")];
+/// Results a session may not have yet (no mesh before the fusion stage has run, no recording
+/// before it ends).
+const OPTIONAL: [(&str, &str); 3] = [
+    ("mesh.ply", "mesh.ply"),
+    ("mesh.glb", "mesh.glb"),
+    ("recording.mcap", "recording.mcap"),
+];
 
 /// What [`fetch`] wrote.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -27,7 +32,7 @@ pub struct Fetched {
 }
 
 /// Writes `trajectory.txt`, `keyframes.txt`, `pointcloud.ply` and, when the server has them,
-/// `mesh.ply` and `mesh.glb` of session `id` into `out_dir` (created). Each file is written
+/// `mesh.ply`, `mesh.glb` and `recording.mcap` of session `id` into `out_dir` (created). Each file is written
 /// to a temporary name and renamed, so a folder never holds half a download.
 pub async fn fetch(client: &Client, id: &str, out_dir: &Path) -> Result<Fetched, ClientError> {
     std::fs::create_dir_all(out_dir).map_err(|e| ClientError::io(out_dir, e))?;

@@ -22,7 +22,7 @@ pub mod health;
 pub mod localize;
 pub mod maps;
 pub mod prior;
-pub mod rerun_out;
+pub mod recorders;
 pub mod run;
 pub mod stream;
 pub mod synth;

@@ -29,7 +29,7 @@ use relfusion_slam::export::{write_mesh_glb, write_mesh_ply, write_points_ply};
 use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::{Config, Event, FrameInput, Pipeline};
 
-use super::rerun_out::RunRecorder;
+use super::recorders::{LogArgs, Logs};
 use serde_json::json;
 
 #[derive(Debug, clap::Args)]
@@ -57,10 +57,8 @@ pub struct Args {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
-    /// Also write the run as a rerun recording (images, poses, keyframe points, mesh blocks)
-    /// to open in the rerun viewer; needs the cargo feature `rerun`.
-    #[arg(long, value_name = "FILE.rrd")]
-    pub rerun: Option<PathBuf>,
+    #[command(flatten)]
+    pub logs: LogArgs,
     /// A saved map (`OUT/map` of an earlier run) to work in instead of starting empty.
     #[arg(long, value_name = "MAP")]
     pub map: Option<PathBuf>,
@@ -105,9 +103,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
 
-    let mut recorder = super::rerun_out::open(args.rerun.as_deref(), |path| {
-        RunRecorder::create(path, &seq)
-    })?;
+    let mut logs = Logs::open(&args.logs, &seq.camera)?;
     let t_map_load = Instant::now();
     let pipeline = match &extend {
         Some(map_dir) => {
@@ -122,20 +118,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         pipeline.spill().attach(std::sync::Arc::new(store))?;
     }
     let map_load_s = extend.is_some().then(|| t_map_load.elapsed().as_secs_f64());
-    let outcome = run_sequence(
-        &seq,
-        n,
-        pipeline,
-        !args.quiet,
-        &mut |i, events| match &mut recorder {
-            Some(recorder) => match i {
-                Some(i) => recorder.on_frame(&seq, i, events),
-                None => recorder.on_events(events),
-            },
-            None => Ok(()),
-        },
-    )?;
-    let recording = recorder.map(|r| r.finish()).transpose()?;
+    let outcome = run_sequence(&seq, n, pipeline, !args.quiet, &mut |i, events| match i {
+        Some(i) => logs.on_run_frame(&seq, i, events),
+        None => {
+            logs.on_run_events(events);
+            Ok(())
+        }
+    })?;
+    let recorded = logs.finish()?;
     let (mut pipeline, wall_s, load_s) = (outcome.pipeline, outcome.wall_s, outcome.load_s);
     let peak_rss_run_mb = peak_rss_mb();
 
@@ -145,9 +135,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         map_save_s,
     } = write_results(&args.out, &mut pipeline)?;
     let stats = pipeline.stats();
-    println!(
-        "{}",
-        json!({
+    let mut summary = json!({
             "frames": stats.frames,
             "keyframes": stats.keyframes,
             "keyframes_reactivated": stats.keyframes_reactivated,
@@ -172,13 +160,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "keyframes_not_fused": stats.keyframes_not_fused,
             "mesh_triangles": mesh.as_ref().map_or(0, |m| m.triangle_count()),
             "voxel_size": fusion.as_ref().map(|f| f.voxel_size),
-            "rerun": recording,
             "map_save_s": map_save_s,
             "keyframe_memory": pipeline.keyframe_memory(),
             "peak_rss_mb": {"run": peak_rss_run_mb, "with_outputs": peak_rss_mb()},
             "out": args.out,
-        })
-    );
+    });
+    if let serde_json::Value::Object(fields) = &mut summary {
+        fields.extend(recorded);
+    }
+    println!("{summary}");
     Ok(())
 }
 

@@ -19,7 +19,7 @@ use relfusion_slam::eval::{AlignMode, ate};
 use serde_json::{Value, json};
 
 use super::connect::{ConnectArgs, print_line, progress_bar, runtime};
-use super::rerun_out::StreamRecorder;
+use super::recorders::{LogArgs, Logs};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -52,10 +52,8 @@ pub struct Args {
     /// Stream only the first N frames.
     #[arg(long)]
     pub frames: Option<usize>,
-    /// Also write the session as a rerun recording (images, poses, keyframe points, mesh
-    /// blocks) to open in the rerun viewer; needs the cargo feature `rerun`.
-    #[arg(long, value_name = "FILE.rrd")]
-    pub rerun: Option<PathBuf>,
+    #[command(flatten)]
+    pub logs: LogArgs,
     /// Start in this saved map (an id from `relfusion maps list`) instead of an empty one:
     /// every pose is in the map's frame, frames outside it are `lost` (`--map-mode`).
     #[arg(long, value_name = "MAP_ID")]
@@ -83,14 +81,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(bar) => bar.suspend(|| print_line(&value)),
         None => print_line(&value),
     };
-    let mut recorder = super::rerun_out::open(args.rerun.as_deref(), |path| {
-        StreamRecorder::create(path, &seq)
-    })?;
+    let mut logs = Logs::open(&args.logs, &seq.camera)?;
+    let frames: Vec<(f64, PathBuf)> = seq
+        .frames
+        .iter()
+        .map(|f| (f.timestamp, f.rgb.clone()))
+        .collect();
     runtime()?.block_on(async {
         let summary = stream_dataset(&client, &args.dataset, &opts, |event| {
-            if let Some(recorder) = &mut recorder {
-                recorder.on_event(&event);
-            }
+            logs.on_stream_event(&event, &frames);
             match event {
                 StreamEvent::Session { id } => print(json!({ "session": id })),
                 StreamEvent::Sent { .. } => {
@@ -128,8 +127,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if let Some(ate) = final_ate(&client, &summary.session_id, &seq).await {
             out["ate"] = ate;
         }
-        if let Some(recorder) = recorder.take() {
-            out["rerun"] = json!(recorder.finish()?);
+        let recorded = std::mem::take(&mut logs).finish()?;
+        if let Value::Object(fields) = &mut out {
+            fields.extend(recorded);
         }
         print(json!({ "summary": out }));
         if let Some(first) = summary.server_errors.first() {

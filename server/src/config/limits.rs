@@ -69,6 +69,11 @@ pub struct Limits {
     /// WebSocket and server-sent-event streams open on one session at once (a producer, a
     /// viewer or two, a recorder; 429 beyond).
     pub max_streams_per_session: usize,
+    /// Most megabytes of a session's recording (`GET /v1/sessions/{id}/recording.mcap`): the
+    /// mesh is recorded block by block as it grows, which an hour-long session would repeat
+    /// many times over; past the limit the recording stops and its summary says so. 0: no
+    /// recordings.
+    pub max_recording_mb: u64,
 }
 
 impl Limits {
@@ -107,6 +112,7 @@ impl Default for Limits {
             checkpoint_keyframes: 10,
             shutdown_grace_s: 30,
             max_streams_per_session: 8,
+            max_recording_mb: 256,
         }
     }
 }

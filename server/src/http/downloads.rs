@@ -12,12 +12,17 @@ use super::auth::Auth;
 use super::error::ErrorBody;
 use super::openapi::Binary;
 use crate::session::Session;
+use crate::session::track::Stored;
 use crate::{ApiError, AppState};
 use relfusion_proto::http::SessionInfo;
 
 const TEXT: &str = "text/plain; charset=utf-8";
 const BINARY: &str = "application/octet-stream";
 const GLB: &str = "model/gltf-binary";
+const MCAP: &str = "application/x-mcap";
+
+/// Bytes per read of a streamed download.
+const CHUNK: usize = 1 << 20;
 
 /// Runs `produce` on a blocking thread: results may be read from disk or be large to build.
 async fn produce<T: Send + 'static>(
@@ -174,4 +179,60 @@ pub async fn mesh_glb(
         .await?
         .ok_or_else(|| no_mesh(&id, &session.info()))?;
     Ok(file(GLB, format!("{id}-mesh.glb"), bytes))
+}
+
+/// The session's recording as MCAP with the Foxglove schemas (issue 38): every tracked pose and
+/// its transform, the keyframes' trajectory and dense points, the mesh block by block, as
+/// `relfusion stream --mcap` records them (without the camera images, which the service does not
+/// keep). Stored when the session ends; at most `limits.max_recording_mb`.
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}/recording.mcap", tag = "results",
+    params(("id" = String, Path, description = "Session id")),
+    responses(
+        (status = 200, description = "MCAP recording", body = Binary, content_type = "application/x-mcap"),
+        (status = 401, description = "Missing or unknown bearer token", body = ErrorBody),
+        (status = 404, description = "No such session, the session still runs, or it has no recording (limits.max_recording_mb = 0)", body = ErrorBody),
+        (status = 410, description = "The session expired (retention.finished_ttl_s)", body = ErrorBody),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn recording_mcap(
+    State(state): State<Arc<AppState>>,
+    Auth(owner): Auth,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let session = state.sessions.get(&id, &owner)?;
+    let stored = produce(session.clone(), Session::recording)
+        .await?
+        .map_err(|e| ApiError::internal(format!("reading the recording: {e}")))?;
+    let name = format!("{id}-recording.mcap");
+    match stored {
+        Some(Stored::Bytes(bytes)) => Ok(file(MCAP, name, bytes)),
+        Some(Stored::File(path)) => {
+            let f = tokio::fs::File::open(&path)
+                .await
+                .map_err(|e| ApiError::internal(format!("opening the recording: {e}")))?;
+            let chunks = futures_util::stream::unfold(f, |mut f| async move {
+                use tokio::io::AsyncReadExt as _;
+                let mut buf = vec![0u8; CHUNK];
+                match f.read(&mut buf).await {
+                    Ok(0) => None,
+                    Ok(n) => {
+                        buf.truncate(n);
+                        Some((Ok::<_, std::io::Error>(bytes::Bytes::from(buf)), f))
+                    }
+                    Err(e) => Some((Err(e), f)),
+                }
+            });
+            Ok(file(MCAP, name, axum::body::Body::from_stream(chunks)))
+        }
+        None if session.state().is_terminal() => Err(ApiError::not_found(format!(
+            "no recording: session {id} was not recorded (limits.max_recording_mb = 0 when it \
+             ran, or it failed before its results were stored)"
+        ))),
+        None => Err(ApiError::not_found(format!(
+            "no recording yet: session {id} is {:?}; its recording is stored when it ends",
+            session.state()
+        ))),
+    }
 }

@@ -67,6 +67,10 @@ pub fn router(state: Arc<AppState>) -> Router {
             get(downloads::pointcloud_ply),
         )
         .route("/v1/sessions/{id}/mesh.ply", get(downloads::mesh_ply))
+        .route(
+            "/v1/sessions/{id}/recording.mcap",
+            get(downloads::recording_mcap),
+        )
         .route("/v1/sessions/{id}/mesh.glb", get(downloads::mesh_glb))
         .route("/v1/sessions/{id}/map", get(map::map_snapshot))
         .route("/v1/maps", post(maps::save_map).get(maps::list_maps))

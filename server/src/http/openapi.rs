@@ -35,6 +35,7 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         downloads::keyframes,
         downloads::pointcloud_ply,
         downloads::mesh_ply,
+        downloads::recording_mcap,
         downloads::mesh_glb,
         super::map::map_snapshot,
         super::map::proto_files,

@@ -15,6 +15,7 @@
 //! - [`events`]: [`SessionEvent`] and its protobuf form.
 //! - [`upload`]: safe archive extraction.
 //! - [`persist`]: what is stored, under which keys.
+//! - [`recording`]: the session's recording for Foxglove (`recording.mcap`).
 //! - [`prior`]: the shared depth model, run on the GPU pool.
 //! - [`decode`]: JPEG/PNG frame decoding and checks.
 
@@ -30,6 +31,7 @@ pub mod overrides;
 pub mod persist;
 pub mod prior;
 pub mod queue;
+pub mod recording;
 pub mod snapshot;
 mod spill;
 pub mod track;

@@ -133,6 +133,20 @@ impl Session {
         self.mesh_file("mesh.glb", mesh_glb_bytes)
     }
 
+    /// Where the session's recording (`recording.mcap`) is read from: a file of a filesystem
+    /// store, streamed; an object of another store, in one piece (bounded by
+    /// `limits.max_recording_mb`); `None` while the session runs or when it has none.
+    pub fn recording(&self) -> Result<Option<Stored>, crate::storage::StoreError> {
+        if !self.state().is_terminal() {
+            return Ok(None);
+        }
+        let key = result_key(self.id(), super::recording::RECORDING);
+        if let Some(path) = self.store.local_path(&key) {
+            return Ok(path.is_file().then_some(Stored::File(path)));
+        }
+        Ok(self.store.get(&key)?.map(Stored::Bytes))
+    }
+
     fn mesh_file(&self, name: &str, encode: fn(&Mesh) -> Vec<u8>) -> Option<Vec<u8>> {
         if self.state().is_terminal()
             && let Ok(Some(bytes)) = self.store.get(&result_key(self.id(), name))
@@ -199,4 +213,13 @@ impl Session {
             }
         }
     }
+}
+
+/// A stored result, as the download reads it.
+#[derive(Debug)]
+pub enum Stored {
+    /// A file of a filesystem store.
+    File(std::path::PathBuf),
+    /// An object of a remote store.
+    Bytes(Vec<u8>),
 }

@@ -13,7 +13,7 @@
 //! Results that cannot be stored (a full disk) are retried until they can be, or until the
 //! server shuts down (an upload then re-runs on restart): acknowledged work is not lost.
 
-use std::cell::Cell;
+use std::cell::{Cell, RefCell};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
@@ -32,6 +32,7 @@ use super::input::QueuedFrame;
 use super::persist::Results;
 use super::prior::SharedModel;
 use super::queue::Pop;
+use super::recording::{Recorder, RecordingSummary};
 use super::types::{SessionKind, SessionState};
 use crate::gpu_pool::PoolClient;
 use crate::metrics::{Metrics, Stage};
@@ -47,6 +48,8 @@ pub(crate) struct WorkerEnv {
     pub pool: Arc<PoolClient>,
     pub metrics: Arc<Metrics>,
     pub checkpoint_keyframes: usize,
+    /// `limits.max_recording_mb` in bytes (0: no recording).
+    pub max_recording_bytes: u64,
     pub idle_timeout: Duration,
     pub min_frame_rate: f64,
     /// What reading an uploaded dataset may cost (`limits`).
@@ -100,9 +103,18 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         session.record_keyframe(id as u64, timestamp, pose);
         session.counters.keyframes.fetch_add(1, Ordering::Relaxed);
     }
+    // A recording that cannot start (no temporary space) costs the session nothing else.
+    let recorder = (env.max_recording_bytes > 0)
+        .then(|| Recorder::open(session.camera(), env.max_recording_bytes))
+        .and_then(|r| {
+            r.map_err(|e| tracing::warn!(session = %session.id(), "no recording: {e}"))
+                .ok()
+        });
     let mut runner = Runner {
         session,
         env: &env,
+        recorder: RefCell::new(recorder),
+        recorded: RefCell::new(None),
         engine,
         last_stats: Stats::default(),
         since_checkpoint: 0,
@@ -153,9 +165,21 @@ struct Runner<'a> {
     /// Mapping ended early (the map limit, or a store that refused spilled keyframes): no more
     /// frames go in.
     mapping_ended: bool,
+    /// The session's recording while it is written (`super::recording`), then what the
+    /// stored one came to.
+    recorder: RefCell<Option<Recorder>>,
+    recorded: RefCell<Option<RecordingSummary>>,
 }
 
 impl Runner<'_> {
+    /// Tells the session's subscribers, and the recording.
+    fn emit(&self, event: SessionEvent) {
+        if let Some(recorder) = self.recorder.borrow_mut().as_mut() {
+            recorder.record(&event);
+        }
+        self.session.emit(event);
+    }
+
     /// The pose-graph update of `poses` with each keyframe's frame id and timestamp.
     fn keyframe_poses_event(
         &self,
@@ -185,13 +209,13 @@ impl Runner<'_> {
         match event {
             Event::KeyframePoses { poses } => {
                 self.session.update_keyframe_poses(&poses);
-                self.session.emit(self.keyframe_poses_event(&poses));
+                self.emit(self.keyframe_poses_event(&poses));
             }
             Event::KeyframeDensified { keyframe, .. } => self.emit_densified(keyframe),
             Event::MeshUpdated { delta, .. } => {
                 let s = self.session;
                 s.apply_mesh_delta(&delta);
-                s.emit(SessionEvent::MeshUpdated {
+                self.emit(SessionEvent::MeshUpdated {
                     revision: delta.revision,
                     changed_blocks: delta.changed.len(),
                     removed_blocks: delta.removed.len(),
@@ -208,7 +232,7 @@ impl Runner<'_> {
         s.counters.densified.fetch_add(1, Ordering::Relaxed);
         let id = dense.keyframe_id as u64;
         let frame_id = self.keyframe_frames.get(&id).map_or(0, |&(f, _)| f);
-        s.emit(SessionEvent::KeyframeDensified {
+        self.emit(SessionEvent::KeyframeDensified {
             keyframe_id: id,
             frame_id,
             timestamp: dense.timestamp,
@@ -360,7 +384,7 @@ impl Runner<'_> {
                     }
                     metrics
                         .observe_stage(Stage::FrameToPose, frame.received.elapsed().as_secs_f64());
-                    s.emit(SessionEvent::Pose {
+                    self.emit(SessionEvent::Pose {
                         frame_id: frame.frame_id,
                         timestamp: p.timestamp,
                         pose: p.world_from_camera,
@@ -374,7 +398,7 @@ impl Runner<'_> {
                     s.record_keyframe(k.keyframe_id as u64, k.timestamp, k.world_from_keyframe);
                     self.keyframe_frames
                         .insert(k.keyframe_id as u64, (frame.frame_id, k.timestamp));
-                    s.emit(SessionEvent::Keyframe {
+                    self.emit(SessionEvent::Keyframe {
                         keyframe_id: k.keyframe_id as u64,
                         frame_id: frame.frame_id,
                         timestamp: k.timestamp,
@@ -427,6 +451,11 @@ impl Runner<'_> {
         if s.lifecycle.is_deleted() {
             return Err("the session was deleted".into());
         }
+        let recording = if final_ {
+            self.store_recording()?
+        } else {
+            None
+        };
         let stats = self.engine.stats();
         let keyframe_count = s.counters.keyframes.load(Ordering::Relaxed);
         let (written_at, written_bytes) = self.pointcloud.get();
@@ -472,9 +501,11 @@ impl Runner<'_> {
                 "mesh_revision": stats.mesh_revision,
                 // Keyframes held in full, compact and spilled, and their bytes (issue 37).
                 "keyframe_memory": self.engine.keyframe_memory(),
+                "recording": recording,
             }),
         };
-        let mut bytes = kept_bytes
+        let mut bytes = recording.as_ref().map_or(0, |r| r.bytes)
+            + kept_bytes
             + results
                 .save(s.store.as_ref(), s.id())
                 .map_err(|e| e.to_string())?;
@@ -488,6 +519,18 @@ impl Runner<'_> {
         }
         s.set_results_bytes(bytes);
         Ok(())
+    }
+
+    /// Closes the recording and stores it with the results (`None` without one). Kept until
+    /// stored, so a retry of the final save stores it then.
+    fn store_recording(&self) -> Result<Option<RecordingSummary>, String> {
+        let mut recorder = self.recorder.borrow_mut();
+        if let Some(r) = recorder.as_mut() {
+            let summary = r.finish(self.session.store.as_ref(), self.session.id())?;
+            *self.recorded.borrow_mut() = Some(summary);
+            *recorder = None;
+        }
+        Ok(self.recorded.borrow().clone())
     }
 
     /// Saves the final results, retrying (1 s, doubling to 30 s) while the store refuses them
@@ -548,7 +591,7 @@ impl Runner<'_> {
             self.emit_background(event);
         }
         s.update_keyframe_poses(&poses);
-        s.emit(self.keyframe_poses_event(&poses));
+        self.emit(self.keyframe_poses_event(&poses));
         if s.lifecycle.is_deleted() {
             return Outcome::Cancelled;
         }

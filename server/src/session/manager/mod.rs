@@ -534,6 +534,7 @@ impl SessionManager {
             pool: Arc::new(self.pool.client()),
             metrics: self.metrics.clone(),
             checkpoint_keyframes: self.config.limits.checkpoint_keyframes,
+            max_recording_bytes: self.config.limits.max_recording_mb << 20,
             idle_timeout: Duration::from_secs(self.config.limits.idle_timeout_s),
             min_frame_rate: self.config.limits.min_frame_rate,
             sequence_limits: self.config.limits.sequence_limits(),

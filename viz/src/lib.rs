@@ -1,0 +1,13 @@
+//! relfusion-viz: a session for viewers, shared by the command line (`relfusion stream/run
+//! --mcap --foxglove --rerun`) and the service (a session's `recording.mcap`).
+//!
+//! - [`session_log`]: what a viewer's log of a session is given ([`SessionLog`]).
+//! - [`foxglove_log`]: MCAP files and the Foxglove WebSocket protocol, with Foxglove's schemas.
+//! - [`rerun_log`] (feature `rerun`): rerun `.rrd` recordings.
+
+pub mod foxglove_log;
+#[cfg(feature = "rerun")]
+pub mod rerun_log;
+pub mod session_log;
+
+pub use session_log::SessionLog;
