@@ -304,11 +304,6 @@ impl FoxgloveLog {
         })
     }
 
-    /// The WebSocket server's port, when serving.
-    pub fn port(&self) -> Option<u16> {
-        self.server.as_ref().map(|s| s.port())
-    }
-
     /// Moves the log's clock forward to a frame (never back).
     fn advance(&mut self, frame_id: u64, seconds: f64) {
         if frame_id >= self.now.0 {
