@@ -3,6 +3,7 @@ the upload archive. Nothing here does I/O on the network."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import tarfile
@@ -129,8 +130,6 @@ def upload_archive(folder: Path, camera: Optional[Camera]) -> Tuple[str, int]:
             data = f"# fx fy cx cy [k1 k2 p1 p2 k3] (written by the relfusion Python SDK)\n{line}\n".encode()
             info = tarfile.TarInfo(f"{root}/calibration.txt")
             info.size = len(data)
-            import io
-
             tar.addfile(info, io.BytesIO(data))
     return path, os.path.getsize(path)
 

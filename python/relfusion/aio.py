@@ -40,17 +40,18 @@ class AsyncClient:
     async def __aexit__(self, *exc: Any) -> None:
         await self.aclose()
 
-    async def _json(self, method: str, path: str, **kw: Any) -> Any:
+    async def _send(self, method: str, path: str, **kw: Any) -> httpx.Response:
+        """The answer to a request; the service's errors and an unreachable service raise."""
         try:
-            return (await _check(await self._http.request(method, path, **kw))).json()
+            return await _check(await self._http.request(method, path, **kw))
         except httpx.TransportError as e:
             raise RelfusionError(0, "unreachable", str(e)) from e
 
+    async def _json(self, method: str, path: str, **kw: Any) -> Any:
+        return (await self._send(method, path, **kw)).json()
+
     async def _bytes(self, session: str, name: str) -> bytes:
-        try:
-            return (await _check(await self._http.get(f"v1/sessions/{session}/{name}"))).content
-        except httpx.TransportError as e:
-            raise RelfusionError(0, "unreachable", str(e)) from e
+        return (await self._send("GET", f"v1/sessions/{session}/{name}")).content
 
     async def create_session(
         self,

@@ -7,7 +7,7 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Any, Dict, Iterable, Iterator, List, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Tuple, Union
 
 import httpx
 
@@ -53,11 +53,15 @@ class Client:
 
     # ---- plain calls ----
 
-    def _json(self, method: str, path: str, **kw: Any) -> Any:
+    def _send(self, method: str, path: str, **kw: Any) -> httpx.Response:
+        """The answer to a request; the service's errors and an unreachable service raise."""
         try:
-            return _check(self._http.request(method, path, **kw)).json()
+            return _check(self._http.request(method, path, **kw))
         except httpx.TransportError as e:
             raise RelfusionError(0, "unreachable", str(e)) from e
+
+    def _json(self, method: str, path: str, **kw: Any) -> Any:
+        return self._send(method, path, **kw).json()
 
     def version(self) -> Dict[str, Any]:
         return self._json("GET", "v1/version")
@@ -103,19 +107,21 @@ class Client:
         return self._json("GET", "v1/sessions")["sessions"]
 
     def delete(self, session: str) -> None:
-        try:
-            _check(self._http.delete(f"v1/sessions/{session}"))
-        except httpx.TransportError as e:
-            raise RelfusionError(0, "unreachable", str(e)) from e
+        self._send("DELETE", f"v1/sessions/{session}")
 
-    def events(self, session: str) -> Iterator[Tuple[str, Any]]:
-        """The session's events as they happen, ``(type, data)``, until it ends."""
+    def events(
+        self, session: str, on_open: Optional[Callable[[], None]] = None
+    ) -> Iterator[Tuple[str, Any]]:
+        """The session's events as they happen, ``(type, data)``, until it ends; ``on_open``
+        is called once the service has accepted the subscription."""
         parser = p.EventParser()
         try:
             with self._http.stream(
                 "GET", f"v1/sessions/{session}/events", timeout=httpx.Timeout(None, connect=30)
             ) as response:
                 _check(response)
+                if on_open is not None:
+                    on_open()
                 for line in response.iter_lines():
                     got = parser.feed(line)
                     if got is None:
@@ -165,20 +171,8 @@ class Client:
 
         def listen() -> None:
             try:
-                parser = p.EventParser()
-                with self._http.stream(
-                    "GET",
-                    f"v1/sessions/{session}/events",
-                    timeout=httpx.Timeout(None, connect=30),
-                ) as response:
-                    _check(response)
-                    connected.set()
-                    for line in response.iter_lines():
-                        got = parser.feed(line)
-                        if got is not None:
-                            events.put(got)
-                            if p.is_last(got[0]):
-                                return
+                for event in self.events(session, on_open=connected.set):
+                    events.put(event)
             except Exception as e:  # handed to the caller's thread
                 events.put(("error", e))
             finally:
@@ -252,10 +246,7 @@ class Client:
         return session
 
     def _bytes(self, session: str, name: str) -> bytes:
-        try:
-            return _check(self._http.get(f"v1/sessions/{session}/{name}")).content
-        except httpx.TransportError as e:
-            raise RelfusionError(0, "unreachable", str(e)) from e
+        return self._send("GET", f"v1/sessions/{session}/{name}").content
 
     def fetch(self, session: str) -> Results:
         """The session's results: trajectory and keyframes as numpy, the mesh (``.mesh`` is a
@@ -289,7 +280,4 @@ class Client:
         return self._json("GET", "v1/maps")["maps"]
 
     def delete_map(self, map_id: str) -> None:
-        try:
-            _check(self._http.delete(f"v1/maps/{map_id}"))
-        except httpx.TransportError as e:
-            raise RelfusionError(0, "unreachable", str(e)) from e
+        self._send("DELETE", f"v1/maps/{map_id}")

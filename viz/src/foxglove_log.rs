@@ -371,11 +371,7 @@ impl FoxgloveLog {
             &PointCloud {
                 timestamp: timestamp(ns),
                 frame_id: format!("keyframe_{keyframe_id}"),
-                pose: Some(fox_pose(&Pose {
-                    t: [0.0; 3],
-                    q: [0.0, 0.0, 0.0, 1.0],
-                    s: 1.0,
-                })),
+                pose: Some(fox_pose(&Pose::IDENTITY)),
                 point_stride: 12,
                 fields: vec![field("x", 0), field("y", 4), field("z", 8)],
                 data: data.into(),
@@ -506,23 +502,15 @@ impl SessionLog for FoxgloveLog {
     }
 
     fn keyframe_depth(&mut self, keyframe_id: u64, depth: &DepthRef<'_>) -> Result<(), LogError> {
-        let points = depth.points(POINTS_PER_KEYFRAME);
-        let pose = self.keyframes.get(&keyframe_id).map_or(
-            Pose {
-                t: [0.0; 3],
-                q: [0.0, 0.0, 0.0, 1.0],
-                s: 1.0,
-            },
-            |k| k.pose,
-        );
+        // Depth before the keyframe's pose (never from our callers) hangs at the origin.
         self.keyframes
             .entry(keyframe_id)
             .or_insert(KeyframeView {
-                pose,
+                pose: Pose::IDENTITY,
                 points: Vec::new(),
-                sent_scale: pose.s,
+                sent_scale: 1.0,
             })
-            .points = points;
+            .points = depth.points(POINTS_PER_KEYFRAME);
         self.log_points(keyframe_id);
         Ok(())
     }

@@ -16,6 +16,14 @@ pub struct Pose {
     pub s: f64,
 }
 
+impl Pose {
+    pub const IDENTITY: Pose = Pose {
+        t: [0.0; 3],
+        q: [0.0, 0.0, 0.0, 1.0],
+        s: 1.0,
+    };
+}
+
 impl From<&Sim3> for Pose {
     fn from(p: &Sim3) -> Self {
         let q = p.rotation.quaternion();
