@@ -74,14 +74,17 @@ if [ "${1:-}" = "--test" ]; then
   # What users of the robotics ecosystem run (issue 38), for the tests that play them: the
   # `mcap` package with its protobuf decoder and `websockets` read recordings and the live
   # Foxglove protocol; flit_core builds the Python SDK's wheel (python/) offline, and httpx,
-  # numpy, trimesh and pytest run its tests.
-  CLIENT_PYDEPS="$RELFUSION_HOME/pydeps-clients-2"
+  # numpy, trimesh and pytest run its tests; eclipse-zenoh and pycdr2 play a ROS 2 robot on
+  # rmw_zenoh (the same Zenoh as the server, a CDR codec of its own), and mcap-ros2-support
+  # reads the ROS 2 (CDR) recordings as `ros2 bag` would.
+  CLIENT_PYDEPS="$RELFUSION_HOME/pydeps-clients-3"
   if [ ! -d "$CLIENT_PYDEPS" ]; then
     log "installing the Python packages of the client tests into $CLIENT_PYDEPS"
     rm -rf "$CLIENT_PYDEPS.partial"
     python3 -m pip install -q --target "$CLIENT_PYDEPS.partial" --break-system-packages \
       "mcap==1.6.0" "mcap-protobuf-support==0.6.0" "protobuf==7.36.2" "websockets==17.4" \
-      "flit_core==4.2.0" "httpx==0.28.1" "numpy==2.4.6" "trimesh==5.2.0" "pytest==9.2.0" >&2
+      "flit_core==4.2.0" "httpx==0.28.1" "numpy==2.4.6" "trimesh==5.2.0" "pytest==9.2.0" \
+      "eclipse-zenoh==1.10.2" "pycdr2==1.0.0" "mcap-ros2-support==0.6.0" >&2
     mv "$CLIENT_PYDEPS.partial" "$CLIENT_PYDEPS"
   fi
   echo "export RELFUSION_CLIENT_PYDEPS=$CLIENT_PYDEPS"

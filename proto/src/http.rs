@@ -61,11 +61,13 @@ fn integral_u32<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u32, D::Error>
 }
 
 /// `POST /v1/sessions`: a live session.
-#[derive(Clone, Debug, Deserialize, Serialize)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize)]
 #[cfg_attr(feature = "openapi", derive(ToSchema))]
 #[serde(deny_unknown_fields)]
 pub struct CreateSession {
-    pub camera: CameraJson,
+    /// The camera; required unless `ros2.camera_info_topic` gives it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<CameraJson>,
     /// Partial pipeline configuration (sections `pipeline`, `tracking`, `mapping`,
     /// `backend`); keys not given keep their defaults, unknown keys are rejected.
     #[serde(default, skip_serializing_if = "serde_json::Value::is_null")]
@@ -80,6 +82,30 @@ pub struct CreateSession {
     /// Start in a saved map (`POST /v1/maps`) of the same camera instead of an empty one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub map: Option<MapStart>,
+    /// The session on ROS 2 (servers with `[ros2] enabled`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ros2: Option<Ros2Session>,
+}
+
+/// A session's ROS 2 side: rmw_zenoh's wire format on the server's Zenoh session. Topic names
+/// are ROS 2 names inside the tenant's namespace `/relfusion/<tenant>` (a relative name is
+/// resolved in it).
+#[derive(Clone, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(deny_unknown_fields)]
+pub struct Ros2Session {
+    /// Publish the session's `pose`, `tf`, `path`, `points` and `mesh` under
+    /// `/relfusion/<tenant>/<session>/`.
+    #[serde(default)]
+    pub publish: bool,
+    /// Take the frames from this topic: `sensor_msgs/Image`, or `sensor_msgs/CompressedImage`
+    /// when the name ends in `/compressed` (image_transport's convention).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image_topic: Option<String>,
+    /// The camera's `sensor_msgs/CameraInfo`: required with `image_topic` when `camera` is not
+    /// given, and then read once when the session is created.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_info_topic: Option<String>,
 }
 
 /// What a session does with a saved map.

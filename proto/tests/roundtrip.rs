@@ -176,6 +176,11 @@ fn session_config_roundtrips() {
         policy: FramePolicy::Wait as i32,
         map_id: "m-0123456789abcdef01234567".into(),
         map_mode: relfusion_proto::v1::MapMode::Localize as i32,
+        ros2: Some(relfusion_proto::v1::Ros2Options {
+            publish: true,
+            image_topic: "camera/image_raw".into(),
+            camera_info_topic: "camera/camera_info".into(),
+        }),
     });
     // A config written before `policy` existed decodes to the server default.
     let old = SessionConfig {

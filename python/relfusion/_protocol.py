@@ -34,18 +34,25 @@ def headers(token: Optional[str]) -> Dict[str, str]:
 
 
 def session_request(
-    camera: Camera,
+    camera: Optional[Camera],
     model: Optional[str],
     config: Optional[Dict[str, Any]],
     policy: str,
     map_id: Optional[str],
     map_mode: str,
+    ros2: Optional[Dict[str, Any]] = None,
 ) -> Dict[str, Any]:
     if policy not in ("drop_oldest", "wait"):
         raise ValueError(f"policy must be 'drop_oldest' or 'wait', got {policy!r}")
     if map_mode not in ("localize", "extend"):
         raise ValueError(f"map_mode must be 'localize' or 'extend', got {map_mode!r}")
-    body: Dict[str, Any] = {"camera": camera.to_json(), "policy": policy}
+    if camera is None and not (ros2 or {}).get("camera_info_topic"):
+        raise ValueError("a camera is required unless ros2['camera_info_topic'] gives it")
+    body: Dict[str, Any] = {"policy": policy}
+    if camera is not None:
+        body["camera"] = camera.to_json()
+    if ros2 is not None:
+        body["ros2"] = ros2
     if model is not None:
         body["model"] = model
     if config is not None:

@@ -55,15 +55,16 @@ class AsyncClient:
 
     async def create_session(
         self,
-        camera: Camera,
+        camera: Optional[Camera] = None,
         *,
         model: Optional[str] = None,
         config: Optional[Dict[str, Any]] = None,
         policy: str = "drop_oldest",
         map_id: Optional[str] = None,
         map_mode: str = "localize",
+        ros2: Optional[Dict[str, Any]] = None,
     ) -> Dict[str, Any]:
-        body = p.session_request(camera, model, config, policy, map_id, map_mode)
+        body = p.session_request(camera, model, config, policy, map_id, map_mode, ros2)
         created = await self._json("POST", "v1/sessions", json=body)
         self.last_session = created["id"]
         return created["session"]

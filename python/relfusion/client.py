@@ -68,18 +68,22 @@ class Client:
 
     def create_session(
         self,
-        camera: Camera,
+        camera: Optional[Camera] = None,
         *,
         model: Optional[str] = None,
         config: Optional[Dict[str, Any]] = None,
         policy: str = "drop_oldest",
         map_id: Optional[str] = None,
         map_mode: str = "localize",
+        ros2: Optional[Dict[str, Any]] = None,
     ) -> Dict[str, Any]:
         """Opens a live session; returns its info (``["id"]``). ``policy="wait"`` processes
         every frame (the service stops reading while the queue is full); the default drops the
-        oldest queued frame as a live camera should. ``map_id``: start in a saved map."""
-        body = p.session_request(camera, model, config, policy, map_id, map_mode)
+        oldest queued frame as a live camera should. ``map_id``: start in a saved map.
+        ``ros2``: the session on ROS 2 (servers with ``[ros2]``), e.g. ``{"publish": True,
+        "image_topic": "camera/image_raw", "camera_info_topic": "camera/camera_info"}``; with a
+        CameraInfo topic the camera may be left out."""
+        body = p.session_request(camera, model, config, policy, map_id, map_mode, ros2)
         created = self._json("POST", "v1/sessions", json=body)
         self.last_session = created["id"]
         return created["session"]

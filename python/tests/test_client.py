@@ -100,6 +100,10 @@ def test_errors_carry_the_service_code(client, url, sequence):
     with pytest.raises(relfusion.BadRequest) as bad:
         client.create_session(relfusion.Camera(500, 500, 160, 120, 0, 240))
     assert bad.value.status == 400 and bad.value.code == "invalid_argument" and bad.value.message
+    # This server has no [ros2]: a session on ROS 2 is refused with the reason.
+    with pytest.raises(relfusion.BadRequest) as no_ros2:
+        client.create_session(relfusion.Camera(500, 500, 160, 120, 320, 240), ros2={"publish": True})
+    assert "ros2" in no_ros2.value.message
     with relfusion.Client(url, "not-a-token") as stranger:
         with pytest.raises(relfusion.Unauthorized):
             stranger.sessions()

@@ -413,11 +413,12 @@ mod tests {
     fn create_request_matches_the_servers_json() {
         let cam = PinholeCamera::new(262.5, 262.5, 159.5, 119.5, 320, 240).expect("camera");
         let req = CreateSession {
-            camera: camera_json(&cam),
+            camera: Some(camera_json(&cam)),
             config: serde_json::json!({"pipeline": {"deterministic": true}}),
             model: None,
             policy: FramePolicy::Wait,
             map: None,
+            ros2: None,
         };
         let v = serde_json::to_value(&req).expect("serialises");
         assert_eq!(v["policy"], "wait");

@@ -148,11 +148,12 @@ pub async fn stream_dataset(
         .collect();
     let req = CreateSession {
         // The dataset's calibration.txt wins inside `open`; an explicit override wins here.
-        camera: crate::api::camera_json(&opts.camera.unwrap_or(seq.camera)),
+        camera: Some(crate::api::camera_json(&opts.camera.unwrap_or(seq.camera))),
         config: opts.config.clone(),
         model: opts.model.clone(),
         policy: opts.policy,
         map: opts.map.clone(),
+        ros2: None,
     };
     let t0 = Instant::now();
     let SessionLink {

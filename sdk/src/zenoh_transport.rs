@@ -34,7 +34,7 @@ use zenoh::handlers::FifoChannel;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::Locality;
 
-use crate::api::{CameraJson, CreateSession, FramePolicy};
+use crate::api::{CreateSession, FramePolicy};
 use crate::error::ClientError;
 use crate::link::{FRAME_CHANNEL, SessionLink, TaskGuard, UPDATE_CHANNEL};
 
@@ -128,24 +128,15 @@ pub fn api_error(error: &v1::Error) -> ClientError {
 
 /// The protobuf `SessionConfig` for an HTTP-style create request.
 pub fn session_config(req: &CreateSession) -> SessionConfig {
-    let CameraJson {
-        fx,
-        fy,
-        cx,
-        cy,
-        width,
-        height,
-        distortion,
-    } = req.camera;
     SessionConfig {
-        camera: Some(v1::Camera {
-            fx,
-            fy,
-            cx,
-            cy,
-            width,
-            height,
-            distortion: distortion.map(|[k1, k2, p1, p2, k3]| v1::Distortion {
+        camera: req.camera.map(|c| v1::Camera {
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+            width: c.width,
+            height: c.height,
+            distortion: c.distortion.map(|[k1, k2, p1, p2, k3]| v1::Distortion {
                 k1,
                 k2,
                 p1,
@@ -169,6 +160,11 @@ pub fn session_config(req: &CreateSession) -> SessionConfig {
             Some(MapMode::Extend) => v1::MapMode::Extend,
             None => v1::MapMode::Unspecified,
         } as i32,
+        ros2: req.ros2.as_ref().map(|r| v1::Ros2Options {
+            publish: r.publish,
+            image_topic: r.image_topic.clone().unwrap_or_default(),
+            camera_info_topic: r.camera_info_topic.clone().unwrap_or_default(),
+        }),
     }
 }
 
@@ -495,7 +491,7 @@ mod tests {
     #[test]
     fn create_request_becomes_a_session_config() {
         let req = CreateSession {
-            camera: CameraJson {
+            camera: Some(crate::api::CameraJson {
                 fx: 300.0,
                 fy: 301.0,
                 cx: 160.0,
@@ -503,7 +499,7 @@ mod tests {
                 width: 320,
                 height: 240,
                 distortion: Some([0.1, 0.0, 0.0, 0.0, 0.0]),
-            },
+            }),
             config: serde_json::json!({"pipeline": {"deterministic": true}}),
             model: None,
             policy: FramePolicy::Wait,
@@ -511,8 +507,17 @@ mod tests {
                 id: "m-0123456789abcdef01234567".into(),
                 mode: MapMode::Localize,
             }),
+            ros2: Some(relfusion_proto::http::Ros2Session {
+                publish: true,
+                ..Default::default()
+            }),
         };
         let c = session_config(&req);
+        assert!(
+            c.ros2
+                .as_ref()
+                .is_some_and(|r| r.publish && r.image_topic.is_empty())
+        );
         assert_eq!(c.map_id, "m-0123456789abcdef01234567");
         assert_eq!(c.map_mode(), v1::MapMode::Localize);
         let camera = c.camera.expect("camera");

@@ -18,6 +18,7 @@ pub mod http;
 pub mod maps;
 pub mod memory;
 pub mod metrics;
+pub mod ros2_api;
 pub mod session;
 pub mod storage;
 pub mod zenoh_api;

@@ -14,7 +14,7 @@ use std::process::Command;
 use relfusion_tests::{Relfusiond, bin_path, data_dir, ply_faces, synth_sequence, temp_dir};
 use rerun::external::re_log_encoding::Decoder;
 use rerun::log::{Chunk, LogMsg, RowId};
-use serde_json::Value;
+use serde_json::{Value, json};
 
 /// What a recording holds, by entity path.
 #[derive(Debug, Default)]
@@ -133,19 +133,27 @@ fn tum_lines(path: &Path) -> usize {
         .count()
 }
 
-/// Runs `tests/py/foxglove_check.py ARGS` with the Python packages `scripts/setup.sh --test`
-/// installed, and parses its JSON summary.
+/// Runs `tests/py/foxglove_check.py ARGS`.
 fn foxglove_check(args: &[&str]) -> Value {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("py/foxglove_check.py");
+    python_check("foxglove_check.py", args)
+}
+
+/// Runs `tests/py/SCRIPT ARGS` with the Python packages `scripts/setup.sh --test` installed,
+/// and parses its JSON summary.
+fn python_check(script: &str, args: &[&str]) -> Value {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("py")
+        .join(script);
     let mut command = Command::new("python3");
-    command.arg(script).args(args);
+    command.arg(&script).args(args);
     if let Some(deps) = std::env::var_os("RELFUSION_CLIENT_PYDEPS") {
         command.env("PYTHONPATH", deps);
     }
     let out = command.output().expect("python3");
     assert!(
         out.status.success(),
-        "foxglove_check.py {args:?}: {}",
+        "{} {args:?}: {}",
+        script.display(),
         String::from_utf8_lossy(&out.stderr)
     );
     serde_json::from_slice(&out.stdout).expect("a JSON summary")
@@ -359,6 +367,7 @@ fn a_real_sequence_is_recorded_to_mcap_and_served_to_foxglove() {
     let work = temp_dir("foxglove");
     let out = work.join("run");
     let mcap_path = work.join("run.mcap");
+    let bag_path = work.join("run-ros2.mcap");
     let mut child = Command::new(bin_path("relfusion"))
         .args([
             "run",
@@ -369,6 +378,7 @@ fn a_real_sequence_is_recorded_to_mcap_and_served_to_foxglove() {
         ])
         .args(["--quiet", "--out", out.to_str().expect("path")])
         .args(["--mcap", mcap_path.to_str().expect("path")])
+        .args(["--mcap-ros2", bag_path.to_str().expect("path")])
         .args(["--foxglove", "0", "--foxglove-wait", "120"])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
@@ -431,4 +441,51 @@ fn a_real_sequence_is_recorded_to_mcap_and_served_to_foxglove() {
         summary["mesh_triangles"].as_u64().expect("mesh triangles") as usize,
     );
     assert_eq!(mcap["counts"]["/mesh"], summary["foxglove"]["mesh_updates"]);
+
+    // The ROS 2 bag, read as `ros2 bag` reads it.
+    let bag = python_check("ros2_check.py", &["bag", bag_path.to_str().expect("path")]);
+    let sent = &summary["ros2_bag"]["messages"];
+    for (topic, name, schema) in [
+        (
+            "/camera/image/compressed",
+            "image/compressed",
+            "sensor_msgs/msg/CompressedImage",
+        ),
+        (
+            "/camera/camera_info",
+            "camera_info",
+            "sensor_msgs/msg/CameraInfo",
+        ),
+        ("/tf", "tf", "tf2_msgs/msg/TFMessage"),
+        ("/relfusion/pose", "pose", "geometry_msgs/msg/PoseStamped"),
+        ("/relfusion/path", "path", "nav_msgs/msg/Path"),
+        ("/relfusion/points", "points", "sensor_msgs/msg/PointCloud2"),
+        (
+            "/relfusion/mesh",
+            "mesh",
+            "visualization_msgs/msg/MarkerArray",
+        ),
+    ] {
+        assert_eq!(bag["counts"][topic], sent[name], "{topic}: {bag}");
+        assert_eq!(
+            bag["schemas"][topic],
+            json!([schema, "ros2msg", "cdr"]),
+            "{bag}"
+        );
+    }
+    assert_eq!(bag["counts"]["/camera/image/compressed"], 60, "{bag}");
+    assert_eq!(
+        bag["counts"]["/relfusion/pose"],
+        tum_lines(&out.join("trajectory.txt")),
+        "a PoseStamped per tracked frame: {bag}"
+    );
+    assert_eq!(
+        bag["counts"]["/relfusion/mesh"],
+        summary["foxglove"]["mesh_updates"]
+    );
+    assert_eq!(bag["first"]["/camera/camera_info"]["width"], 640, "{bag}");
+    assert_eq!(
+        bag["first"]["/relfusion/pose"]["frame_id"], "world",
+        "{bag}"
+    );
 }

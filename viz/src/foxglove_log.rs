@@ -37,7 +37,8 @@ use foxglove::{Channel, Context, McapWriterHandle, WebSocketServerHandle};
 use relfusion_core::geometry::PinholeCamera;
 
 use crate::session_log::{
-    DepthRef, LogCounts, LogError, MeshBlockRef, Pose, SessionLog, image_format,
+    DepthRef, LogCounts, LogError, MeshBlockRef, POINTS_PER_KEYFRAME, Pose, RESCALE_TOLERANCE,
+    SessionLog, image_format, nanos,
 };
 
 /// Topics, as the table above.
@@ -50,14 +51,6 @@ pub mod topics {
     pub const POINTS: &str = "/keyframes/points";
     pub const MESH: &str = "/mesh";
 }
-
-/// Most dense points sent per keyframe: enough for its shape, small enough to keep each
-/// keyframe's (for a re-send when the pose graph rescales it).
-const POINTS_PER_KEYFRAME: usize = 5_000;
-
-/// A keyframe's points are sent again when its scale changed by more than this (a point
-/// cloud hangs in its keyframe's frame, and a frame transform carries no scale).
-const RESCALE_TOLERANCE: f64 = 0.01;
 
 /// Where the log goes.
 #[derive(Clone, Debug, Default)]
@@ -192,14 +185,6 @@ impl std::fmt::Debug for FoxgloveLog {
 fn timestamp(ns: u64) -> Option<Timestamp> {
     let sec = u32::try_from(ns / 1_000_000_000).unwrap_or(u32::MAX);
     Some(Timestamp::new(sec, (ns % 1_000_000_000) as u32))
-}
-
-fn nanos(seconds: f64) -> u64 {
-    if seconds.is_finite() && seconds > 0.0 {
-        (seconds * 1e9).min(u64::MAX as f64) as u64
-    } else {
-        0
-    }
 }
 
 fn vector(t: [f64; 3]) -> Option<Vector3> {

@@ -4,10 +4,12 @@
 //! - [`session_log`]: what a viewer's log of a session is given ([`SessionLog`]).
 //! - [`foxglove_log`]: MCAP files and the Foxglove WebSocket protocol, with Foxglove's schemas.
 //! - [`rerun_log`] (feature `rerun`): rerun `.rrd` recordings.
+//! - [`ros2`]: the session as ROS 2 messages (CDR, REP-2011 type hashes) for rmw_zenoh.
 
 pub mod foxglove_log;
 #[cfg(feature = "rerun")]
 pub mod rerun_log;
+pub mod ros2;
 pub mod session_log;
 
 pub use session_log::SessionLog;

@@ -35,6 +35,23 @@ impl From<&Sim3> for Pose {
     }
 }
 
+/// Most dense points a viewer is sent per keyframe: enough for its shape, small enough to keep
+/// each keyframe's (for a re-send when the pose graph rescales it).
+pub const POINTS_PER_KEYFRAME: usize = 5_000;
+
+/// A keyframe's points are sent again when its scale changed by more than this (a point
+/// cloud hangs in its keyframe's frame, and a frame transform carries no scale).
+pub const RESCALE_TOLERANCE: f64 = 0.01;
+
+/// Nanoseconds of a capture time in seconds (0 for negative or non-finite times).
+pub fn nanos(seconds: f64) -> u64 {
+    if seconds.is_finite() && seconds > 0.0 {
+        (seconds * 1e9).min(u64::MAX as f64) as u64
+    } else {
+        0
+    }
+}
+
 /// One block of the fused surface (world coordinates).
 #[derive(Clone, Copy, Debug)]
 pub struct MeshBlockRef<'a> {

@@ -169,11 +169,12 @@ async fn wait_members(client: &Client, n: usize) -> anyhow::Result<()> {
 
 fn request(frames: &Frames, policy: FramePolicy) -> CreateSession {
     CreateSession {
-        camera: frames.camera,
+        camera: Some(frames.camera),
         config: Value::Null,
         model: Some("none".into()),
         policy,
         map: None,
+        ros2: None,
     }
 }
 

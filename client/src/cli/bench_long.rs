@@ -189,11 +189,12 @@ pub fn long(args: &LongArgs) -> anyhow::Result<()> {
     }
     .camera()?;
     let req = CreateSession {
-        camera: relfusion_sdk::api::camera_json(&camera),
+        camera: Some(relfusion_sdk::api::camera_json(&camera)),
         config,
         model: Some(args.model.clone()),
         policy: FramePolicy::DropOldest,
         map: None,
+        ros2: None,
     };
     runtime()?.block_on(async {
         let mut sessions = Vec::new();

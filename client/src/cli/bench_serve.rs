@@ -191,11 +191,12 @@ pub(super) fn load_frames(
 
 fn request(frames: &Frames, policy: FramePolicy, args: &ServeArgs) -> CreateSession {
     CreateSession {
-        camera: frames.camera,
+        camera: Some(frames.camera),
         config: Value::Null,
         model: args.model.clone(),
         policy,
         map: None,
+        ros2: None,
     }
 }
 
@@ -277,11 +278,12 @@ async fn zenoh_ingest(
         })
         .collect();
     let req = CreateSession {
-        camera: frames.camera,
+        camera: Some(frames.camera),
         config: Value::Null,
         model: None,
         policy: FramePolicy::DropOldest,
         map: None,
+        ros2: None,
     };
     let identity = relfusion_sdk::zenoh_transport::Identity::of(client);
     let rate =

@@ -1,5 +1,5 @@
 //! The viewers' logs of `relfusion stream` and `relfusion run` (`--rerun FILE.rrd`,
-//! `--mcap FILE.mcap`, `--foxglove [ADDR:]PORT`): what each command sees (the service's updates,
+//! `--mcap FILE.mcap`, `--mcap-ros2 FILE.mcap`, `--foxglove [ADDR:]PORT`): what each command sees (the service's updates,
 //! the local pipeline's events) translated once into [`SessionLog`] calls and given to every
 //! log asked for. A log that fails is reported at the end; the stream or run itself goes on.
 
@@ -13,6 +13,7 @@ use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::{Event, TrackingState};
 use relfusion_viz::foxglove_log::{FoxgloveLog, FoxgloveOptions, parse_serve_address};
+use relfusion_viz::ros2::mcap::Ros2Bag;
 use relfusion_viz::session_log::{DepthRef, LogError, MeshBlockRef, Pose, SessionLog};
 use serde_json::{Map, Value};
 
@@ -27,6 +28,11 @@ pub struct LogArgs {
     /// transforms, trajectory, keyframe points, mesh blocks), for Foxglove or the `mcap` tools.
     #[arg(long, value_name = "FILE.mcap")]
     pub mcap: Option<PathBuf>,
+    /// Also write a ROS 2 bag (MCAP, `ros2msg` schemas, CDR: what `ros2 bag record -s mcap`
+    /// writes) that `ros2 bag play` replays: images, camera info, /tf, pose, path, keyframe
+    /// points and the mesh as markers.
+    #[arg(long, value_name = "FILE.mcap")]
+    pub mcap_ros2: Option<PathBuf>,
     /// Serve the session live to the Foxglove app (Foxglove WebSocket protocol) on this port
     /// of 127.0.0.1, or on ADDR:PORT; the URL is printed on stderr as {"foxglove": URL}.
     #[arg(long, value_name = "[ADDR:]PORT", value_parser = parse_serve_address)]
@@ -94,6 +100,10 @@ impl Logs {
             };
             logs.logs
                 .push(("foxglove", Box::new(FoxgloveLog::open(&options, camera)?)));
+        }
+        if let Some(path) = &args.mcap_ros2 {
+            logs.logs
+                .push(("ros2_bag", Box::new(Ros2Bag::create(path, camera)?)));
         }
         Ok(logs)
     }

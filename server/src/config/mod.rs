@@ -13,9 +13,11 @@ use serde::{Deserialize, Serialize};
 use crate::ServerError;
 
 mod limits;
+mod ros2;
 mod storage;
 
 pub use limits::{HttpLimits, Limits, Quotas, Retention};
+pub use ros2::Ros2Config;
 pub use storage::{S3Config, StorageBackend, StorageConfig};
 
 /// The whole server configuration. Unknown keys are rejected so that typos are caught.
@@ -42,6 +44,8 @@ pub struct Config {
     pub auth: AuthConfig,
     /// The Zenoh endpoints.
     pub zenoh: ZenohConfig,
+    /// Sessions on ROS 2 (rmw_zenoh's wire format, on the Zenoh session).
+    pub ros2: Ros2Config,
     /// HTTPS/WSS on `listen` instead of plain HTTP, when a certificate is given.
     pub tls: TlsConfig,
     /// Where sessions and maps are kept: local files or a shared S3-compatible bucket.
@@ -72,6 +76,7 @@ impl Default for Config {
             model: ModelSettings::default(),
             auth: AuthConfig::default(),
             zenoh: ZenohConfig::default(),
+            ros2: Ros2Config::default(),
             tls: TlsConfig::default(),
             storage: StorageConfig::default(),
         }
@@ -377,6 +382,9 @@ impl Config {
         self.storage
             .apply_env(&env)
             .map_err(|message| bad("RELFUSIOND_STORAGE", message))?;
+        self.ros2
+            .apply_env(&env)
+            .map_err(|message| bad("RELFUSIOND_ROS2", message))?;
         if let Some(v) = env("RELFUSIOND_ZENOH_USER") {
             self.zenoh.user = v.trim().to_string();
         }
@@ -483,7 +491,7 @@ impl Config {
         if !self.zenoh.user.is_empty() && self.zenoh.password.is_empty() {
             return Err("zenoh.user needs zenoh.password".into());
         }
-        Ok(())
+        self.ros2.validate(self.zenoh.enabled, &names)
     }
 
     /// The default configuration as TOML, for `--print-default-config`.

@@ -68,6 +68,7 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         super::events_sse::SseEvent,
         super::map::ProtoFiles,
         relfusion_proto::http::MapStart,
+        relfusion_proto::http::Ros2Session,
         relfusion_proto::http::MapMode,
         relfusion_proto::http::SaveMap,
         relfusion_proto::http::MapInfo,

@@ -49,11 +49,24 @@ pub(super) fn created(info: SessionInfo) -> Response {
 pub async fn create_session(
     State(state): State<Arc<AppState>>,
     Auth(owner): Auth,
-    ApiJson(request): ApiJson<CreateSession>,
+    ApiJson(mut request): ApiJson<CreateSession>,
 ) -> Result<Response, ApiError> {
+    let mut ros2 = crate::ros2_api::prepare(
+        &state.sessions,
+        request.ros2.as_ref(),
+        request.camera.is_some(),
+        owner.tenant(),
+    )
+    .await?;
+    if let Some(camera) = ros2.as_mut().and_then(|r| r.camera.take()) {
+        request.camera = Some(camera);
+    }
     let session = state
         .sessions
         .create(SessionRequest::from_http(request)?, &owner)?;
+    if let Some(ros2) = ros2 {
+        ros2.attach(&state.sessions, session.clone()).await?;
+    }
     Ok(created(session.info()))
 }
 

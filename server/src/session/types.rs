@@ -48,10 +48,13 @@ impl SessionRequest {
     /// The typed form of an HTTP create request: the camera validated, the overrides merged
     /// over the defaults of a live session with its policy.
     pub fn from_http(req: CreateSession) -> Result<Self, ApiError> {
+        let camera = req.camera.as_ref().ok_or_else(|| {
+            ApiError::bad_request("camera is required (or ros2.camera_info_topic to read it from)")
+        })?;
         Ok(Self {
             map: req.map,
             ..Self::live(
-                camera_from_json(&req.camera)?,
+                camera_from_json(camera)?,
                 &req.config,
                 req.model,
                 req.policy,

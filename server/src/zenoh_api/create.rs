@@ -25,7 +25,7 @@ use crate::cluster::node_key;
 use crate::convert::camera_from_proto;
 use crate::session::types::{FramePolicy, SessionRequest};
 use crate::{ApiError, ServerError};
-use relfusion_proto::http::{MapMode, MapStart};
+use relfusion_proto::http::{MapMode, MapStart, Ros2Session};
 
 /// How long a create relayed to the node placement chose may take before this node creates
 /// the session itself.
@@ -145,12 +145,34 @@ async fn create(shared: &Arc<Shared>, query: &Query, tenant: &str) -> Result<Str
             "malformed query payload: not a protobuf relfusion.v1.SessionConfig ({e})"
         ))
     })?;
+    let mut config = config;
+    let ros2_json = config.ros2.as_ref().map(|r| {
+        let topic = |t: &str| Some(t.trim().to_string()).filter(|t| !t.is_empty());
+        Ros2Session {
+            publish: r.publish,
+            image_topic: topic(&r.image_topic),
+            camera_info_topic: topic(&r.camera_info_topic),
+        }
+    });
+    let mut ros2 = crate::ros2_api::prepare(
+        &shared.sessions,
+        ros2_json.as_ref(),
+        config.camera.is_some(),
+        tenant,
+    )
+    .await?;
+    if let Some(c) = ros2.as_mut().and_then(|r| r.camera.take()) {
+        config.camera = Some(crate::convert::camera_json_to_proto(&c));
+    }
     let request = create_request(&config)?;
     let session = shared.sessions.create(request, &owner)?;
     if let Err(e) = shared.attach(session.clone()).await {
         // A session nobody can stream to would only hold a slot until its idle timeout.
         let _ = shared.sessions.delete(session.id(), &owner);
         return Err(e);
+    }
+    if let Some(ros2) = ros2 {
+        ros2.attach(&shared.sessions, session.clone()).await?;
     }
     bump(&shared.stats.sessions_created);
     tracing::info!(session = %session.id(), "session created over Zenoh");
@@ -217,6 +239,7 @@ mod tests {
             policy: v1::FramePolicy::Wait as i32,
             map_id: "m-0123456789abcdef01234567".into(),
             map_mode: v1::MapMode::Unspecified as i32,
+            ros2: None,
         })
         .expect("valid");
         assert_eq!(

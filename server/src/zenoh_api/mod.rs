@@ -202,6 +202,8 @@ pub struct ZenohHandle {
     shared: Arc<Shared>,
     shutdown: watch::Sender<bool>,
     tasks: Vec<JoinHandle<()>>,
+    /// The ROS 2 side (`[ros2]`), on the same Zenoh session.
+    ros2: Option<Arc<crate::ros2_api::Ros2Bridge>>,
 }
 
 /// The tenants this node serves: one per token name, or the public tenant without tokens.
@@ -237,6 +239,16 @@ pub async fn start(
         links: Mutex::default(),
         cluster: cluster.clone(),
     });
+    let ros2 = config.ros2.enabled.then(|| {
+        let bridge = Arc::new(crate::ros2_api::Ros2Bridge::new(
+            shared.zenoh.clone(),
+            &config.ros2,
+            config.limits.frame_queue,
+            shared.shutdown.clone(),
+        ));
+        shared.sessions.set_ros2(bridge.clone());
+        bridge
+    });
     let mut tasks = Vec::new();
     // The same Zenoh session makes this node a member of the cluster.
     tasks.extend(
@@ -262,6 +274,7 @@ pub async fn start(
         shared,
         shutdown,
         tasks,
+        ros2,
     })
 }
 
@@ -302,12 +315,20 @@ impl ZenohHandle {
         self.shared.stats.counts()
     }
 
+    /// The ROS 2 side's counters (`None` with `[ros2]` off).
+    pub fn ros2_stats(&self) -> Option<crate::ros2_api::Ros2Counts> {
+        self.ros2.as_ref().map(|r| r.counts())
+    }
+
     /// Stops the queryables and every session's Zenoh tasks (waiting up to 5 s for the last
     /// updates to go out), then closes the Zenoh session.
     pub async fn close(self) {
         let _ = self.shutdown.send(true);
         let mut tasks = self.tasks;
         tasks.extend(self.shared.take_tasks());
+        if let Some(ros2) = &self.ros2 {
+            tasks.extend(ros2.take_tasks());
+        }
         let all = async {
             for task in &mut tasks {
                 let _ = task.await;

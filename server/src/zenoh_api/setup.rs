@@ -27,6 +27,7 @@ use serde_json::{Value, json};
 
 use crate::ServerError;
 use crate::config::Config;
+use crate::ros2_api::names as ros2_names;
 
 /// The `zenoh::Config` for the server. `users_file` is where the user/password dictionary is
 /// written when auth is on (a private file the caller keeps for the session's lifetime).
@@ -144,7 +145,7 @@ pub fn access_control(config: &Config) -> Value {
             "messages": ["put", "delete", "declare_subscriber", "query", "declare_queryable",
                          "reply", "liveliness_token", "declare_liveliness_subscriber",
                          "liveliness_query"],
-            "key_exprs": [format!("{ROOT}/**")],
+            "key_exprs": node_keys(config),
         }),
     ];
     let mut subjects = Vec::new();
@@ -168,10 +169,20 @@ pub fn access_control(config: &Config) -> Value {
             "messages": ["put", "reply", "declare_subscriber", "declare_queryable"],
             "key_exprs": [prefix],
         }));
+        let mut tenant_rules = vec![
+            json!(format!("tenant-{name}-in")),
+            json!(format!("tenant-{name}-out")),
+            json!("node-status-read"),
+            json!("node-status-deliver"),
+        ];
+        if config.ros2.enabled {
+            rules.extend(ros2_rules(name));
+            tenant_rules.push(json!(format!("tenant-{name}-ros2-in")));
+            tenant_rules.push(json!(format!("tenant-{name}-ros2-out")));
+        }
         subjects.push(json!({ "id": format!("user-{name}"), "usernames": [name] }));
         policies.push(json!({
-            "rules": [format!("tenant-{name}-in"), format!("tenant-{name}-out"),
-                      "node-status-read", "node-status-deliver"],
+            "rules": tenant_rules,
             "subjects": [format!("user-{name}")],
         }));
     }
@@ -186,6 +197,51 @@ pub fn access_control(config: &Config) -> Value {
         "subjects": subjects,
         "policies": policies,
     })
+}
+
+/// What nodes may do everything on: relfusion's keys and, with `[ros2]` on, the ROS 2 topics
+/// and liveliness tokens of every domain.
+fn node_keys(config: &Config) -> Vec<String> {
+    let mut keys = vec![format!("{ROOT}/**")];
+    if config.ros2.enabled {
+        keys.push(format!("*/{}/**", ros2_names::ROOT));
+        keys.push(format!("{}/**", ros2_names::ADMIN_SPACE));
+    }
+    keys
+}
+
+/// A tenant's ROS 2 rules: its topics (`<domain>/relfusion/<tenant>/**`) like its relfusion
+/// keys, and the liveliness tokens of entities in its namespace (`/relfusion/<tenant>` and
+/// below), so a robot of the tenant can join the graph and see its own part of it — not
+/// another tenant's. A liveliness subscription or query must name the namespace: rmw_zenoh's
+/// whole-domain graph subscription (`@ros2_lv/<domain>/**`) reaches beyond it and is refused.
+fn ros2_rules(name: &str) -> [Value; 2] {
+    let ns = ros2_names::mangle(&ros2_names::tenant_namespace(name));
+    let topics = format!("*/{}", &ros2_names::tenant_namespace(name)[1..]) + "/**";
+    let tokens = [
+        format!("{}/*/*/*/*/*/*/{ns}/**", ros2_names::ADMIN_SPACE),
+        format!("{}/*/*/*/*/*/*/{ns}%$*/**", ros2_names::ADMIN_SPACE),
+    ];
+    let mut keys = vec![topics];
+    keys.extend(tokens);
+    [
+        json!({
+            "id": format!("tenant-{name}-ros2-in"),
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["put", "declare_subscriber", "liveliness_token",
+                         "declare_liveliness_subscriber", "liveliness_query"],
+            "key_exprs": keys,
+        }),
+        json!({
+            "id": format!("tenant-{name}-ros2-out"),
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put", "declare_subscriber", "liveliness_token",
+                         "declare_liveliness_subscriber", "reply"],
+            "key_exprs": keys,
+        }),
+    ]
 }
 
 /// A `zenohd` configuration (JSON5) for a cluster router with this server's protection:
@@ -335,6 +391,35 @@ mod tests {
         );
         let mut zc = zenoh::Config::default();
         zc.insert_json5("access_control", &parsed["access_control"].to_string())
+            .expect("zenoh accepts the rules");
+    }
+
+    #[test]
+    fn ros2_confines_each_tenant_to_its_namespace() {
+        let mut c = config(&[("alice", "a1"), ("bob-2", "b2")]);
+        let off = access_control(&c).to_string();
+        assert!(!off.contains("@ros2_lv"), "no ROS 2 rules with [ros2] off");
+        c.ros2.enabled = true;
+        let acl = access_control(&c);
+        let rule = |id: &str| {
+            acl["rules"]
+                .as_array()
+                .and_then(|r| r.iter().find(|r| r["id"] == id))
+                .cloned()
+                .unwrap_or_else(|| panic!("no rule {id}"))
+        };
+        let alice = rule("tenant-alice-ros2-in");
+        assert_eq!(alice["key_exprs"][0], "*/relfusion/alice/**");
+        assert_eq!(
+            alice["key_exprs"][2],
+            "@ros2_lv/*/*/*/*/*/*/%relfusion%alice%$*/**"
+        );
+        assert_eq!(
+            rule("tenant-bob-2-ros2-out")["key_exprs"][0],
+            "*/relfusion/bob_2/**"
+        );
+        let mut zc = zenoh::Config::default();
+        zc.insert_json5("access_control", &acl.to_string())
             .expect("zenoh accepts the rules");
     }
 

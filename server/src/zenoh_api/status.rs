@@ -33,6 +33,9 @@ pub struct NodeStatus {
     pub advertise: String,
     /// Counters of the Zenoh side since start.
     pub zenoh: ZenohCounts,
+    /// Counters of the ROS 2 side since start (absent with `[ros2]` off).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ros2: Option<crate::ros2_api::Ros2Counts>,
 }
 
 /// The status of this node now.
@@ -49,6 +52,7 @@ pub(crate) fn current(shared: &Shared, node: &str) -> NodeStatus {
         gpus: load.gpus,
         advertise: load.advertise,
         zenoh: shared.stats.counts(),
+        ros2: shared.sessions.ros2().map(|r| r.counts()),
     }
 }
 

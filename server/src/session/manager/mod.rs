@@ -73,6 +73,8 @@ pub struct SessionManager {
     temp_dir: PathBuf,
     /// When the store last proved writable (health checks probe it at most every 10 s).
     store_probe: Mutex<Option<(Instant, Result<(), String>)>>,
+    /// The ROS 2 side, once the Zenoh side is up with `[ros2]` on.
+    ros2: std::sync::OnceLock<Arc<crate::ros2_api::Ros2Bridge>>,
 }
 
 impl std::fmt::Debug for SessionManager {
@@ -137,6 +139,7 @@ impl SessionManager {
             shutting_down: AtomicBool::new(false),
             temp_dir,
             store_probe: Mutex::new(None),
+            ros2: std::sync::OnceLock::new(),
         });
         tracing::info!(
             budget_mb = manager.memory.budget >> 20,
@@ -168,6 +171,16 @@ impl SessionManager {
     /// The configuration in force.
     pub fn config(&self) -> &Config {
         &self.config
+    }
+
+    /// The ROS 2 side (`[ros2]`), once it is up.
+    pub fn ros2(&self) -> Option<&Arc<crate::ros2_api::Ros2Bridge>> {
+        self.ros2.get()
+    }
+
+    /// Called once by the Zenoh side when it starts with `[ros2]` on.
+    pub(crate) fn set_ros2(&self, bridge: Arc<crate::ros2_api::Ros2Bridge>) {
+        let _ = self.ros2.set(bridge);
     }
 
     /// The saved maps.

@@ -41,11 +41,10 @@ fn camera() -> CameraJson {
 
 fn request() -> CreateSession {
     CreateSession {
-        camera: camera(),
+        camera: Some(camera()),
         config: json!({"pipeline": {"deterministic": true}}),
-        model: None,
         policy: FramePolicy::Wait,
-        map: None,
+        ..CreateSession::default()
     }
 }
 
@@ -108,11 +107,23 @@ async fn admission_ownership_and_bad_requests() {
         400
     );
     let mut bad = request();
-    bad.camera.fx = -1.0;
+    if let Some(c) = bad.camera.as_mut() {
+        c.fx = -1.0;
+    }
     assert_eq!(
         SessionRequest::from_http(bad)
             .and_then(|r| m.create(r, &alice))
             .expect_err("bad camera")
+            .status,
+        400
+    );
+    let no_camera = CreateSession {
+        camera: None,
+        ..request()
+    };
+    assert_eq!(
+        SessionRequest::from_http(no_camera)
+            .expect_err("no camera")
             .status,
         400
     );
