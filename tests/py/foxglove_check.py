@@ -5,13 +5,14 @@
         the file): per topic the schema and the message count, and what the messages add up to
         (keyframe frames in /tf, the mesh after every SceneUpdate, points per cloud).
 
-    foxglove_check.py ws URL [SECONDS]
-        Connects as the Foxglove app does (it offers the WebSocket subprotocols
-        foxglove.sdk.v1 and the older foxglove.websocket.v1, the same protocol under two
-        names; the official SDK's server takes the first), reads the advertised channels, subscribes to all of them, and decodes messages with the
+    foxglove_check.py ws URL [SECONDS [SUBPROTOCOLS]]
+        Connects as a Foxglove viewer does, offering SUBPROTOCOLS (comma-separated; default
+        foxglove.websocket.v1, the protocol's published name, which Lichtblick and older
+        Foxglove apps offer alone; the current app also offers foxglove.sdk.v1), reads the
+        advertised channels, subscribes to all of them, and decodes messages with the
         advertised protobuf schemas until every channel gave one (or SECONDS pass).
 
-The Rust tests (tests/tests/foxglove.rs) compare the summaries with the session's own files.
+The Rust tests (tests/tests/recordings.rs) compare the summaries with the session's own files.
 """
 
 import asyncio
@@ -114,13 +115,13 @@ def message_class(schema_name, schema_b64):
     return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema_name))
 
 
-async def read_ws(url, seconds):
+async def read_ws(url, seconds, subprotocols):
     import websockets
 
     got = {}
     async with websockets.connect(
         url,
-        subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+        subprotocols=subprotocols,
         max_size=None,
         open_timeout=10,
     ) as ws:
@@ -175,7 +176,8 @@ def main():
         print(json.dumps(read_mcap(sys.argv[2])))
     elif len(sys.argv) >= 3 and sys.argv[1] == "ws":
         seconds = float(sys.argv[3]) if len(sys.argv) > 3 else 60.0
-        print(json.dumps(asyncio.run(read_ws(sys.argv[2], seconds))))
+        offered = (sys.argv[4] if len(sys.argv) > 4 else "foxglove.websocket.v1").split(",")
+        print(json.dumps(asyncio.run(read_ws(sys.argv[2], seconds, offered))))
     else:
         sys.exit(__doc__)
 

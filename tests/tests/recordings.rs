@@ -358,9 +358,10 @@ fn stream_and_run_write_rerun_recordings_that_read_back() {
     );
 }
 
-/// A real sequence run locally, written to MCAP and served live at once; a Foxglove client
-/// subscribes before the first frame (`--foxglove-wait`) and decodes one message of every
-/// channel with the schemas the server advertised.
+/// A real sequence run locally, written to MCAP (Foxglove's schemas, and a ROS 2 bag) and
+/// served live at once; a Foxglove client offering `foxglove.websocket.v1` subscribes before
+/// the first frame (`--foxglove-wait`) and decodes one message of every channel with the
+/// schemas the server advertised.
 #[test]
 fn a_real_sequence_is_recorded_to_mcap_and_served_to_foxglove() {
     let seq = data_dir().join("sequences/7scenes_redkitchen_f0000-0299");
@@ -404,12 +405,13 @@ fn a_real_sequence_is_recorded_to_mcap_and_served_to_foxglove() {
     let url = url_rx
         .recv_timeout(std::time::Duration::from_secs(120))
         .expect("the Foxglove URL on stderr");
-    let live = foxglove_check(&["ws", &url, "240"]);
+    // Offering only the protocol's published name, as Lichtblick and older Foxglove apps do.
+    let live = foxglove_check(&["ws", &url, "240", "foxglove.websocket.v1"]);
     let finished = child.wait_with_output().expect("relfusion run");
     let log = drain.join().expect("stderr");
     assert!(finished.status.success(), "relfusion run: {log}");
 
-    assert_eq!(live["subprotocol"], "foxglove.sdk.v1", "{live}");
+    assert_eq!(live["subprotocol"], "foxglove.websocket.v1", "{live}");
     assert_eq!(live["server_name"], "relfusion", "{live}");
     for (topic, schema) in FOXGLOVE_SCHEMAS {
         assert!(

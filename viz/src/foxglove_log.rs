@@ -36,6 +36,7 @@ use foxglove::websocket::{ChannelView, Client, ServerListener};
 use foxglove::{Channel, Context, McapWriterHandle, WebSocketServerHandle};
 use relfusion_core::geometry::PinholeCamera;
 
+use crate::foxglove_front::FoxgloveFront;
 use crate::session_log::{
     DepthRef, LogCounts, LogError, MeshBlockRef, POINTS_PER_KEYFRAME, Pose, RESCALE_TOLERANCE,
     SessionLog, image_format, nanos,
@@ -162,7 +163,8 @@ pub struct FoxgloveLog {
     _context: Arc<Context>,
     channels: Channels,
     mcap: Option<(PathBuf, McapWriterHandle<BufWriter<File>>)>,
-    server: Option<WebSocketServerHandle>,
+    /// The SDK's server on a loopback port, and the front viewers connect to.
+    server: Option<(WebSocketServerHandle, FoxgloveFront)>,
     camera: PinholeCamera,
     /// The newest frame's (id, capture time in ns): what is not about a frame is logged then.
     now: (u64, u64),
@@ -176,7 +178,7 @@ impl std::fmt::Debug for FoxgloveLog {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("FoxgloveLog")
             .field("mcap", &self.mcap.as_ref().map(|(p, _)| p))
-            .field("server", &self.server.as_ref().map(|s| s.port()))
+            .field("server", &self.server.as_ref().map(|(_, f)| f.addr()))
             .field("counts", &self.counts)
             .finish()
     }
@@ -251,27 +253,29 @@ impl FoxgloveLog {
         };
         let server = match options.serve {
             Some(addr) => {
+                let failed = |e: &dyn std::fmt::Display| LogError::Create {
+                    what: "the Foxglove WebSocket server on",
+                    path: addr.to_string(),
+                    message: e.to_string(),
+                };
                 let subscriptions = Arc::new(Subscriptions::default());
                 let handle = context
                     .websocket_server()
                     .name("relfusion")
-                    .bind(addr.ip().to_string(), addr.port())
+                    .bind("127.0.0.1", 0)
                     .listener(subscriptions.clone())
                     .start_blocking()
-                    .map_err(|e| LogError::Create {
-                        what: "the Foxglove WebSocket server on",
-                        path: addr.to_string(),
-                        message: e.to_string(),
-                    })?;
+                    .map_err(|e| failed(&e))?;
+                let front = FoxgloveFront::start(addr, handle.port()).map_err(|e| failed(&e))?;
                 // The port is what a viewer needs first (port 0 picks one).
                 eprintln!(
                     "{}",
-                    serde_json::json!({ "foxglove": format!("ws://{}:{}", addr.ip(), handle.port()) })
+                    serde_json::json!({ "foxglove": format!("ws://{}", front.addr()) })
                 );
                 if let Some(timeout) = options.wait_for_client {
                     subscriptions.wait(timeout);
                 }
-                Some(handle)
+                Some((handle, front))
             }
             None => None,
         };
@@ -534,8 +538,9 @@ impl SessionLog for FoxgloveLog {
             std::io::Write::flush(&mut file).map_err(write_error)?;
             out["mcap"] = path.display().to_string().into();
         }
-        if let Some(server) = self.server.take() {
-            out["foxglove_port"] = server.port().into();
+        if let Some((server, front)) = self.server.take() {
+            out["foxglove_port"] = front.addr().port().into();
+            drop(front);
             // Stops accepting and closes the clients; the process's exit finishes it.
             drop(server.stop());
         }

@@ -2,10 +2,12 @@
 //! --mcap --foxglove --rerun`) and the service (a session's `recording.mcap`).
 //!
 //! - [`session_log`]: what a viewer's log of a session is given ([`SessionLog`]).
-//! - [`foxglove_log`]: MCAP files and the Foxglove WebSocket protocol, with Foxglove's schemas.
+//! - [`foxglove_log`]: MCAP files and the Foxglove WebSocket protocol, with Foxglove's schemas;
+//!   [`foxglove_front`] lets viewers in with either name of the protocol.
 //! - [`rerun_log`] (feature `rerun`): rerun `.rrd` recordings.
 //! - [`ros2`]: the session as ROS 2 messages (CDR, REP-2011 type hashes) for rmw_zenoh.
 
+pub mod foxglove_front;
 pub mod foxglove_log;
 #[cfg(feature = "rerun")]
 pub mod rerun_log;
