@@ -13,7 +13,7 @@ export NODEVICE_SELECT ?= 1
 # Fuzzing (fuzz/): every target for FUZZ_SECONDS, seeds from fuzz/corpus, finds kept in
 # fuzz/target/corpus (ignored); a crash stops it and leaves its input in fuzz/artifacts.
 FUZZ_SECONDS ?= 60
-FUZZ_TARGETS := frame_decode proto_messages archive_extract tum_text tum_list
+FUZZ_TARGETS := frame_decode proto_messages archive_extract tum_text tum_list ros2_messages
 
 .PHONY: help setup test demo fuzz
 help:

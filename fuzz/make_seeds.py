@@ -72,3 +72,38 @@ write("corpus/tum_list/interleaved", b"0.000 rgb/0.png\n0.033 rgb/1.png\n0.066 r
       b"0.004 depth/0.png\n0.037 depth/1.png\n0.070 depth/2.png\n")
 write("corpus/tum_list/repeated", b"0 rgb/0.png\n0 rgb/0.png\n0 rgb/0.png\n\x000 rgb/0.png\n0 rgb/0.png\n")
 write("corpus/tum_text/groundtruth", b"# t tx ty tz qx qy qz qw\n1.0 0.1 0.2 0.3 0 0 0 1\n1.01,0.1,0.2,0.3,0,0,0.7071068,0.7071068\n")
+
+# ros2_messages: a type byte (0 Image, 1 CompressedImage, 2 CameraInfo), then plain CDR
+# (little-endian, encapsulation 00 01 00 00; fields aligned to their size after the header).
+class Cdr:
+    def __init__(self):
+        self.b = bytearray(b"\x00\x01\x00\x00")
+    def align(self, n):
+        while (len(self.b) - 4) % n:
+            self.b.append(0)
+    def u8(self, v):
+        self.b.append(v)
+    def u32(self, v):
+        self.align(4); self.b += struct.pack("<I", v)
+    def i32(self, v):
+        self.align(4); self.b += struct.pack("<i", v)
+    def f64(self, v):
+        self.align(8); self.b += struct.pack("<d", v)
+    def string(self, s):
+        self.u32(len(s) + 1); self.b += s.encode() + b"\0"
+    def raw(self, data):
+        self.u32(len(data)); self.b += data
+    def header(self):
+        self.i32(1); self.u32(500); self.string("camera")
+image = Cdr(); image.header(); image.u32(2); image.u32(4); image.string("rgb8"); image.u8(0)
+image.u32(12); image.raw(bytes(range(24)))
+write("corpus/ros2_messages/image_rgb8", b"\0" + bytes(image.b))
+compressed = Cdr(); compressed.header(); compressed.string("png"); compressed.raw(png(16, 16))
+write("corpus/ros2_messages/compressed_png", b"\1" + bytes(compressed.b))
+info = Cdr(); info.header(); info.u32(480); info.u32(640); info.string("plumb_bob"); info.u32(5)
+for v in [0.1, -0.2, 0.0, 0.0, 0.05] + [500, 0, 320, 0, 500, 240, 0, 0, 1] + [1, 0, 0, 0, 1, 0, 0, 0, 1] + [500, 0, 320, 0, 0, 500, 240, 0, 0, 0, 1, 0]:
+    info.f64(v)
+for _ in range(6):
+    info.u32(0)
+info.u8(0)
+write("corpus/ros2_messages/camera_info", b"\2" + bytes(info.b))
