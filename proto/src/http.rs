@@ -47,6 +47,23 @@ pub struct CameraJson {
     pub distortion: Option<[f64; 5]>,
 }
 
+/// The protobuf form of the same camera (the Zenoh `SessionConfig` of an HTTP-style request).
+impl From<CameraJson> for crate::v1::Camera {
+    fn from(c: CameraJson) -> Self {
+        crate::v1::Camera {
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+            width: c.width,
+            height: c.height,
+            distortion: c
+                .distortion
+                .map(|[k1, k2, p1, p2, k3]| crate::v1::Distortion { k1, k2, p1, p2, k3 }),
+        }
+    }
+}
+
 /// A `u32` from any JSON number with an integral value: `640.0` is the integer 640 in JSON
 /// Schema (the OpenAPI document's `integer`), so it is accepted as such.
 fn integral_u32<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u32, D::Error> {

@@ -129,21 +129,7 @@ pub fn api_error(error: &v1::Error) -> ClientError {
 /// The protobuf `SessionConfig` for an HTTP-style create request.
 pub fn session_config(req: &CreateSession) -> SessionConfig {
     SessionConfig {
-        camera: req.camera.map(|c| v1::Camera {
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-            width: c.width,
-            height: c.height,
-            distortion: c.distortion.map(|[k1, k2, p1, p2, k3]| v1::Distortion {
-                k1,
-                k2,
-                p1,
-                p2,
-                k3,
-            }),
-        }),
+        camera: req.camera.map(v1::Camera::from),
         config_json: if req.config.is_null() {
             String::new()
         } else {

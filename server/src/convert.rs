@@ -48,21 +48,6 @@ pub fn camera_from_json(c: &CameraJson) -> Result<PinholeCamera, ApiError> {
     checked_camera([c.fx, c.fy, c.cx, c.cy], c.width, c.height, c.distortion)
 }
 
-/// The protobuf form of a JSON camera (same fields).
-pub fn camera_json_to_proto(c: &CameraJson) -> v1::Camera {
-    v1::Camera {
-        fx: c.fx,
-        fy: c.fy,
-        cx: c.cx,
-        cy: c.cy,
-        width: c.width,
-        height: c.height,
-        distortion: c
-            .distortion
-            .map(|[k1, k2, p1, p2, k3]| v1::Distortion { k1, k2, p1, p2, k3 }),
-    }
-}
-
 /// The JSON form of `camera`.
 pub fn camera_json(camera: &PinholeCamera) -> CameraJson {
     CameraJson {

@@ -162,7 +162,7 @@ async fn create(shared: &Arc<Shared>, query: &Query, tenant: &str) -> Result<Str
     )
     .await?;
     if let Some(c) = ros2.as_mut().and_then(|r| r.camera.take()) {
-        config.camera = Some(crate::convert::camera_json_to_proto(&c));
+        config.camera = Some(v1::Camera::from(c));
     }
     let request = create_request(&config)?;
     let session = shared.sessions.create(request, &owner)?;

@@ -247,6 +247,26 @@ pub fn frame_bytes(seq: &TumSequence, i: usize) -> Frame {
     }
 }
 
+/// Publishes frames `0..n` of `seq` to session `id` (congestion control `block`), then its end.
+pub fn stream_frames(z: &zenoh::Session, tenant: &str, id: &str, seq: &TumSequence, n: usize) {
+    let frames = z
+        .declare_publisher(session_key(tenant, id, FRAMES))
+        .congestion_control(CongestionControl::Block)
+        .wait()
+        .expect("frames publisher");
+    for i in 0..n {
+        frames
+            .put(frame_bytes(seq, i).encode_to_vec())
+            .wait()
+            .expect("publish frame");
+    }
+    put(
+        z,
+        session_key(tenant, id, END),
+        EndOfStream {}.encode_to_vec(),
+    );
+}
+
 pub fn put(z: &zenoh::Session, key: String, payload: Vec<u8>) {
     z.put(key, payload)
         .congestion_control(CongestionControl::Block)

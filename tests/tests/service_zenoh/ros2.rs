@@ -107,22 +107,7 @@ fn a_session_on_ros2_publishes_every_output_to_a_ros2_subscriber() {
 
     // The session's own updates on relfusion's keys, to compare with.
     let updates = subscribe(&z, PUBLIC_TENANT, &id);
-    let frames = z
-        .declare_publisher(session_key(PUBLIC_TENANT, &id, FRAMES))
-        .congestion_control(CongestionControl::Block)
-        .wait()
-        .expect("frames publisher");
-    for i in 0..FRAMES_N {
-        frames
-            .put(frame_bytes(&seq, i).encode_to_vec())
-            .wait()
-            .expect("publish frame");
-    }
-    put(
-        &z,
-        session_key(PUBLIC_TENANT, &id, END),
-        EndOfStream {}.encode_to_vec(),
-    );
+    stream_frames(&z, PUBLIC_TENANT, &id, &seq, FRAMES_N);
     let mut poses = Vec::new();
     while let Ok(message) = next_update(&updates, &server) {
         if let Some(server_message::Message::Pose(p)) = message.message
@@ -325,24 +310,29 @@ fn a_ros2_camera_feeds_a_session_that_reads_its_camera_info() {
     assert_eq!(subscriber["namespace"], namespace(&id), "{sent}");
 
     // Every frame queued (policy wait: the subscription pushes back), then the end.
-    let deadline = Instant::now() + PATIENCE;
-    loop {
-        let mut reply = agent
-            .get(format!("{}/v1/sessions/{id}", server.url()))
-            .call()
-            .expect("info");
-        let info: Value =
-            serde_json::from_str(&reply.body_mut().read_to_string().expect("body")).expect("JSON");
-        if info["frames_received"] == N {
-            break;
+    let info = |what: &str, done: &dyn Fn(&Value) -> bool| {
+        let deadline = Instant::now() + PATIENCE;
+        loop {
+            let mut reply = agent
+                .get(format!("{}/v1/sessions/{id}", server.url()))
+                .call()
+                .expect("info");
+            let info: Value =
+                serde_json::from_str(&reply.body_mut().read_to_string().expect("body"))
+                    .expect("JSON");
+            assert_ne!(info["state"], "failed", "{info}\n{}", server.log());
+            if done(&info) {
+                return;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "{what}: {info}\n{}",
+                server.log()
+            );
+            std::thread::sleep(Duration::from_millis(100));
         }
-        assert!(
-            Instant::now() < deadline,
-            "frames did not arrive: {info}\n{}",
-            server.log()
-        );
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    };
+    info("every frame arrives", &|i| i["frames_received"] == N);
     let status = node_status(&z, |s| s["ros2"]["frames_in"] == N);
     assert_eq!(status["ros2"]["messages_refused"], 0, "{status}");
     let finish = agent
@@ -350,21 +340,7 @@ fn a_ros2_camera_feeds_a_session_that_reads_its_camera_info() {
         .send_empty()
         .expect("finish");
     assert_eq!(finish.status(), 202);
-    let deadline = Instant::now() + PATIENCE;
-    loop {
-        let mut reply = agent
-            .get(format!("{}/v1/sessions/{id}", server.url()))
-            .call()
-            .expect("info");
-        let info: Value =
-            serde_json::from_str(&reply.body_mut().read_to_string().expect("body")).expect("JSON");
-        match info["state"].as_str() {
-            Some("finished") => break,
-            Some("failed") => panic!("session failed: {info}\n{}", server.log()),
-            _ => assert!(Instant::now() < deadline, "not finished: {info}"),
-        }
-        std::thread::sleep(Duration::from_millis(200));
-    }
+    info("the session finishes", &|i| i["state"] == "finished");
     let mut trajectory = agent
         .get(format!("{}/v1/sessions/{id}/trajectory", server.url()))
         .call()
@@ -483,15 +459,7 @@ fn ros2_topics_and_tokens_stay_with_their_tenant() {
     ] {
         assert!(tokens(&bob, key).is_empty(), "bob sees no token on {key}");
     }
-    let frames = session_key("alice", &id, FRAMES);
-    for i in 0..10 {
-        put(&alice, frames.clone(), frame_bytes(&seq, i).encode_to_vec());
-    }
-    put(
-        &alice,
-        session_key("alice", &id, END),
-        EndOfStream {}.encode_to_vec(),
-    );
+    stream_frames(&alice, "alice", &id, &seq, 10);
     let deadline = Instant::now() + PATIENCE;
     let mut poses = 0;
     while poses < 10 && Instant::now() < deadline {

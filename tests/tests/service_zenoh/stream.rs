@@ -34,22 +34,7 @@ fn stream_over_zenoh_gives_every_pose_and_the_same_trajectory_as_run() {
     );
     let id = create(&z, PUBLIC_TENANT, None, config.encode_to_vec()).expect("session created");
     let updates = subscribe(&z, PUBLIC_TENANT, &id);
-    let frames = z
-        .declare_publisher(session_key(PUBLIC_TENANT, &id, FRAMES))
-        .congestion_control(CongestionControl::Block)
-        .wait()
-        .expect("frames publisher");
-    for i in 0..FRAMES_N {
-        frames
-            .put(frame_bytes(&seq, i).encode_to_vec())
-            .wait()
-            .expect("publish frame");
-    }
-    put(
-        &z,
-        session_key(PUBLIC_TENANT, &id, END),
-        EndOfStream {}.encode_to_vec(),
-    );
+    stream_frames(&z, PUBLIC_TENANT, &id, &seq, FRAMES_N);
 
     let mut posed = BTreeSet::new();
     let mut keyframes = 0;
