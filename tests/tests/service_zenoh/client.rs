@@ -247,6 +247,42 @@ pub fn frame_bytes(seq: &TumSequence, i: usize) -> Frame {
     }
 }
 
+/// `relfusion run --deterministic` on `seq_dir` (output in `work/local`): its trajectory, what
+/// a session of the same frames must give.
+pub fn run_deterministic(seq_dir: &Path, work: &Path) -> Vec<StampedPose> {
+    let local = work.join("local");
+    let out = std::process::Command::new(bin_path("relfusion"))
+        .arg("run")
+        .arg(seq_dir)
+        .arg("--out")
+        .arg(&local)
+        .args(["--deterministic", "--quiet"])
+        .output()
+        .expect("run relfusion run");
+    assert!(
+        out.status.success(),
+        "relfusion run failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    relfusion_slam::dataset::trajectory::read_tum_trajectory(&local.join("trajectory.txt"))
+        .expect("run trajectory")
+}
+
+/// The Sim(3)-aligned ATE (RMSE) of `poses` against `seq`'s ground truth.
+pub fn ate_rmse(seq: &TumSequence, poses: &[StampedPose]) -> f64 {
+    let gt: Vec<StampedPose> = seq
+        .groundtruth()
+        .into_iter()
+        .map(|(timestamp, world_from_camera)| StampedPose {
+            timestamp,
+            world_from_camera,
+        })
+        .collect();
+    relfusion_slam::eval::ate(&gt, poses, relfusion_slam::eval::AlignMode::Sim3)
+        .expect("ATE")
+        .rmse
+}
+
 /// Publishes frames `0..n` of `seq` to session `id` (congestion control `block`), then its end.
 pub fn stream_frames(z: &zenoh::Session, tenant: &str, id: &str, seq: &TumSequence, n: usize) {
     let frames = z

@@ -14,7 +14,6 @@ use std::io::{BufRead as _, BufReader};
 use std::process::{Child, ChildStdout, Command, Stdio};
 
 use relfusion_slam::dataset::trajectory::read_tum_trajectory;
-use relfusion_slam::eval::{AlignMode, ate};
 use serde_json::{Value, json};
 
 use super::client::*;
@@ -354,33 +353,9 @@ fn a_ros2_camera_feeds_a_session_that_reads_its_camera_info() {
     let served = read_tum_trajectory(&served_path).expect("served trajectory");
     assert_eq!(served.len(), N, "a pose for every frame of the camera");
 
-    let local = work.join("local");
-    let out = Command::new(bin_path("relfusion"))
-        .arg("run")
-        .arg(&seq_dir)
-        .arg("--out")
-        .arg(&local)
-        .args(["--deterministic", "--quiet"])
-        .output()
-        .expect("run relfusion run");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let run = read_tum_trajectory(&local.join("trajectory.txt")).expect("run trajectory");
-    let gt: Vec<_> = seq
-        .groundtruth()
-        .into_iter()
-        .map(
-            |(timestamp, world_from_camera)| relfusion_slam::dataset::trajectory::StampedPose {
-                timestamp,
-                world_from_camera,
-            },
-        )
-        .collect();
-    let ate_ros = ate(&gt, &served, AlignMode::Sim3).expect("ATE").rmse;
-    let ate_run = ate(&gt, &run, AlignMode::Sim3).expect("ATE run").rmse;
+    let run = run_deterministic(&seq_dir, &work);
+    let ate_ros = ate_rmse(&seq, &served);
+    let ate_run = ate_rmse(&seq, &run);
     assert!(
         (ate_ros - ate_run).abs() <= 1e-9,
         "ATE from the ROS 2 camera {ate_ros} vs relfusion run {ate_run}"

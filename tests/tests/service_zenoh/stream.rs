@@ -5,10 +5,6 @@
 //! data.
 
 use std::collections::BTreeSet;
-use std::process::Command;
-
-use relfusion_slam::dataset::trajectory::{StampedPose, read_tum_trajectory};
-use relfusion_slam::eval::{AlignMode, ate};
 
 use super::client::*;
 
@@ -123,32 +119,10 @@ fn stream_over_zenoh_gives_every_pose_and_the_same_trajectory_as_run() {
     let served = to_slam(&snapshot.trajectory);
     assert_eq!(served.len(), FRAMES_N, "every frame is in the trajectory");
 
-    let local = work.join("local");
-    let out = Command::new(bin_path("relfusion"))
-        .arg("run")
-        .arg(&seq_dir)
-        .arg("--out")
-        .arg(&local)
-        .args(["--deterministic", "--quiet"])
-        .output()
-        .expect("run relfusion run");
-    assert!(
-        out.status.success(),
-        "relfusion run failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let run = read_tum_trajectory(&local.join("trajectory.txt")).expect("run trajectory");
+    let run = run_deterministic(&seq_dir, &work);
     assert_eq!(served.len(), run.len(), "same number of poses");
-    let gt: Vec<StampedPose> = seq
-        .groundtruth()
-        .into_iter()
-        .map(|(timestamp, world_from_camera)| StampedPose {
-            timestamp,
-            world_from_camera,
-        })
-        .collect();
-    let ate_served = ate(&gt, &served, AlignMode::Sim3).expect("ATE served").rmse;
-    let ate_run = ate(&gt, &run, AlignMode::Sim3).expect("ATE run").rmse;
+    let ate_served = ate_rmse(&seq, &served);
+    let ate_run = ate_rmse(&seq, &run);
     assert!(
         (ate_served - ate_run).abs() <= 1e-9,
         "ATE over Zenoh {ate_served} vs relfusion run {ate_run}"
