@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use relfusion_slam::dataset::TumSequence;
-use relfusion_slam::dataset::trajectory::{StampedPose, read_tum_trajectory};
+use relfusion_slam::dataset::trajectory::read_tum_trajectory;
 use relfusion_slam::eval::{AlignMode, ate};
 use relfusion_tests::{Relfusiond, json_lines, relfusion, synth_sequence, temp_dir};
 use serde_json::Value;
@@ -17,16 +17,6 @@ use serde_json::Value;
 /// Frames of the test sequence (320×240).
 const FRAMES: usize = 100;
 const SEED: u64 = 11;
-
-fn groundtruth(seq: &TumSequence) -> Vec<StampedPose> {
-    seq.groundtruth()
-        .into_iter()
-        .map(|(timestamp, world_from_camera)| StampedPose {
-            timestamp,
-            world_from_camera,
-        })
-        .collect()
-}
 
 fn path_str(p: &Path) -> &str {
     p.to_str().expect("UTF-8 path")
@@ -118,7 +108,7 @@ fn stream_gives_every_pose_and_the_same_trajectory_as_run() {
     let run = read_tum_trajectory(&local.join("trajectory.txt")).expect("run trajectory");
     assert_eq!(served.len(), run.len(), "same number of poses");
     assert_eq!(served.len(), FRAMES);
-    let gt = groundtruth(&seq);
+    let gt = seq.groundtruth_poses();
     let ate_served = ate(&gt, &served, AlignMode::Sim3).expect("ATE served").rmse;
     let ate_run = ate(&gt, &run, AlignMode::Sim3).expect("ATE run").rmse;
     assert!(

@@ -72,13 +72,7 @@ fn s(p: &Path) -> &str {
 fn groundtruth(dir: &Path) -> Vec<StampedPose> {
     TumSequence::open(dir, None)
         .expect("sequence")
-        .groundtruth()
-        .into_iter()
-        .map(|(timestamp, world_from_camera)| StampedPose {
-            timestamp,
-            world_from_camera,
-        })
-        .collect()
+        .groundtruth_poses()
 }
 
 /// Localised poses of a `relfusion stream` run (lines with `state` "tracking"), and how many

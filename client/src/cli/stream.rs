@@ -14,7 +14,7 @@ use anyhow::Context as _;
 use relfusion_sdk::dataset_stream::{StreamEvent, StreamOptions, stream_dataset};
 use relfusion_sdk::{Client, FramePolicy, Pace, Transport};
 use relfusion_slam::dataset::TumSequence;
-use relfusion_slam::dataset::trajectory::{StampedPose, parse_tum_trajectory};
+use relfusion_slam::dataset::trajectory::parse_tum_trajectory;
 use relfusion_slam::eval::{AlignMode, ate};
 use serde_json::{Value, json};
 
@@ -178,14 +178,7 @@ fn stream_options(args: &Args, config: Value) -> StreamOptions {
 /// ATE (Sim(3)-aligned) of the session's final trajectory against the dataset's ground truth;
 /// `None` without ground truth or when the trajectory cannot be fetched.
 async fn final_ate(client: &Client, id: &str, seq: &TumSequence) -> Option<Value> {
-    let gt: Vec<StampedPose> = seq
-        .groundtruth()
-        .into_iter()
-        .map(|(timestamp, world_from_camera)| StampedPose {
-            timestamp,
-            world_from_camera,
-        })
-        .collect();
+    let gt = seq.groundtruth_poses();
     if gt.is_empty() {
         return None;
     }

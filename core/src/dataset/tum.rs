@@ -27,7 +27,7 @@ use std::path::{Path, PathBuf};
 
 use super::DEPTH_SCALE;
 use super::folder::{SequenceFolder, read_at_most};
-use super::trajectory::parse_tum_trajectory_bounded;
+use super::trajectory::{StampedPose, parse_tum_trajectory_bounded};
 use crate::geometry::{Distortion, PinholeCamera, SE3, SO3};
 use crate::image::ImageF32;
 use crate::{Error, Result};
@@ -186,6 +186,17 @@ impl TumSequence {
     /// All ground-truth poses of `groundtruth.txt`, sorted by time (empty when absent).
     pub fn groundtruth(&self) -> Vec<(f64, SE3)> {
         self.groundtruth.clone()
+    }
+
+    /// The same ground truth as stamped poses, the form trajectories are compared in.
+    pub fn groundtruth_poses(&self) -> Vec<StampedPose> {
+        self.groundtruth
+            .iter()
+            .map(|&(timestamp, world_from_camera)| StampedPose {
+                timestamp,
+                world_from_camera,
+            })
+            .collect()
     }
 
     fn frame(&self, i: usize) -> Result<&TumFrame> {

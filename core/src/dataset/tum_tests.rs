@@ -67,6 +67,14 @@ fn dataset_tum_fr1_rpy_loads_with_preset_intrinsics() {
         (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
     );
     assert_eq!(seq.groundtruth().len(), 1030);
+    let poses = seq.groundtruth_poses();
+    assert!(
+        poses
+            .iter()
+            .zip(seq.groundtruth())
+            .all(|(p, (t, pose))| p.timestamp == t && p.world_from_camera == pose)
+            && poses.len() == 1030
+    );
     // Timestamps increase, associated depth is within the associate.py window.
     for w in seq.frames.windows(2) {
         assert!(w[1].timestamp > w[0].timestamp);

@@ -270,14 +270,7 @@ pub fn run_deterministic(seq_dir: &Path, work: &Path) -> Vec<StampedPose> {
 
 /// The Sim(3)-aligned ATE (RMSE) of `poses` against `seq`'s ground truth.
 pub fn ate_rmse(seq: &TumSequence, poses: &[StampedPose]) -> f64 {
-    let gt: Vec<StampedPose> = seq
-        .groundtruth()
-        .into_iter()
-        .map(|(timestamp, world_from_camera)| StampedPose {
-            timestamp,
-            world_from_camera,
-        })
-        .collect();
+    let gt = seq.groundtruth_poses();
     relfusion_slam::eval::ate(&gt, poses, relfusion_slam::eval::AlignMode::Sim3)
         .expect("ATE")
         .rmse
