@@ -304,8 +304,15 @@ pub struct SessionMemory {
     pub keyframe_bytes: u64,
     /// Bytes written to the store so far (compressed).
     pub spilled_bytes: u64,
-    /// TSDF blocks allocated.
+    /// TSDF blocks in memory.
     pub fusion_blocks: u64,
+    /// TSDF blocks spilled to the store with their meshes (`fusion.resident_blocks`: a soft
+    /// limit, the blocks the newest keyframe integrated into stay).
+    #[serde(default)]
+    pub fusion_blocks_spilled: u64,
+    /// Spilled chunks of TSDF blocks read back so far.
+    #[serde(default)]
+    pub fusion_chunk_loads: u64,
     /// Fusion inputs spilled to the store (read back when their keyframe moves).
     pub fusion_inputs_spilled: u64,
     /// Pose-graph edges reaching past the working set (loop closures to old keyframes).

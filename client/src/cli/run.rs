@@ -160,6 +160,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "keyframes_not_fused": stats.keyframes_not_fused,
             "mesh_triangles": mesh.as_ref().map_or(0, |m| m.triangle_count()),
             "voxel_size": fusion.as_ref().map(|f| f.voxel_size),
+            "fusion_blocks": fusion.as_ref().map(|f| serde_json::json!({
+                "resident": f.blocks,
+                "spilled": f.blocks_spilled,
+                "chunk_loads": f.chunk_loads,
+            })),
             "map_save_s": map_save_s,
             "keyframe_memory": pipeline.keyframe_memory(),
             "peak_rss_mb": {"run": peak_rss_run_mb, "with_outputs": peak_rss_mb()},

@@ -95,6 +95,8 @@ impl Engine {
             keyframe_bytes: (m.compact_bytes + m.resident_bytes + m.dense_bytes) as u64,
             spilled_bytes: m.spill.spilled_bytes,
             fusion_blocks: fusion.blocks as u64,
+            fusion_blocks_spilled: fusion.blocks_spilled as u64,
+            fusion_chunk_loads: fusion.chunk_loads as u64,
             fusion_inputs_spilled: fusion.inputs_spilled as u64,
             far_edges: m.backend.map_or(0, |b| b.far_edges as u64),
             searches_deferred: m.backend.map_or(0, |b| b.searches_deferred as u64),

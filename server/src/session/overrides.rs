@@ -69,6 +69,11 @@ const SETTABLE: &[(&str, Bound)] = &[
     ("fusion.voxels_per_median_depth", Bound::Num(16.0, 256.0)),
     ("fusion.truncation_voxels", Bound::Num(1.0, 16.0)),
     ("fusion.min_view_cosine", Bound::Num(0.0, 1.0)),
+    // TSDF blocks held in memory before the least recently used chunks spill to the store:
+    // a client trades memory for store reads. The floor keeps the newest keyframes' volume in
+    // at 128 voxels per median depth: at 1024 the chunks went back and forth and the fusion
+    // fell behind (docs/tuning.md, "Bounded fusion").
+    ("fusion.resident_blocks", Bound::Int(4096, 65536)),
 ];
 
 fn bound_of(path: &str) -> Option<Bound> {

@@ -56,6 +56,13 @@ pub struct FusionConfig {
     /// Most voxel blocks the pool may hold (8³ voxels, 12 bytes each: 6 KiB per block).
     /// Default 65536 (33.5 M voxels, 384 MiB).
     pub max_blocks: u32,
+    /// Blocks the pool keeps in memory when the session has a store (issue 37): past it, the
+    /// chunks of 4×4×4 blocks used least recently go to the store with their meshes and come
+    /// back when something reads them, bit-identical. A soft limit: the chunks of the newest
+    /// keyframe always stay. Default 16384 (96 MiB of voxels), 2.4-9 times what the shared
+    /// 10-s room sequences fill (1755-6852 blocks; docs/tuning.md "Bounded fusion"), so a
+    /// session in one room rarely spills and one that explores keeps its volume bounded.
+    pub resident_blocks: u32,
     /// Memory for the keyframe depths kept for re-integration (depth, weight, colour at the
     /// dense working resolution: about 0.9 MiB per keyframe at 320×240). Default 512 MiB.
     /// Past it the oldest keyframes' inputs are dropped and they stay fused where they are.
@@ -83,6 +90,7 @@ impl Default for FusionConfig {
             min_view_cosine: 0.15,
             min_mesh_weight: 0.5,
             max_blocks: 65536,
+            resident_blocks: 16384,
             keyframe_memory_mb: 512.0,
             reintegrate_voxels: 0.5,
             queue: 8,
@@ -120,9 +128,9 @@ impl FusionConfig {
         if !(self.min_mesh_weight.is_finite() && self.min_mesh_weight >= 0.0) {
             return Err(Error::Config("fusion.min_mesh_weight must be ≥ 0".into()));
         }
-        if self.max_blocks == 0 || self.queue == 0 {
+        if self.max_blocks == 0 || self.queue == 0 || self.resident_blocks == 0 {
             return Err(Error::Config(
-                "fusion.max_blocks and fusion.queue must be ≥ 1".into(),
+                "fusion.max_blocks, fusion.resident_blocks and fusion.queue must be ≥ 1".into(),
             ));
         }
         Ok(())

@@ -16,7 +16,6 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::dense::DenseCompute;
 use crate::geometry::{PinholeCamera, Sim3};
 use crate::gpu::GpuContext;
 use crate::graph::KeyframeId;
@@ -24,14 +23,13 @@ use crate::spill::{Spill, Stored};
 use crate::{Error, Result};
 
 use super::block::{BLOCK_SIDE, BlockIndex, BlockTable, UPPER_NEIGHBOURS};
+use super::chunks::{ChunkData, ChunkIndex, Residency};
 use super::config::FusionConfig;
-use super::gpu_marching::GpuMarching;
-use super::gpu_volume::GpuVoxels;
 use super::input::FusionInput;
-use super::integrate::{DepthView, IntegrateParams, integrate_cpu, touched_blocks};
-use super::marching::{MeshParams, extract_blocks};
+use super::integrate::{DepthView, IntegrateParams, touched_blocks};
+use super::marching::MeshParams;
 use super::mesh::{BlockMesh, Mesh};
-use super::voxels::{BYTES_PER_VOXEL, CpuVoxels};
+use super::pool::Pool;
 
 /// The blocks whose triangles changed since the previous delta (a `MeshUpdate`).
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -60,127 +58,26 @@ pub struct FusionStats {
     pub inputs_spilled: usize,
     /// Blocks that could not be allocated (pool full).
     pub blocks_refused: usize,
+    /// Blocks in the pool.
     pub blocks: usize,
+    /// Blocks spilled to the session's store with their chunks (`fusion.resident_blocks`),
+    /// and the chunks they form.
+    pub blocks_spilled: usize,
+    pub chunks_spilled: usize,
+    /// Spilled chunks read back into the pool (a revisit, a moved keyframe, a neighbour meshed).
+    pub chunk_loads: usize,
     pub voxel_size: f64,
     pub truncation: f64,
     /// Bytes of the voxel pool (GPU buffers or CPU arrays).
     pub pool_bytes: u64,
     pub mesh_revision: u64,
+    /// Triangles of the whole mesh (spilled chunks' too).
     pub triangles: usize,
     /// Total wall times (ms).
     pub integrate_ms: f64,
     pub mesh_ms: f64,
     /// `"gpu"` or `"cpu"`.
     pub compute: &'static str,
-}
-
-/// The voxel pool and its kernels.
-enum Store {
-    Cpu(CpuVoxels),
-    Gpu {
-        voxels: Box<GpuVoxels>,
-        marching: GpuMarching,
-    },
-}
-
-impl std::fmt::Debug for Store {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Store::Cpu(_) => "Store::Cpu",
-            Store::Gpu { .. } => "Store::Gpu",
-        })
-    }
-}
-
-impl Store {
-    fn open(config: &FusionConfig, ctx: Option<Arc<GpuContext>>) -> Self {
-        if config.compute == DenseCompute::Cpu {
-            return Store::Cpu(CpuVoxels::default());
-        }
-        let ctx = match ctx.map_or_else(crate::gpu::shared_context, Ok) {
-            Ok(ctx) => ctx,
-            Err(e) => {
-                tracing::warn!(error = %e, "no GPU for fusion: using the CPU reference");
-                return Store::Cpu(CpuVoxels::default());
-            }
-        };
-        let opened = GpuVoxels::new(ctx.clone(), 1024)
-            .and_then(|voxels| Ok((voxels, GpuMarching::new(ctx)?)));
-        match opened {
-            Ok((voxels, marching)) => Store::Gpu {
-                voxels: Box::new(voxels),
-                marching,
-            },
-            Err(e) => {
-                tracing::warn!(error = %e, "fusion kernels unavailable: using the CPU reference");
-                Store::Cpu(CpuVoxels::default())
-            }
-        }
-    }
-
-    fn prepare(&mut self, table: &BlockTable, fresh: &[u32]) -> Result<()> {
-        match self {
-            Store::Cpu(v) => {
-                v.ensure_capacity(table.high_water());
-                v.reset_slots(fresh);
-                Ok(())
-            }
-            Store::Gpu { voxels, .. } => {
-                voxels.ensure_capacity(table.high_water())?;
-                voxels.reset_slots(fresh)
-            }
-        }
-    }
-
-    fn integrate(
-        &mut self,
-        blocks: &[(BlockIndex, u32)],
-        view: &DepthView,
-        p: &IntegrateParams,
-        sign: f32,
-    ) -> Result<()> {
-        match self {
-            Store::Cpu(v) => {
-                integrate_cpu(v, blocks, view, p, sign);
-                Ok(())
-            }
-            Store::Gpu { voxels, .. } => voxels.integrate(blocks, view, p, sign),
-        }
-    }
-
-    fn max_weights(&self, slots: &[u32]) -> Result<Vec<f32>> {
-        match self {
-            Store::Cpu(v) => Ok(v.max_weights(slots)),
-            Store::Gpu { voxels, .. } => voxels.max_weights(slots),
-        }
-    }
-
-    fn extract(
-        &self,
-        table: &BlockTable,
-        blocks: &[BlockIndex],
-        p: &MeshParams,
-    ) -> Result<Vec<BlockMesh>> {
-        let jobs: Vec<_> = blocks.iter().filter_map(|b| table.mesh_job(*b)).collect();
-        match self {
-            Store::Cpu(v) => Ok(extract_blocks(v, &jobs, p)),
-            Store::Gpu { voxels, marching } => marching.extract(voxels.buffers(), &jobs, p),
-        }
-    }
-
-    fn bytes(&self) -> u64 {
-        match self {
-            Store::Cpu(v) => (v.tsdf.len() * BYTES_PER_VOXEL) as u64,
-            Store::Gpu { voxels, .. } => voxels.bytes(),
-        }
-    }
-
-    fn name(&self) -> &'static str {
-        match self {
-            Store::Cpu(_) => "cpu",
-            Store::Gpu { .. } => "gpu",
-        }
-    }
 }
 
 /// A fused keyframe: where it went in, and its input (held, spilled, or dropped without a
@@ -198,7 +95,7 @@ struct Fused {
 #[derive(Debug)]
 pub struct Fuser {
     config: FusionConfig,
-    store: Store,
+    pool: Pool,
     table: BlockTable,
     /// Set by the first keyframe unless configured.
     voxel_size: Option<f32>,
@@ -211,6 +108,8 @@ pub struct Fuser {
     dirty: BTreeSet<BlockIndex>,
     meshes: BTreeMap<BlockIndex, BlockMesh>,
     revision: u64,
+    /// Which chunks of blocks are in the pool and which in the store (`super::chunks`).
+    residency: Residency,
     stats: FusionStats,
 }
 
@@ -219,15 +118,15 @@ impl Fuser {
     /// `config.compute` says; falls back to the CPU with a warning when the GPU cannot be used.
     pub fn new(config: FusionConfig, ctx: Option<Arc<GpuContext>>) -> Result<Self> {
         config.validate()?;
-        let store = Store::open(&config, ctx);
+        let pool = Pool::open(&config, ctx);
         let voxel_size = config.voxel_size.map(|v| v as f32);
         Ok(Self {
             table: BlockTable::new(config.max_blocks),
             stats: FusionStats {
-                compute: store.name(),
+                compute: pool.name(),
                 ..FusionStats::default()
             },
-            store,
+            pool,
             voxel_size,
             config,
             fused: BTreeMap::new(),
@@ -237,6 +136,7 @@ impl Fuser {
             dirty: BTreeSet::new(),
             meshes: BTreeMap::new(),
             revision: 0,
+            residency: Residency::default(),
         })
     }
 
@@ -250,9 +150,17 @@ impl Fuser {
     pub fn stats(&self) -> FusionStats {
         let mut s = self.stats.clone();
         s.blocks = self.table.len();
-        s.pool_bytes = self.store.bytes();
+        let spilled = self.residency.figures();
+        (s.blocks_spilled, s.chunks_spilled, s.chunk_loads) =
+            (spilled.blocks, spilled.chunks, spilled.loads);
+        s.pool_bytes = self.pool.bytes();
         s.mesh_revision = self.revision;
-        s.triangles = self.meshes.values().map(BlockMesh::triangle_count).sum();
+        s.triangles = spilled.triangles
+            + self
+                .meshes
+                .values()
+                .map(BlockMesh::triangle_count)
+                .sum::<usize>();
         s
     }
 
@@ -289,10 +197,12 @@ impl Fuser {
             self.stats.truncation = v * self.config.truncation_voxels;
             tracing::info!(voxel_size = v, "fusion volume");
         }
+        self.residency.advance();
         if self.fused.contains_key(&id) {
             self.remove_keyframe(id)?;
         }
         let blocks = self.integrate(&input, &pose)?;
+        self.residency.keyframe_added(&blocks);
         self.stats.keyframes_fused += 1;
         self.kept.push_back(id);
         self.kept_bytes += input.bytes();
@@ -332,12 +242,20 @@ impl Fuser {
             // Read back when spilled; it stays in the store.
             let input = stored.get()?;
             let (old, old_blocks) = (f.pose, f.blocks.clone());
+            self.residency.advance();
             self.deintegrate(&input, &old, &old_blocks)?;
             let blocks = self.integrate(&input, pose)?;
             let f = self.fused.get_mut(id).expect("checked above");
             f.pose = *pose;
             f.blocks = blocks;
             moved += 1;
+            if self.table.len() > 2 * self.config.resident_blocks as usize {
+                // A loop closure can move every keyframe of an hour: the chunks the moves
+                // brought back leave again as the pass goes on (past twice the budget, so
+                // that neighbouring keyframes do not hand chunks back and forth).
+                self.free_empty_blocks()?;
+                self.evict()?;
+            }
         }
         self.stats.reintegrations += moved;
         if moved > 0 {
@@ -370,9 +288,16 @@ impl Fuser {
         let t = Instant::now();
         let params = self.params();
         let view = input_view(input, pose)?;
+        let touched = touched_blocks(&view, &params);
+        self.load_chunks(&touched)?;
         let mut blocks = Vec::new();
         let mut fresh = Vec::new();
-        for b in touched_blocks(&view, &params) {
+        for b in touched {
+            if self.residency.is_spilled(&b) {
+                // Its chunk could not come back (pool full): a new block here would hide it.
+                self.stats.blocks_refused += 1;
+                continue;
+            }
             match self.table.get_or_alloc(b) {
                 Ok((slot, new)) => {
                     if new {
@@ -388,12 +313,12 @@ impl Fuser {
                 }
             }
         }
-        self.store.prepare(&self.table, &fresh)?;
-        self.store.integrate(&blocks, &view, &params, 1.0)?;
+        self.pool.prepare(&self.table, &fresh)?;
+        self.pool.integrate(&blocks, &view, &params, 1.0)?;
         if !fresh.is_empty() {
             // `touched_blocks` errs on the side of coverage (about 1.7× the blocks that get a
             // voxel in the truncation band): give back the new blocks that stayed empty.
-            let weights = self.store.max_weights(&fresh)?;
+            let weights = self.pool.max_weights(&fresh)?;
             let empty: std::collections::HashSet<u32> = fresh
                 .iter()
                 .zip(weights)
@@ -409,6 +334,7 @@ impl Fuser {
             });
         }
         self.dirty.extend(blocks.iter().map(|(b, _)| *b));
+        self.residency.touch(blocks.iter().map(|(b, _)| b));
         self.stats.integrate_ms += t.elapsed().as_secs_f64() * 1e3;
         Ok(blocks.into_iter().map(|(b, _)| b).collect())
     }
@@ -424,12 +350,14 @@ impl Fuser {
         let t = Instant::now();
         let params = self.params();
         let view = input_view(input, pose)?;
+        self.load_chunks(blocks)?;
         let blocks: Vec<(BlockIndex, u32)> = blocks
             .iter()
             .filter_map(|b| self.table.get(b).map(|s| (*b, s)))
             .collect();
-        self.store.integrate(&blocks, &view, &params, -1.0)?;
+        self.pool.integrate(&blocks, &view, &params, -1.0)?;
         self.dirty.extend(blocks.iter().map(|(b, _)| *b));
+        self.residency.touch(blocks.iter().map(|(b, _)| b));
         self.stats.integrate_ms += t.elapsed().as_secs_f64() * 1e3;
         Ok(())
     }
@@ -442,7 +370,7 @@ impl Fuser {
             .filter_map(|b| self.table.get(b).map(|s| (*b, s)))
             .collect();
         let slots: Vec<u32> = candidates.iter().map(|(_, s)| *s).collect();
-        let weights = self.store.max_weights(&slots)?;
+        let weights = self.pool.max_weights(&slots)?;
         for ((b, _), w) in candidates.iter().zip(weights) {
             if w <= 0.0 {
                 self.table.free(b);
@@ -496,6 +424,14 @@ impl Fuser {
                 todo.insert(b.offset([-d[0], -d[1], -d[2]]));
             }
         }
+        // Marching cubes reads each block and its upper neighbours: spilled ones come back.
+        let reads: Vec<BlockIndex> = todo
+            .iter()
+            .flat_map(|b| std::iter::once(*b).chain(UPPER_NEIGHBOURS.iter().map(|d| b.offset(*d))))
+            .collect();
+        self.load_chunks(&reads)?;
+        // A block whose chunk stayed in the store (pool full) keeps its stored mesh.
+        todo.retain(|b| !self.residency.is_spilled(b));
         let (live, gone): (Vec<BlockIndex>, Vec<BlockIndex>) =
             todo.into_iter().partition(|b| self.table.get(b).is_some());
         let voxel_size = self.voxel_size.expect("dirty blocks imply a voxel size");
@@ -503,7 +439,7 @@ impl Fuser {
             voxel_size,
             min_weight: self.config.min_mesh_weight,
         };
-        let meshes = self.store.extract(&self.table, &live, &params)?;
+        let meshes = self.pool.extract(&self.table, &live, &params)?;
         let mut delta = MeshDelta {
             revision: 0,
             block_size: voxel_size * BLOCK_SIDE as f32,
@@ -526,6 +462,7 @@ impl Fuser {
             }
         }
         self.stats.mesh_ms += t.elapsed().as_secs_f64() * 1e3;
+        self.evict()?;
         if delta.changed.is_empty() && delta.removed.is_empty() {
             return Ok(None);
         }
@@ -534,15 +471,117 @@ impl Fuser {
         Ok(Some(delta))
     }
 
-    /// The current block meshes (what a subscriber holds after applying every delta).
+    /// The current meshes of the blocks in the pool (what a subscriber holds after applying
+    /// every delta, less the chunks spilled to the store).
     pub fn block_meshes(&self) -> impl Iterator<Item = &BlockMesh> {
         self.meshes.values()
     }
 
-    /// The whole surface, welded (meshes pending changes first).
+    /// The whole surface, welded (meshes pending changes first; spilled chunks' meshes are
+    /// read back from the store, not into the pool).
     pub fn mesh(&mut self) -> Result<Mesh> {
         self.take_delta()?;
-        Ok(Mesh::from_blocks(self.meshes.values()))
+        let spilled = self
+            .residency
+            .spilled_chunks()
+            .map(|s| s.get())
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Mesh::from_blocks(
+            self.meshes
+                .values()
+                .chain(spilled.iter().flat_map(|c| c.meshes.iter())),
+        ))
+    }
+
+    /// Brings back into the pool every spilled chunk holding one of `blocks`. A chunk whose
+    /// blocks do not all fit in the pool (`fusion.max_blocks`) stays in the store; callers
+    /// leave its blocks alone.
+    fn load_chunks(&mut self, blocks: &[BlockIndex]) -> Result<()> {
+        let chunks: BTreeSet<ChunkIndex> = blocks
+            .iter()
+            .filter(|b| self.residency.is_spilled(b))
+            .map(ChunkIndex::of)
+            .collect();
+        for c in chunks {
+            let Some(stored) = self.residency.stored(&c) else {
+                continue;
+            };
+            let data = stored.get()?;
+            let mut slots = Vec::with_capacity(data.blocks.len());
+            for b in &data.blocks {
+                match self.table.get_or_alloc(*b) {
+                    Ok((slot, _)) => slots.push(slot),
+                    Err(e) => {
+                        tracing::warn!(error = %e, "fusion: a spilled chunk cannot come back");
+                        for b in &data.blocks[..slots.len()] {
+                            self.table.free(b);
+                        }
+                        slots.clear();
+                        break;
+                    }
+                }
+            }
+            if slots.len() != data.blocks.len() {
+                self.stats.blocks_refused += data.blocks.len();
+                continue;
+            }
+            self.pool.prepare(&self.table, &[])?;
+            self.pool.write_slots(&slots, &data.voxels)?;
+            for m in &data.meshes {
+                self.meshes.insert(m.index, m.clone());
+            }
+            self.residency.loaded(c);
+        }
+        Ok(())
+    }
+
+    /// Past `fusion.resident_blocks` (and with a store attached), moves the least recently
+    /// used chunks to the store until a quarter of the budget is free again (so a session
+    /// exploring new ground spills every few keyframes, not after each), keeping the newest
+    /// keyframes' chunks ([`Residency::eviction_order`]). Called after meshing and during
+    /// long re-integration passes; a block evicted before its mesh comes back for it.
+    fn evict(&mut self) -> Result<()> {
+        let limit = self.config.resident_blocks as usize;
+        if self.table.len() <= limit || !self.spill.enabled() {
+            return Ok(());
+        }
+        let target = limit - limit / 4;
+        let mut by_chunk: BTreeMap<ChunkIndex, Vec<(BlockIndex, u32)>> = BTreeMap::new();
+        for (b, slot) in self.table.iter() {
+            by_chunk
+                .entry(ChunkIndex::of(&b))
+                .or_default()
+                .push((b, slot));
+        }
+        let counts = by_chunk.iter().map(|(c, b)| (*c, b.len())).collect();
+        for c in self.residency.eviction_order(&counts, limit / 2) {
+            if self.table.len() <= target {
+                break;
+            }
+            let mut blocks = by_chunk.remove(&c).unwrap_or_default();
+            blocks.sort_unstable();
+            let slots: Vec<u32> = blocks.iter().map(|(_, s)| *s).collect();
+            let data = Arc::new(ChunkData {
+                voxels: self.pool.read_slots(&slots)?,
+                meshes: blocks
+                    .iter()
+                    .filter_map(|(b, _)| self.meshes.get(b).cloned())
+                    .collect(),
+                blocks: blocks.iter().map(|(b, _)| *b).collect(),
+            });
+            let stored = Stored::new(&self.spill, Arc::clone(&data));
+            if let Err(e) = stored.spill() {
+                // The session's spilling stops there; the chunk stays in the pool.
+                tracing::warn!(error = %e, "fusion: TSDF chunks stay in memory");
+                return Ok(());
+            }
+            for (b, _) in &blocks {
+                self.table.free(b);
+                self.meshes.remove(b);
+            }
+            self.residency.spilled(c, stored, &data);
+        }
+        Ok(())
     }
 
     /// The keyframes fused so far with the pose each is fused at.

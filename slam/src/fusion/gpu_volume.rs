@@ -187,18 +187,34 @@ impl GpuVoxels {
         })
     }
 
-    /// The whole pool copied back (tests, debugging); waits for the GPU.
-    pub fn download(&self) -> Result<CpuVoxels> {
-        let bytes = u64::from(self.capacity) * SLOT_BYTES;
-        let staging = self.ctx.staging_buffer("voxel pool download", 3 * bytes);
+    /// The voxels of `slots`, slot `slots[k]` as slot `k` of the result (a chunk of blocks
+    /// leaving the pool for the session's store); one copy per run of consecutive slots and
+    /// buffer; waits for the GPU.
+    pub fn read_slots(&self, slots: &[u32]) -> Result<CpuVoxels> {
+        self.check_listed(slots.iter().copied())?;
+        if slots.is_empty() {
+            return Ok(CpuVoxels::default());
+        }
+        let bytes = slots.len() as u64 * SLOT_BYTES;
+        let staging = self.ctx.staging_buffer("voxel slots read", 3 * bytes);
         let device = self.ctx.device();
-        self.ctx.checked("voxel pool download", || {
+        self.ctx.checked("voxel slots read", || {
             let mut encoder = device.create_command_encoder(&Default::default());
-            for (k, buffer) in [&self.tsdf, &self.weight, &self.color]
+            for (b, buffer) in [&self.tsdf, &self.weight, &self.color]
                 .into_iter()
                 .enumerate()
             {
-                encoder.copy_buffer_to_buffer(buffer, 0, &staging, k as u64 * bytes, bytes);
+                let mut k = 0u64;
+                for (first, count) in runs(slots) {
+                    encoder.copy_buffer_to_buffer(
+                        buffer,
+                        u64::from(first) * SLOT_BYTES,
+                        &staging,
+                        b as u64 * bytes + k * SLOT_BYTES,
+                        u64::from(count) * SLOT_BYTES,
+                    );
+                    k += u64::from(count);
+                }
             }
             self.ctx.queue().submit([encoder.finish()]);
         })?;
@@ -208,6 +224,39 @@ impl GpuVoxels {
             weight: bytemuck::cast_slice(&raw[n..2 * n]).to_vec(),
             color: bytemuck::cast_slice(&raw[2 * n..3 * n]).to_vec(),
         })
+    }
+
+    /// Writes slot `k` of `data` into slot `slots[k]` (a chunk read back from the store);
+    /// queued like integration. [`Error::Shape`] when `data` does not hold `slots.len()`
+    /// slots or a slot is beyond the capacity.
+    pub fn write_slots(&mut self, slots: &[u32], data: &CpuVoxels) -> Result<()> {
+        self.check_listed(slots.iter().copied())?;
+        let n = slots.len() * BLOCK_VOXELS;
+        if [data.tsdf.len(), data.weight.len(), data.color.len()] != [n; 3] {
+            return Err(Error::Shape(format!(
+                "{} voxel slots written from data of {} voxels",
+                slots.len(),
+                data.tsdf.len()
+            )));
+        }
+        let queue = self.ctx.queue();
+        self.ctx.checked("voxel slots write", || {
+            for (k, &s) in slots.iter().enumerate() {
+                let (at, r) = (u64::from(s) * SLOT_BYTES, CpuVoxels::slot_range(k as u32));
+                queue.write_buffer(&self.tsdf, at, bytemuck::cast_slice(&data.tsdf[r.clone()]));
+                queue.write_buffer(
+                    &self.weight,
+                    at,
+                    bytemuck::cast_slice(&data.weight[r.clone()]),
+                );
+                queue.write_buffer(&self.color, at, bytemuck::cast_slice(&data.color[r]));
+            }
+        })
+    }
+
+    /// The whole pool copied back (tests, debugging); waits for the GPU.
+    pub fn download(&self) -> Result<CpuVoxels> {
+        self.read_slots(&(0..self.capacity).collect::<Vec<_>>())
     }
 
     /// Integrates (`sign > 0`) or de-integrates (`sign ≤ 0`) `view` into the voxels of
@@ -376,10 +425,11 @@ fn allocate_pool(ctx: &GpuContext, slots: u32) -> [wgpu::Buffer; 3] {
     ["voxel tsdf", "voxel weight", "voxel color"].map(|label| ctx.storage_buffer(label, bytes))
 }
 
-/// Runs of consecutive values in a sorted, deduplicated list, as (first, count).
-fn runs(sorted: &[u32]) -> Vec<(u32, u32)> {
+/// Runs of consecutive increasing values in a list (sorted and deduplicated: every run), as
+/// (first, count).
+fn runs(values: &[u32]) -> Vec<(u32, u32)> {
     let mut out: Vec<(u32, u32)> = Vec::new();
-    for &s in sorted {
+    for &s in values {
         match out.last_mut() {
             Some((first, count)) if *first + *count == s => *count += 1,
             _ => out.push((s, 1)),

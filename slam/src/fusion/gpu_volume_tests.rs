@@ -331,3 +331,44 @@ fn gpu_integration_of_a_working_resolution_view() {
         t_gpu.as_secs_f64() * 1e3
     );
 }
+
+/// The slot copies a spilled chunk leaves and comes back through (`fusion::chunks`): random
+/// voxels written into random slots of the GPU pool and of the CPU pool read back the same,
+/// in any slot order, with runs of consecutive slots copied at once.
+#[test]
+fn gpu_slot_copies_match_cpu_on_random_slots() {
+    let ctx = context();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(37);
+    let capacity = 40u32;
+    let mut gpu = GpuVoxels::new(ctx, capacity).expect("pool");
+    let mut cpu = CpuVoxels::default();
+    cpu.ensure_capacity(capacity);
+    let mut slots: Vec<u32> = (0..capacity).collect();
+    slots.shuffle(&mut rng);
+    // 24 random slots, then a run of consecutive ones.
+    slots.retain(|s| !(30..33).contains(s));
+    slots.truncate(24);
+    slots.extend(30..33);
+    let n = slots.len() * BLOCK_VOXELS;
+    let data = CpuVoxels {
+        tsdf: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        weight: (0..n).map(|_| rng.random_range(0.0..128.0)).collect(),
+        color: (0..n).map(|_| rng.random::<u32>() & 0xff_ffff).collect(),
+    };
+    gpu.write_slots(&slots, &data).expect("write");
+    cpu.write_slots(&slots, &data);
+    let mut order = slots.clone();
+    order.shuffle(&mut rng);
+    let (g, c) = (
+        gpu.read_slots(&order).expect("read"),
+        cpu.read_slots(&order),
+    );
+    assert_eq!(g, c);
+    assert_eq!(gpu.read_slots(&slots).expect("read"), data, "bit-identical");
+    assert_eq!(gpu.download().expect("download"), cpu);
+    assert!(
+        gpu.write_slots(&slots[..2], &data).is_err(),
+        "size mismatch"
+    );
+    assert!(gpu.read_slots(&[capacity]).is_err(), "slot beyond the pool");
+}

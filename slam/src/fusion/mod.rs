@@ -10,10 +10,14 @@
 //! - [`marching`]: marching cubes over blocks (CPU reference); [`gpu_marching`] the kernel.
 //! - [`mesh`]: block meshes and the welded whole-scene mesh.
 //! - [`input`]: what is integrated per keyframe (depth, weight from the dense variance, colour).
+//! - `pool`: the voxel pool the fuser uses, CPU reference or GPU buffers and kernels.
+//! - [`chunks`]: chunks of blocks spilled to the session's store and read back (bounded
+//!   memory for long sessions).
 //! - [`fuser`]: one session's fusion: integration, re-integration on pose-graph moves, mesh
 //!   deltas; [`worker`] runs it on its own thread.
 
 pub mod block;
+pub mod chunks;
 pub mod config;
 pub mod fuser;
 pub mod gpu_marching;
@@ -23,6 +27,7 @@ pub mod integrate;
 pub mod marching;
 pub mod mc_table;
 pub mod mesh;
+mod pool;
 pub mod voxels;
 pub mod worker;
 

@@ -50,6 +50,30 @@ impl CpuVoxels {
         slot as usize * BLOCK_VOXELS..(slot as usize + 1) * BLOCK_VOXELS
     }
 
+    /// The voxels of `slots`, slot `slots[k]` as slot `k` of the result (a chunk of blocks
+    /// leaving the pool for the session's store).
+    pub fn read_slots(&self, slots: &[u32]) -> CpuVoxels {
+        let mut out = CpuVoxels::default();
+        for &s in slots {
+            let r = Self::slot_range(s);
+            out.tsdf.extend_from_slice(&self.tsdf[r.clone()]);
+            out.weight.extend_from_slice(&self.weight[r.clone()]);
+            out.color.extend_from_slice(&self.color[r]);
+        }
+        out
+    }
+
+    /// Writes slot `k` of `data` into slot `slots[k]` (the inverse of [`Self::read_slots`]).
+    /// Panics when `data` holds fewer slots or a slot is beyond the capacity.
+    pub fn write_slots(&mut self, slots: &[u32], data: &CpuVoxels) {
+        for (k, &s) in slots.iter().enumerate() {
+            let (to, from) = (Self::slot_range(s), Self::slot_range(k as u32));
+            self.tsdf[to.clone()].copy_from_slice(&data.tsdf[from.clone()]);
+            self.weight[to.clone()].copy_from_slice(&data.weight[from.clone()]);
+            self.color[to].copy_from_slice(&data.color[from]);
+        }
+    }
+
     /// Largest weight in each slot (0 = the block holds no observation any more).
     pub fn max_weights(&self, slots: &[u32]) -> Vec<f32> {
         slots

@@ -163,7 +163,8 @@ fn deterministic_mode_gives_the_same_trajectory_twice() {
 
 /// Issue 37: keyframes that leave the working set keep a compact form and are rebuilt when
 /// used again; older ones spill to the session's store and are read back. Rebuilding on every
-/// use (`resident_keyframes` 0) with every finished keyframe spilled (`held_keyframes` 0) must
+/// use (`resident_keyframes` 0) with every finished keyframe spilled (`held_keyframes` 0), and
+/// every TSDF chunk the newest keyframe did not touch spilled (`resident_blocks` 1), must
 /// give the same trajectory, keyframes, semi-dense points, dense depth and mesh as holding
 /// every keyframe in full, while holding far less.
 #[test]
@@ -175,8 +176,10 @@ fn compact_and_spilled_keyframes_change_where_data_lives_never_results() {
         config.backend.resident_keyframes = resident;
         config.backend.held_keyframes = 0;
         if spill {
-            // Every fusion input but the newest spills too (read back when its keyframe moves).
+            // Every fusion input but the newest spills too (read back when its keyframe moves),
+            // and every chunk of TSDF blocks the newest keyframe did not touch.
             config.fusion.keyframe_memory_mb = 1e-3;
+            config.fusion.resident_blocks = 1;
         }
         let (camera, frames, _) = sequence();
         let mut pipeline = Pipeline::new(config, *camera, None).expect("pipeline");
@@ -237,7 +240,12 @@ fn compact_and_spilled_keyframes_change_where_data_lives_never_results() {
         fusion.inputs_spilled > 0 && fusion.inputs_dropped == 0,
         "{fusion:?}"
     );
-    assert_eq!(all.fusion_stats().expect("in step").inputs_spilled, 0);
+    assert!(
+        fusion.chunks_spilled > 0 && fusion.chunk_loads > 0 && fusion.blocks_refused == 0,
+        "{fusion:?}"
+    );
+    let kept = all.fusion_stats().expect("in step");
+    assert_eq!((kept.inputs_spilled, kept.chunks_spilled), (0, 0));
     // Superseded values (a depth map refined after it was spilled) left the store.
     let files = std::fs::read_dir(&spill_dir).expect("spill folder").count();
     assert!(
