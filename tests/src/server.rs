@@ -179,6 +179,7 @@ pub fn synth_sequence(tag: &str, frames: usize, seed: u64) -> PathBuf {
     // Tests of one binary run in parallel threads: render each sequence once.
     static RENDERING: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _guard = RENDERING.lock().unwrap_or_else(|e| e.into_inner());
+    crate::sweep_stale_temp_dirs();
     let dir = std::env::temp_dir().join(format!(
         "relfusion-test-synth-{tag}-{frames}-{seed}-{}",
         std::process::id()
