@@ -120,7 +120,7 @@ pub fn temp_dir(tag: &str) -> PathBuf {
 /// stay for inspection until the next binary starts, but a suite run over and over no longer
 /// fills the disk (one CI run left about a hundred folders, several GB). Linux only: elsewhere
 /// there is no `/proc` to tell a live process from an ended one.
-pub fn sweep_stale_temp_dirs() {
+pub(crate) fn sweep_stale_temp_dirs() {
     static SWEPT: std::sync::Once = std::sync::Once::new();
     SWEPT.call_once(|| sweep_ended(&std::env::temp_dir()));
 }

@@ -160,8 +160,6 @@ pub struct Residency {
     /// The chunks each of the newest keyframes went into, oldest first.
     newest: VecDeque<Vec<ChunkIndex>>,
     spilled: BTreeMap<ChunkIndex, Spilled>,
-    spilled_blocks: usize,
-    spilled_triangles: usize,
     loads: usize,
 }
 
@@ -208,6 +206,11 @@ impl Residency {
         }
     }
 
+    /// Whether any chunk is in the store (nothing to load otherwise).
+    pub fn any_spilled(&self) -> bool {
+        !self.spilled.is_empty()
+    }
+
     pub fn is_spilled(&self, b: &BlockIndex) -> bool {
         self.spilled.contains_key(&ChunkIndex::of(b))
     }
@@ -221,8 +224,6 @@ impl Residency {
     /// so removed from the store: the pool's copy is the one that changes from now on).
     pub fn loaded(&mut self, c: ChunkIndex) {
         if let Some(s) = self.spilled.remove(&c) {
-            self.spilled_blocks -= s.blocks;
-            self.spilled_triangles -= s.triangles;
             self.loads += 1;
             self.used.insert(c, s.used);
         }
@@ -231,18 +232,12 @@ impl Residency {
     /// Chunk `c` left the pool for `stored`, which holds `data`.
     pub fn spilled(&mut self, c: ChunkIndex, stored: Arc<Stored<ChunkData>>, data: &ChunkData) {
         let used = self.used.remove(&c).unwrap_or(0);
-        let (blocks, triangles) = (
-            data.blocks.len(),
-            data.meshes.iter().map(BlockMesh::triangle_count).sum(),
-        );
-        self.spilled_blocks += blocks;
-        self.spilled_triangles += triangles;
         self.spilled.insert(
             c,
             Spilled {
                 stored,
-                blocks,
-                triangles,
+                blocks: data.blocks.len(),
+                triangles: data.meshes.iter().map(BlockMesh::triangle_count).sum(),
                 used,
             },
         );
@@ -287,9 +282,9 @@ impl Residency {
     /// Blocks, chunks and mesh triangles in the store, and chunk loads so far.
     pub fn figures(&self) -> SpilledFigures {
         SpilledFigures {
-            blocks: self.spilled_blocks,
+            blocks: self.spilled.values().map(|s| s.blocks).sum(),
             chunks: self.spilled.len(),
-            triangles: self.spilled_triangles,
+            triangles: self.spilled.values().map(|s| s.triangles).sum(),
             loads: self.loads,
         }
     }

@@ -289,7 +289,7 @@ impl Fuser {
         let params = self.params();
         let view = input_view(input, pose)?;
         let touched = touched_blocks(&view, &params);
-        self.load_chunks(&touched)?;
+        self.load_chunks(touched.iter().copied())?;
         let mut blocks = Vec::new();
         let mut fresh = Vec::new();
         for b in touched {
@@ -350,7 +350,7 @@ impl Fuser {
         let t = Instant::now();
         let params = self.params();
         let view = input_view(input, pose)?;
-        self.load_chunks(blocks)?;
+        self.load_chunks(blocks.iter().copied())?;
         let blocks: Vec<(BlockIndex, u32)> = blocks
             .iter()
             .filter_map(|b| self.table.get(b).map(|s| (*b, s)))
@@ -425,11 +425,10 @@ impl Fuser {
             }
         }
         // Marching cubes reads each block and its upper neighbours: spilled ones come back.
-        let reads: Vec<BlockIndex> = todo
-            .iter()
-            .flat_map(|b| std::iter::once(*b).chain(UPPER_NEIGHBOURS.iter().map(|d| b.offset(*d))))
-            .collect();
-        self.load_chunks(&reads)?;
+        self.load_chunks(
+            todo.iter()
+                .flat_map(|b| std::iter::once(*b).chain(UPPER_NEIGHBOURS.map(|d| b.offset(d)))),
+        )?;
         // A block whose chunk stayed in the store (pool full) keeps its stored mesh.
         todo.retain(|b| !self.residency.is_spilled(b));
         let (live, gone): (Vec<BlockIndex>, Vec<BlockIndex>) =
@@ -496,11 +495,14 @@ impl Fuser {
     /// Brings back into the pool every spilled chunk holding one of `blocks`. A chunk whose
     /// blocks do not all fit in the pool (`fusion.max_blocks`) stays in the store; callers
     /// leave its blocks alone.
-    fn load_chunks(&mut self, blocks: &[BlockIndex]) -> Result<()> {
+    fn load_chunks(&mut self, blocks: impl IntoIterator<Item = BlockIndex>) -> Result<()> {
+        if !self.residency.any_spilled() {
+            return Ok(());
+        }
         let chunks: BTreeSet<ChunkIndex> = blocks
-            .iter()
+            .into_iter()
             .filter(|b| self.residency.is_spilled(b))
-            .map(ChunkIndex::of)
+            .map(|b| ChunkIndex::of(&b))
             .collect();
         for c in chunks {
             let Some(stored) = self.residency.stored(&c) else {
@@ -554,15 +556,29 @@ impl Fuser {
                 .push((b, slot));
         }
         let counts = by_chunk.iter().map(|(c, b)| (*c, b.len())).collect();
+        // The chunks that leave, then their voxels in one read-back (one wait for the GPU).
+        let mut left = self.table.len();
+        let mut victims = Vec::new();
         for c in self.residency.eviction_order(&counts, limit / 2) {
-            if self.table.len() <= target {
+            if left <= target {
                 break;
             }
             let mut blocks = by_chunk.remove(&c).unwrap_or_default();
             blocks.sort_unstable();
-            let slots: Vec<u32> = blocks.iter().map(|(_, s)| *s).collect();
+            left -= blocks.len();
+            victims.push((c, blocks));
+        }
+        let slots: Vec<u32> = victims
+            .iter()
+            .flat_map(|(_, blocks)| blocks.iter().map(|(_, s)| *s))
+            .collect();
+        let voxels = self.pool.read_slots(&slots)?;
+        let mut first = 0;
+        for (c, blocks) in victims {
+            let slots = first as u32..(first + blocks.len()) as u32;
+            first += blocks.len();
             let data = Arc::new(ChunkData {
-                voxels: self.pool.read_slots(&slots)?,
+                voxels: voxels.read_slots(&slots.collect::<Vec<_>>()),
                 meshes: blocks
                     .iter()
                     .filter_map(|(b, _)| self.meshes.get(b).cloned())
