@@ -25,7 +25,7 @@ use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{stamped_se3, write_tum_trajectory};
 use relfusion_slam::dense::{DepthPrior, ModelConfig, OnnxDepthPrior};
 use relfusion_slam::eval::fused_mesh::write_mesh_stats;
-use relfusion_slam::export::{write_mesh_glb, write_mesh_ply, write_points_ply};
+use relfusion_slam::export::write_points_ply;
 use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::{Config, Event, FrameInput, Pipeline};
 
@@ -130,7 +130,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let peak_rss_run_mb = peak_rss_mb();
 
     let Written {
-        mesh,
+        mesh_triangles,
         fusion,
         map_save_s,
     } = write_results(&args.out, &mut pipeline)?;
@@ -158,7 +158,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "depth_refinements": stats.depth_refinements,
             "keyframes_fused": stats.keyframes_fused,
             "keyframes_not_fused": stats.keyframes_not_fused,
-            "mesh_triangles": mesh.as_ref().map_or(0, |m| m.triangle_count()),
+            "mesh_triangles": mesh_triangles,
             "voxel_size": fusion.as_ref().map(|f| f.voxel_size),
             "fusion_blocks": fusion.as_ref().map(|f| serde_json::json!({
                 "resident": f.blocks,
@@ -187,7 +187,7 @@ fn peak_rss_mb() -> Option<f64> {
 
 /// What [`write_results`] wrote that the summary reports.
 pub(super) struct Written {
-    pub mesh: Option<relfusion_slam::fusion::Mesh>,
+    pub mesh_triangles: u64,
     pub fusion: Option<relfusion_slam::fusion::FusionStats>,
     pub map_save_s: f64,
 }
@@ -211,11 +211,8 @@ pub(super) fn write_results(
             .collect();
         relfusion_slam::dense::store::write_dense_keyframes(&out.join("keyframes"), &dense)?;
     }
-    let mesh = pipeline.mesh()?;
-    if let Some(mesh) = &mesh {
-        write_mesh_ply(&out.join("mesh.ply"), mesh)?;
-        write_mesh_glb(&out.join("mesh.glb"), mesh)?;
-    }
+    // Written a block at a time: a long run's spilled chunks are read back a slab at a time.
+    let mesh_triangles = pipeline.write_mesh(out)?.map_or(0, |c| c.triangles);
     let fusion = pipeline.fusion_stats();
     if let Some(fusion) = &fusion {
         write_mesh_stats(out, fusion)?;
@@ -227,7 +224,7 @@ pub(super) fn write_results(
         .with_context(|| format!("writing {}", map_dir.display()))?;
     let map_save_s = t_map.elapsed().as_secs_f64();
     Ok(Written {
-        mesh,
+        mesh_triangles,
         fusion,
         map_save_s,
     })

@@ -19,9 +19,10 @@ use std::path::Path;
 
 use serde_json::{Value, json};
 
-use super::write_atomic;
-use crate::Result;
+use super::{write_atomic, write_atomic_with};
 use crate::fusion::Mesh;
+use crate::fusion::weld::{BlockSource, Bounds, WeldCounts, each_triangle, each_vertex, weld};
+use crate::{Error, Result};
 
 /// `glTF` in ASCII, little-endian (spec §4.4.2).
 const GLB_MAGIC: u32 = 0x4654_6C67;
@@ -47,46 +48,101 @@ const TRIANGLES: u32 = 4;
 pub fn mesh_glb_bytes(mesh: &Mesh) -> Vec<u8> {
     debug_assert!(mesh.normals.len() == mesh.positions.len());
     debug_assert!(mesh.colors.len() == mesh.positions.len());
+    if mesh.is_empty() {
+        return container(&scene(None), None);
+    }
+    let n = mesh.positions.len();
+    let mut bin = Vec::with_capacity(n * 28 + mesh.indices.len() * 4);
+    for v in mesh.positions.iter().chain(&mesh.normals).flatten() {
+        bin.extend_from_slice(&v.to_le_bytes());
+    }
+    for c in &mesh.colors {
+        bin.extend_from_slice(&color_element(*c));
+    }
+    for i in &mesh.indices {
+        bin.extend_from_slice(&i.to_le_bytes());
+    }
+    let mut bounds = Bounds::default();
+    mesh.positions.iter().for_each(|p| bounds.add(*p));
+    let doc = scene(Some((n, mesh.indices.len(), bounds)));
+    let mut out = container(&doc, Some(bin.len()));
+    out.extend_from_slice(&bin);
+    out.resize(out.len().next_multiple_of(4), 0);
+    out
+}
+
+/// Writes `mesh` as a GLB file ([`mesh_glb_bytes`]), atomically (temporary file + rename).
+pub fn write_mesh_glb(path: &Path, mesh: &Mesh) -> Result<()> {
+    write_atomic(path, &mesh_glb_bytes(mesh))
+}
+
+/// Writes the surface of `source` as a GLB file, the same bytes as [`write_mesh_glb`] of its
+/// welded mesh, a block at a time: one pass counts and bounds the vertices (the JSON chunk
+/// comes first), then one pass per buffer view (positions, normals, colours, indices), each
+/// welding as it goes ([`crate::fusion::weld`]). Atomic like [`write_mesh_glb`].
+pub fn write_mesh_glb_from(path: &Path, source: &mut dyn BlockSource) -> Result<WeldCounts> {
+    write_atomic_with(path, |out| {
+        let mut bounds = Bounds::default();
+        let counts = weld(source, &mut bounds)?;
+        let io = |e| Error::io(path, e);
+        if counts.triangles == 0 {
+            out.write_all(&container(&scene(None), None)).map_err(io)?;
+            return Ok(counts);
+        }
+        let (n, indices) = (counts.vertices as usize, counts.triangles as usize * 3);
+        let doc = scene(Some((n, indices, bounds)));
+        out.write_all(&container(&doc, Some(n * 28 + indices * 4)))
+            .map_err(io)?;
+        for view in 0..3 {
+            each_vertex(source, |p, normal, c| {
+                let bytes: Vec<u8> = match view {
+                    0 => p.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                    1 => normal.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                    _ => color_element(c).to_vec(),
+                };
+                out.write_all(&bytes).map_err(io)
+            })?;
+        }
+        each_triangle(source, |t| {
+            let bytes: Vec<u8> = t.iter().flat_map(|i| i.to_le_bytes()).collect();
+            out.write_all(&bytes).map_err(io)
+        })?;
+        Ok(counts)
+    })
+}
+
+/// A colour as its `COLOR_0` element: normalised u8 VEC3 padded to 4 bytes.
+fn color_element(c: [u8; 3]) -> [u8; 4] {
+    [c[0], c[1], c[2], 0]
+}
+
+/// The glTF document: the scene, and with `(vertices, indices, bounds)` the mesh whose BIN
+/// chunk holds positions, normals, colours and indices in that order.
+fn scene(mesh: Option<(usize, usize, Bounds)>) -> Value {
     let mut doc = json!({
         "asset": { "version": "2.0", "generator": "relfusion" },
         "scene": 0,
         "scenes": [{ "nodes": [0] }],
         "nodes": [{ "name": "relfusion mesh" }],
     });
-    if mesh.is_empty() {
-        return glb(&doc, None);
-    }
-    let n = mesh.positions.len();
-    let mut bin = Vec::with_capacity(n * 28 + mesh.indices.len() * 4);
-    let mut views = Vec::with_capacity(4);
-    for attribute in [&mesh.positions, &mesh.normals] {
-        let start = bin.len();
-        for v in attribute.iter().flatten() {
-            bin.extend_from_slice(&v.to_le_bytes());
-        }
-        views.push(buffer_view(start, bin.len(), None, ARRAY_BUFFER));
-    }
-    let start = bin.len();
-    for c in &mesh.colors {
-        bin.extend_from_slice(&[c[0], c[1], c[2], 0]);
-    }
-    views.push(buffer_view(start, bin.len(), Some(4), ARRAY_BUFFER));
-    let start = bin.len();
-    for i in &mesh.indices {
-        bin.extend_from_slice(&i.to_le_bytes());
-    }
-    views.push(buffer_view(start, bin.len(), None, ELEMENT_ARRAY_BUFFER));
-
-    let (min, max) = bounds(&mesh.positions);
+    let Some((n, indices, bounds)) = mesh else {
+        return doc;
+    };
+    let views = vec![
+        buffer_view(0, 12 * n, None, ARRAY_BUFFER),
+        buffer_view(12 * n, 24 * n, None, ARRAY_BUFFER),
+        buffer_view(24 * n, 28 * n, Some(4), ARRAY_BUFFER),
+        buffer_view(28 * n, 28 * n + 4 * indices, None, ELEMENT_ARRAY_BUFFER),
+    ];
     doc["bufferViews"] = Value::Array(views);
-    doc["buffers"] = json!([{ "byteLength": bin.len() }]);
+    doc["buffers"] = json!([{ "byteLength": 28 * n + 4 * indices }]);
     doc["accessors"] = json!([
         { "bufferView": 0, "componentType": FLOAT, "count": n, "type": "VEC3",
-          "min": min, "max": max },
+          "min": bounds.min, "max": bounds.max },
         { "bufferView": 1, "componentType": FLOAT, "count": n, "type": "VEC3" },
         { "bufferView": 2, "componentType": UNSIGNED_BYTE, "normalized": true, "count": n,
           "type": "VEC3" },
-        { "bufferView": 3, "componentType": UNSIGNED_INT, "count": mesh.indices.len(),
+        { "bufferView": 3, "componentType": UNSIGNED_INT, "count": indices,
           "type": "SCALAR" },
     ]);
     doc["materials"] = json!([{
@@ -105,12 +161,7 @@ pub fn mesh_glb_bytes(mesh: &Mesh) -> Vec<u8> {
         }],
     }]);
     doc["nodes"][0]["mesh"] = json!(0);
-    glb(&doc, Some(&bin))
-}
-
-/// Writes `mesh` as a GLB file ([`mesh_glb_bytes`]), atomically (temporary file + rename).
-pub fn write_mesh_glb(path: &Path, mesh: &Mesh) -> Result<()> {
-    write_atomic(path, &mesh_glb_bytes(mesh))
+    doc
 }
 
 /// A view of bytes `start..end` of buffer 0.
@@ -127,31 +178,15 @@ fn buffer_view(start: usize, end: usize, stride: Option<usize>, target: u32) -> 
     v
 }
 
-/// Per-axis minimum and maximum of the positions (the spec requires them on `POSITION`).
-fn bounds(positions: &[[f32; 3]]) -> ([f32; 3], [f32; 3]) {
-    positions.iter().fold(
-        ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
-        |(lo, hi), p| {
-            (
-                [lo[0].min(p[0]), lo[1].min(p[1]), lo[2].min(p[2])],
-                [hi[0].max(p[0]), hi[1].max(p[1]), hi[2].max(p[2])],
-            )
-        },
-    )
-}
-
-/// The GLB container: 12-byte header, the JSON chunk padded with spaces and the optional BIN
-/// chunk padded with zeros, each to a multiple of 4 bytes (spec §4.4.3).
-fn glb(doc: &Value, bin: Option<&[u8]>) -> Vec<u8> {
+/// The GLB container up to the BIN chunk's data: 12-byte header, the JSON chunk padded with
+/// spaces and, for a BIN chunk of `bin` bytes, its 8-byte header; the caller writes the data
+/// and pads it with zeros to a multiple of 4 bytes (spec §4.4.3).
+fn container(doc: &Value, bin: Option<usize>) -> Vec<u8> {
     let mut json = serde_json::to_vec(doc).expect("a JSON value always serialises");
     json.resize(json.len().next_multiple_of(4), b' ');
-    let bin = bin.map(|b| {
-        let mut b = b.to_vec();
-        b.resize(b.len().next_multiple_of(4), 0);
-        b
-    });
-    let total = 12 + 8 + json.len() + bin.as_ref().map_or(0, |b| 8 + b.len());
-    let mut out = Vec::with_capacity(total);
+    let bin = bin.map(|b| b.next_multiple_of(4));
+    let total = 12 + 8 + json.len() + bin.map_or(0, |b| 8 + b);
+    let mut out = Vec::with_capacity(12 + 8 + json.len() + 8);
     for word in [
         GLB_MAGIC,
         GLB_VERSION,
@@ -163,10 +198,9 @@ fn glb(doc: &Value, bin: Option<&[u8]>) -> Vec<u8> {
     }
     out.extend_from_slice(&json);
     if let Some(b) = bin {
-        for word in [b.len() as u32, CHUNK_BIN] {
+        for word in [b as u32, CHUNK_BIN] {
             out.extend_from_slice(&word.to_le_bytes());
         }
-        out.extend_from_slice(&b);
     }
     out
 }
@@ -240,12 +274,17 @@ mod tests {
                 assert_eq!(view.stride(), Some(4));
             }
             if semantic == Semantic::Positions {
-                let (lo, hi) = bounds(&mesh.positions);
+                let lo: Vec<f32> = (0..3)
+                    .map(|k| mesh.positions.iter().map(|p| p[k]).fold(f32::MAX, f32::min))
+                    .collect();
+                let hi: Vec<f32> = (0..3)
+                    .map(|k| mesh.positions.iter().map(|p| p[k]).fold(f32::MIN, f32::max))
+                    .collect();
                 let as_f32 = |v: Option<gltf::json::Value>| -> Vec<f32> {
                     serde_json::from_value(v.expect("min/max present")).expect("numbers")
                 };
-                assert_eq!(as_f32(accessor.min()), lo.to_vec());
-                assert_eq!(as_f32(accessor.max()), hi.to_vec());
+                assert_eq!(as_f32(accessor.min()), lo);
+                assert_eq!(as_f32(accessor.max()), hi);
             }
         }
 

@@ -5,10 +5,11 @@ pub mod glb;
 pub mod mesh_ply;
 pub mod ply;
 
-pub use glb::{mesh_glb_bytes, write_mesh_glb};
-pub use mesh_ply::{mesh_ply_bytes, read_mesh_ply, write_mesh_ply};
+pub use glb::{mesh_glb_bytes, write_mesh_glb, write_mesh_glb_from};
+pub use mesh_ply::{mesh_ply_bytes, read_mesh_ply, write_mesh_ply, write_mesh_ply_from};
 pub use ply::{ColoredPoint, points_ply_bytes, read_points_ply, write_points_ply};
 
+use std::io::Write;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -18,6 +19,13 @@ use crate::{Error, Result};
 /// (a viewer polling the file, a download) never sees a half-written mesh. The temporary name
 /// carries the process id and a counter so concurrent exports to one path cannot interleave.
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_atomic_with(path, |out| {
+        out.write_all(bytes).map_err(|e| Error::io(path, e))
+    })
+}
+
+/// [`write_atomic`] for a file written piece by piece by `write` (buffered).
+fn write_atomic_with<T>(path: &Path, write: impl FnOnce(&mut dyn Write) -> Result<T>) -> Result<T> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     let name = path.file_name().ok_or_else(|| {
         Error::io(
@@ -32,9 +40,20 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         COUNTER.fetch_add(1, Ordering::Relaxed)
     ));
     let tmp = path.with_file_name(tmp_name);
-    std::fs::write(&tmp, bytes).map_err(|e| Error::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| {
+    let written = std::fs::File::create(&tmp)
+        .map_err(|e| Error::io(&tmp, e))
+        .and_then(|file| {
+            let mut out = std::io::BufWriter::new(file);
+            let value = write(&mut out)?;
+            out.flush().map_err(|e| Error::io(&tmp, e))?;
+            Ok(value)
+        })
+        .and_then(|value| {
+            std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
+            Ok(value)
+        });
+    if written.is_err() {
         let _ = std::fs::remove_file(&tmp);
-        Error::io(path, e)
-    })
+    }
+    written
 }

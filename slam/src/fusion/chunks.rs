@@ -10,7 +10,7 @@
 //! marching cubes on a neighbour — loads it back first, bit-identical, so spilling changes
 //! where the volume lives, never the volume or the mesh.
 
-use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet, VecDeque};
 use std::sync::Arc;
 
 use crate::Result;
@@ -19,6 +19,7 @@ use crate::spill::{Reader, Spillable, Stored, Writer};
 use super::block::{BLOCK_VOXELS, BlockIndex};
 use super::mesh::{BlockMesh, EdgeKey};
 use super::voxels::CpuVoxels;
+use super::weld::BlockSource;
 
 /// Blocks along one edge of a chunk.
 pub const CHUNK_SIDE: i32 = 4;
@@ -274,9 +275,12 @@ impl Residency {
         order.into_iter().map(|(_, c)| c).collect()
     }
 
-    /// The spilled chunks (for the whole mesh).
-    pub fn spilled_chunks(&self) -> impl Iterator<Item = &Arc<Stored<ChunkData>>> {
-        self.spilled.values().map(|s| &s.stored)
+    /// The whole surface: `resident` block meshes and the spilled chunks' meshes.
+    pub fn surface<'a>(&'a self, resident: &'a BTreeMap<BlockIndex, BlockMesh>) -> Surface<'a> {
+        Surface {
+            resident,
+            spilled: &self.spilled,
+        }
     }
 
     /// Blocks, chunks and mesh triangles in the store, and chunk loads so far.
@@ -287,6 +291,44 @@ impl Residency {
             triangles: self.spilled.values().map(|s| s.triangles).sum(),
             loads: self.loads,
         }
+    }
+}
+
+/// A fuser's whole surface as a [`BlockSource`]: its resident block meshes and its spilled
+/// chunks' meshes, read back from the store a slab of chunks (one chunk x) at a time and
+/// dropped after (not loaded into the pool), so writing the mesh holds one slab of it.
+#[derive(Debug)]
+pub struct Surface<'a> {
+    resident: &'a BTreeMap<BlockIndex, BlockMesh>,
+    spilled: &'a BTreeMap<ChunkIndex, Spilled>,
+}
+
+impl BlockSource for Surface<'_> {
+    fn runs(&mut self, each: &mut dyn FnMut(&[&BlockMesh]) -> Result<()>) -> Result<()> {
+        let slabs: BTreeSet<i32> = self
+            .resident
+            .keys()
+            .map(|b| ChunkIndex::of(b).0[0])
+            .chain(self.spilled.keys().map(|c| c.0[0]))
+            .collect();
+        for cx in slabs {
+            let first = |x: i32| ChunkIndex([x, i32::MIN, i32::MIN]);
+            let loaded = self
+                .spilled
+                .range(first(cx)..first(cx + 1))
+                .map(|(_, s)| s.stored.get())
+                .collect::<Result<Vec<_>>>()?;
+            let block = |x: i32| BlockIndex::new(x * CHUNK_SIDE, i32::MIN, i32::MIN);
+            let mut blocks: Vec<&BlockMesh> = self
+                .resident
+                .range(block(cx)..block(cx + 1))
+                .map(|(_, m)| m)
+                .chain(loaded.iter().flat_map(|c| c.meshes.iter()))
+                .collect();
+            blocks.sort_by_key(|b| b.index);
+            each(&blocks)?;
+        }
+        Ok(())
     }
 }
 

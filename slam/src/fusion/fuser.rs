@@ -23,13 +23,14 @@ use crate::spill::{Spill, Stored};
 use crate::{Error, Result};
 
 use super::block::{BLOCK_SIDE, BlockIndex, BlockTable, UPPER_NEIGHBOURS};
-use super::chunks::{ChunkData, ChunkIndex, Residency};
+use super::chunks::{ChunkData, ChunkIndex, Residency, Surface};
 use super::config::FusionConfig;
 use super::input::FusionInput;
 use super::integrate::{DepthView, IntegrateParams, touched_blocks};
 use super::marching::MeshParams;
 use super::mesh::{BlockMesh, Mesh};
 use super::pool::Pool;
+use super::weld::weld;
 
 /// The blocks whose triangles changed since the previous delta (a `MeshUpdate`).
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -479,17 +480,16 @@ impl Fuser {
     /// The whole surface, welded (meshes pending changes first; spilled chunks' meshes are
     /// read back from the store, not into the pool).
     pub fn mesh(&mut self) -> Result<Mesh> {
+        let mut mesh = Mesh::default();
+        weld(&mut self.surface()?, &mut mesh)?;
+        Ok(mesh)
+    }
+
+    /// The whole surface as blocks to weld or write a slab at a time (meshes pending changes
+    /// first): what the exports of a long session stream from (`export::write_mesh_ply_from`).
+    pub fn surface(&mut self) -> Result<Surface<'_>> {
         self.take_delta()?;
-        let spilled = self
-            .residency
-            .spilled_chunks()
-            .map(|s| s.get())
-            .collect::<Result<Vec<_>>>()?;
-        Ok(Mesh::from_blocks(
-            self.meshes
-                .values()
-                .chain(spilled.iter().flat_map(|c| c.meshes.iter())),
-        ))
+        Ok(self.residency.surface(&self.meshes))
     }
 
     /// Brings back into the pool every spilled chunk holding one of `blocks`. A chunk whose

@@ -344,6 +344,19 @@ fn spilled_chunks_change_where_the_volume_lives_never_the_mesh() {
             (&b.positions, &b.colors, &b.indices),
             "{compute:?}"
         );
+        // The exports written a slab at a time from the store are the in-memory mesh's bytes.
+        let out = dir.with_extension("export");
+        std::fs::create_dir_all(&out).expect("export dir");
+        let ply = out.join("mesh.ply");
+        let glb = out.join("mesh.glb");
+        let mut surface = spilled.surface().expect("surface");
+        let counts = crate::export::write_mesh_ply_from(&ply, &mut surface).expect("ply");
+        crate::export::write_mesh_glb_from(&glb, &mut surface).expect("glb");
+        assert_eq!(counts.triangles as usize, a.triangle_count());
+        let read = |p: &std::path::Path| std::fs::read(p).expect("read");
+        assert!(read(&ply) == crate::export::mesh_ply_bytes(&a), "PLY");
+        assert!(read(&glb) == crate::export::mesh_glb_bytes(&a), "GLB");
+        std::fs::remove_dir_all(&out).ok();
         let s = spilled.stats();
         println!("{compute:?}: {s:?}");
         assert!(s.chunks_spilled > 0 && s.blocks_spilled > 0, "{s:?}");

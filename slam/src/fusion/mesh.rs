@@ -2,9 +2,9 @@
 //! emits and what a `MeshUpdate` carries) and the welded whole-scene [`Mesh`] (what the PLY and
 //! GLB exports write).
 
-use std::collections::{BTreeMap, HashMap};
-
 use super::block::BlockIndex;
+use super::weld::{SortedBlocks, WeldSink};
+use crate::Result;
 
 /// The grid edge a marching-cubes vertex lies on: its lower endpoint (global voxel
 /// coordinates) and its axis (0 = x, 1 = y, 2 = z). Two blocks that share a face compute the
@@ -47,35 +47,42 @@ impl BlockMesh {
 pub fn vertex_normals(positions: &[[f32; 3]], indices: &[u32]) -> Vec<[f32; 3]> {
     let mut acc = vec![[0f64; 3]; positions.len()];
     for t in indices.chunks_exact(3) {
-        let p = |i: u32| positions[i as usize].map(f64::from);
-        let (a, b, c) = (p(t[0]), p(t[1]), p(t[2]));
-        let e1 = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-        let e2 = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
-        let n = [
-            e1[1] * e2[2] - e1[2] * e2[1],
-            e1[2] * e2[0] - e1[0] * e2[2],
-            e1[0] * e2[1] - e1[1] * e2[0],
-        ];
+        let p = |i: u32| positions[i as usize];
+        let n = face_normal(p(t[0]), p(t[1]), p(t[2]));
         for &i in t {
             for k in 0..3 {
                 acc[i as usize][k] += n[k];
             }
         }
     }
-    acc.into_iter()
-        .map(|n| {
-            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-            if len > 0.0 {
-                [
-                    (n[0] / len) as f32,
-                    (n[1] / len) as f32,
-                    (n[2] / len) as f32,
-                ]
-            } else {
-                [0.0, 0.0, 1.0]
-            }
-        })
-        .collect()
+    acc.into_iter().map(unit_normal).collect()
+}
+
+/// A triangle's normal times twice its area, in f64 (summed per vertex by
+/// [`vertex_normals`] and the streaming weld alike, so both give the same bits).
+pub(super) fn face_normal(a: [f32; 3], b: [f32; 3], c: [f32; 3]) -> [f64; 3] {
+    let (a, b, c) = (a.map(f64::from), b.map(f64::from), c.map(f64::from));
+    let e1 = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+    let e2 = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+    [
+        e1[1] * e2[2] - e1[2] * e2[1],
+        e1[2] * e2[0] - e1[0] * e2[2],
+        e1[0] * e2[1] - e1[1] * e2[0],
+    ]
+}
+
+/// A summed normal made unit length (`[0, 0, 1]` for a zero sum).
+pub(super) fn unit_normal(n: [f64; 3]) -> [f32; 3] {
+    let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+    if len > 0.0 {
+        [
+            (n[0] / len) as f32,
+            (n[1] / len) as f32,
+            (n[2] / len) as f32,
+        ]
+    } else {
+        [0.0, 0.0, 1.0]
+    }
 }
 
 /// The whole fused surface, welded across blocks, with vertex normals and colours.
@@ -90,26 +97,12 @@ pub struct Mesh {
 impl Mesh {
     /// Welds block meshes into one: vertices with the same [`EdgeKey`] become one, and normals
     /// are recomputed over the welded triangles (so there are no seams at block faces). Blocks
-    /// are taken in index order, so the result does not depend on the map's iteration order.
+    /// are taken in index order, so the result does not depend on the map's iteration order
+    /// ([`super::weld`], whose streaming weld gives the same mesh a slab at a time).
     pub fn from_blocks<'a>(blocks: impl IntoIterator<Item = &'a BlockMesh>) -> Self {
-        let sorted: BTreeMap<BlockIndex, &BlockMesh> =
-            blocks.into_iter().map(|b| (b.index, b)).collect();
         let mut mesh = Mesh::default();
-        let mut welded: HashMap<EdgeKey, u32> = HashMap::new();
-        for block in sorted.values() {
-            let remap: Vec<u32> = (0..block.positions.len())
-                .map(|v| {
-                    *welded.entry(block.edge_keys[v]).or_insert_with(|| {
-                        mesh.positions.push(block.positions[v]);
-                        mesh.colors.push(block.colors[v]);
-                        (mesh.positions.len() - 1) as u32
-                    })
-                })
-                .collect();
-            mesh.indices
-                .extend(block.indices.iter().map(|&i| remap[i as usize]));
-        }
-        mesh.normals = vertex_normals(&mesh.positions, &mesh.indices);
+        super::weld::weld_in_memory(&mut SortedBlocks::new(blocks), &mut mesh)
+            .expect("sorted blocks weld, and a mesh in memory takes every record");
         mesh
     }
 
@@ -123,6 +116,21 @@ impl Mesh {
 
     pub fn is_empty(&self) -> bool {
         self.indices.is_empty()
+    }
+}
+
+/// A mesh in memory takes the weld's records as they come.
+impl WeldSink for Mesh {
+    fn vertex(&mut self, position: [f32; 3], normal: [f32; 3], color: [u8; 3]) -> Result<()> {
+        self.positions.push(position);
+        self.normals.push(normal);
+        self.colors.push(color);
+        Ok(())
+    }
+
+    fn triangle(&mut self, vertices: [u32; 3]) -> Result<()> {
+        self.indices.extend(vertices);
+        Ok(())
     }
 }
 

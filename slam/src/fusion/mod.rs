@@ -8,7 +8,8 @@
 //! - [`gpu_volume`]: the GPU pool and the integration kernel runner.
 //! - [`mc_table`]: the marching-cubes case table, generated from first principles.
 //! - [`marching`]: marching cubes over blocks (CPU reference); [`gpu_marching`] the kernel.
-//! - [`mesh`]: block meshes and the welded whole-scene mesh.
+//! - [`mesh`]: block meshes and the welded whole-scene mesh; [`weld`] welds them a block at a
+//!   time, so a long session's mesh is written without holding it all.
 //! - [`input`]: what is integrated per keyframe (depth, weight from the dense variance, colour).
 //! - `pool`: the voxel pool the fuser uses, CPU reference or GPU buffers and kernels.
 //! - [`chunks`]: chunks of blocks spilled to the session's store and read back (bounded
@@ -29,6 +30,7 @@ pub mod mc_table;
 pub mod mesh;
 mod pool;
 pub mod voxels;
+pub mod weld;
 pub mod worker;
 
 pub use block::{BLOCK_SIDE, BLOCK_VOXELS, BlockIndex, BlockTable, MeshJob};

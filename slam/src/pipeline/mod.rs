@@ -50,6 +50,7 @@ use crate::dense::DenseKeyframe;
 use crate::dense::layer::{DenseLayer, SharedPrior};
 use crate::dense::prior::DepthPrior;
 use crate::frame::CompactFrame;
+use crate::fusion::weld::{Bounds, WeldCounts, weld};
 use crate::fusion::worker::FusionLink;
 use crate::fusion::{FusionStats, Mesh};
 use crate::geometry::{PinholeCamera, SE3, Sim3, UndistortMap};
@@ -464,6 +465,22 @@ impl Pipeline {
         };
         let mesh = fuser.mesh()?;
         Ok((!mesh.is_empty()).then_some(mesh))
+    }
+
+    /// Writes the fused mesh (as [`Pipeline::mesh`]) as `mesh.ply` and `mesh.glb` in `dir`, a
+    /// block at a time: a long session's spilled chunks are read back a slab at a time, so
+    /// the whole surface is never in memory (issue 37). `None`, and nothing written, when
+    /// [`Pipeline::mesh`] would be `None`.
+    pub fn write_mesh(&mut self, dir: &std::path::Path) -> Result<Option<WeldCounts>> {
+        let Some(fuser) = self.fusion.as_mut().and_then(FusionLink::fuser) else {
+            return Ok(None);
+        };
+        let mut surface = fuser.surface()?;
+        if weld(&mut surface, &mut Bounds::default())?.triangles == 0 {
+            return Ok(None);
+        }
+        crate::export::write_mesh_glb_from(&dir.join("mesh.glb"), &mut surface)?;
+        crate::export::write_mesh_ply_from(&dir.join("mesh.ply"), &mut surface).map(Some)
     }
 
     /// The fusion's figures (voxel size, blocks, timings): current when the fuser is at hand
