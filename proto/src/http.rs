@@ -315,6 +315,14 @@ pub struct SessionMemory {
     pub fusion_chunk_loads: u64,
     /// Fusion inputs spilled to the store (read back when their keyframe moves).
     pub fusion_inputs_spilled: u64,
+    /// Blocks of the session's copy of the mesh (what downloads, results and map snapshots
+    /// read) in memory.
+    #[serde(default)]
+    pub mesh_blocks: u64,
+    /// Blocks of that copy spilled to the store with their meshes (past
+    /// `fusion.resident_blocks`, the chunks changed least recently).
+    #[serde(default)]
+    pub mesh_blocks_spilled: u64,
     /// Pose-graph edges reaching past the working set (loop closures to old keyframes).
     pub far_edges: u64,
     /// Keyframes whose full constraint search waits because the back end fell behind.

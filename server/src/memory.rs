@@ -49,12 +49,15 @@ const KEYFRAME_PER_PIXEL: u64 = 1;
 /// keyframes; 8 B (0.92 MB per keyframe with the per-pixel term) is over three times that
 /// (docs/tuning.md, "Long sessions, issue 37 — fourth stage").
 const KEYFRAME_PER_DENSE_PIXEL: u64 = 8;
-/// Bytes of one voxel block the fusion keeps in memory: its voxels (8³ × 12 B) and its mesh
-/// (about 44 triangles a block in `bench long`'s room, about 1.9 KiB with the vertices' edge
-/// keys). The pool holds about `fusion.resident_blocks` of them once the session's store takes
-/// the rest (issue 37, item 3), but up to twice that: a re-integration pass evicts only past
-/// twice the budget, and the pool's capacity grows by doubling and keeps its high water.
-const FUSION_BLOCK: u64 = 6 * 1024 + 2 * 1024;
+/// Bytes of one block's mesh: about 44 triangles a block in `bench long`'s room, about
+/// 1.9 KiB with the vertices' edge keys.
+const MESH_BLOCK: u64 = 2 * 1024;
+/// Bytes of one voxel block the fusion keeps in memory: its voxels (8³ × 12 B) and its mesh.
+/// The pool holds about `fusion.resident_blocks` of them once the session's store takes the
+/// rest (issue 37, item 3), but up to twice that: a re-integration pass evicts only past
+/// twice the budget, and the pool's capacity grows by doubling and keeps its high water. The
+/// session's own copy of the mesh (`session::mesh_state`) keeps as many block meshes again.
+const FUSION_BLOCK: u64 = 6 * 1024 + MESH_BLOCK;
 /// Bytes per dense pixel of a fusion input held for re-integration (depth, weight, colour),
 /// up to `fusion.keyframe_memory_mb`.
 const FUSION_INPUT_PER_DENSE_PIXEL: u64 = 12;
@@ -117,7 +120,7 @@ impl SessionCost {
                 } else {
                     0
                 }
-                + fusion.map_or(0, |f| 2 * f.resident_blocks * FUSION_BLOCK),
+                + fusion.map_or(0, |f| f.resident_blocks * (2 * FUSION_BLOCK + MESH_BLOCK)),
             per_keyframe: KEYFRAME_PER_PIXEL * shape.pixels + KEYFRAME_PER_DENSE_PIXEL * dense,
             input: POINTCLOUD_PER_PIXEL * shape.pixels
                 + fusion.map_or(0, |_| FUSION_INPUT_PER_DENSE_PIXEL * dense),
@@ -284,7 +287,7 @@ mod tests {
         let e = plan.keyframes_for(huge).expect_err("8192² does not fit");
         assert!(e.contains("smaller image"), "{e}");
         // The fusion's resident blocks are charged up front, twice over (a pass may hold
-        // twice the budget, and the pool keeps its high water).
+        // twice the budget, and the pool keeps its high water), with the session's mesh copy.
         let mut bigger_pool = shape(640 * 480, Some(320 * 240));
         bigger_pool.fusion = Some(FusionShape {
             inputs: 512 * MIB,
@@ -293,7 +296,7 @@ mod tests {
         let bigger_pool = SessionCost::estimate(bigger_pool);
         assert_eq!(
             bigger_pool.base - vga.base,
-            2 * (65536 - 16384) * FUSION_BLOCK
+            (65536 - 16384) * (2 * FUSION_BLOCK + MESH_BLOCK)
         );
         assert!(plan.keyframes_for(bigger_pool).expect("fits") < vga_kf);
         let capped = MemoryPlan::new(&limits(16 * 1024, 4, 20));

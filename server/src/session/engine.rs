@@ -98,6 +98,9 @@ impl Engine {
             fusion_blocks_spilled: fusion.blocks_spilled as u64,
             fusion_chunk_loads: fusion.chunk_loads as u64,
             fusion_inputs_spilled: fusion.inputs_spilled as u64,
+            // The session's mesh copy: filled in by the worker, which holds the session.
+            mesh_blocks: 0,
+            mesh_blocks_spilled: 0,
             far_edges: m.backend.map_or(0, |b| b.far_edges as u64),
             searches_deferred: m.backend.map_or(0, |b| b.searches_deferred as u64),
             searches_given_up: m.backend.map_or(0, |b| b.searches_given_up as u64),
@@ -109,6 +112,14 @@ impl Engine {
     pub fn spill_failure(&self) -> Option<String> {
         match self {
             Engine::Map(pipeline) => pipeline.spill().failure().map(str::to_owned),
+            Engine::Localize { .. } => None,
+        }
+    }
+
+    /// The session's spilling (a mapping engine's; `None` for a localiser).
+    pub fn spill(&self) -> Option<relfusion_slam::spill::Spill> {
+        match self {
+            Engine::Map(pipeline) => Some(pipeline.spill().clone()),
             Engine::Localize { .. } => None,
         }
     }

@@ -27,6 +27,7 @@ pub mod handle;
 pub mod input;
 pub(crate) mod lifecycle;
 pub mod manager;
+mod mesh_state;
 pub mod overrides;
 pub mod persist;
 pub mod prior;

@@ -8,11 +8,14 @@ use std::sync::atomic::Ordering;
 use std::sync::{Mutex, MutexGuard};
 
 use relfusion_slam::dataset::trajectory::{StampedPose, format_tum_trajectory, stamped_se3};
-use relfusion_slam::export::{mesh_glb_bytes, mesh_ply_bytes};
-use relfusion_slam::fusion::{BlockIndex, BlockMesh, Mesh, MeshDelta};
+use relfusion_slam::export::{mesh_glb_bytes_from, mesh_ply_bytes_from};
+use relfusion_slam::fusion::weld::BlockSource;
+use relfusion_slam::fusion::{BlockMesh, MeshDelta};
 use relfusion_slam::geometry::Sim3;
+use relfusion_slam::spill::Spill;
 
 use super::handle::Session;
+use super::mesh_state::{MeshSnapshot, MeshState};
 use super::persist::result_key;
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -26,37 +29,9 @@ pub(crate) struct Track {
     frames: Vec<(f64, Sim3, bool)>,
     /// Keyframe id → (timestamp, latest pose).
     keyframes: BTreeMap<u64, (f64, Sim3)>,
-    /// The fused mesh as the subscribers have it: every delta applied.
+    /// The fused mesh as the subscribers have it: every delta applied (bounded in memory once
+    /// the session spills).
     mesh: MeshState,
-}
-
-/// The session's fused mesh, block by block (what `MeshUpdate`s describe).
-#[derive(Debug, Default)]
-pub(crate) struct MeshState {
-    pub blocks: BTreeMap<BlockIndex, BlockMesh>,
-    pub revision: u64,
-    pub block_size: f32,
-}
-
-impl MeshState {
-    /// Replaces the changed blocks and drops the removed ones.
-    pub(super) fn apply(&mut self, delta: &MeshDelta) {
-        for b in &delta.removed {
-            self.blocks.remove(b);
-        }
-        for m in &delta.changed {
-            self.blocks.insert(m.index, m.clone());
-        }
-        self.revision = delta.revision;
-        self.block_size = delta.block_size;
-    }
-
-    pub(super) fn triangles(&self) -> u64 {
-        self.blocks
-            .values()
-            .map(|m| m.triangle_count() as u64)
-            .sum()
-    }
 }
 
 /// A session's poses: the stored file once it has ended (final, optimised), else the poses
@@ -125,12 +100,12 @@ impl Session {
     /// The fused mesh as PLY: the stored result once finished, the current mesh while
     /// running; `None` before the first mesh update.
     pub fn mesh_ply(&self) -> Option<Vec<u8>> {
-        self.mesh_file("mesh.ply", mesh_ply_bytes)
+        self.mesh_file("mesh.ply", mesh_ply_bytes_from)
     }
 
     /// The fused mesh as glTF binary (like [`Session::mesh_ply`]).
     pub fn mesh_glb(&self) -> Option<Vec<u8>> {
-        self.mesh_file("mesh.glb", mesh_glb_bytes)
+        self.mesh_file("mesh.glb", mesh_glb_bytes_from)
     }
 
     /// Where the session's recording (`recording.mcap`) is read from: a file of a filesystem
@@ -147,13 +122,13 @@ impl Session {
         Ok(self.store.get(&key)?.map(Stored::Bytes))
     }
 
-    fn mesh_file(&self, name: &str, encode: fn(&Mesh) -> Vec<u8>) -> Option<Vec<u8>> {
+    fn mesh_file(&self, name: &str, encode: MeshEncoder) -> Option<Vec<u8>> {
         if self.state().is_terminal()
             && let Ok(Some(bytes)) = self.store.get(&result_key(self.id(), name))
         {
             return Some(bytes);
         }
-        self.current_mesh().map(|m| encode(&m))
+        self.encode_mesh(&self.mesh_snapshot()?, encode)
     }
 
     /// A stored result of a finished (or failed) session.
@@ -190,19 +165,45 @@ impl Session {
 
     /// The mesh blocks with their revision and block size (the map snapshot's mesh).
     pub(crate) fn mesh_blocks(&self) -> (Vec<BlockMesh>, u64, f32) {
-        let track = lock(&self.track);
-        let m = &track.mesh;
-        (
-            m.blocks.values().cloned().collect(),
-            m.revision,
-            m.block_size,
-        )
+        let (snapshot, revision, block_size) = {
+            let track = lock(&self.track);
+            let m = &track.mesh;
+            (m.snapshot(), m.revision, m.block_size)
+        };
+        (snapshot.all_blocks(), revision, block_size)
     }
 
-    /// The whole current mesh, welded (`None` before the first mesh update).
-    pub(crate) fn current_mesh(&self) -> Option<Mesh> {
+    /// The current mesh as PLY and GLB (`None` before the first mesh update), encoded a slab
+    /// of blocks at a time: the welded mesh is never built.
+    pub(crate) fn mesh_files(&self) -> Option<(Vec<u8>, Vec<u8>)> {
+        let snapshot = self.mesh_snapshot()?;
+        Some((
+            self.encode_mesh(&snapshot, mesh_ply_bytes_from)?,
+            self.encode_mesh(&snapshot, mesh_glb_bytes_from)?,
+        ))
+    }
+
+    /// The mesh as it stands, to encode outside the session's lock (frames go on being
+    /// recorded meanwhile); `None` before the first mesh update.
+    fn mesh_snapshot(&self) -> Option<MeshSnapshot> {
         let track = lock(&self.track);
-        (!track.mesh.blocks.is_empty()).then(|| Mesh::from_blocks(track.mesh.blocks.values()))
+        (!track.mesh.is_empty()).then(|| track.mesh.snapshot())
+    }
+
+    fn encode_mesh(&self, snapshot: &MeshSnapshot, encode: MeshEncoder) -> Option<Vec<u8>> {
+        encode(&mut snapshot.surface())
+            .inspect_err(|e| tracing::error!(session = %self.id(), "encoding the mesh: {e}"))
+            .ok()
+    }
+
+    /// The session's mesh copy spills past `resident_blocks` blocks through `spill` (issue 37).
+    pub(crate) fn bound_mesh(&self, spill: Spill, resident_blocks: usize) {
+        lock(&self.track).mesh.bound(spill, resident_blocks);
+    }
+
+    /// Mesh blocks held in memory and spilled.
+    pub(crate) fn mesh_block_counts(&self) -> (usize, usize) {
+        lock(&self.track).mesh.block_counts()
     }
 
     pub(crate) fn update_keyframe_poses(&self, poses: &[(usize, Sim3)]) {
@@ -214,6 +215,9 @@ impl Session {
         }
     }
 }
+
+/// An encoder of a whole surface (PLY or GLB).
+type MeshEncoder = fn(&mut dyn BlockSource) -> relfusion_slam::Result<Vec<u8>>;
 
 /// A stored result, as the download reads it.
 #[derive(Debug)]

@@ -18,9 +18,9 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
+use relfusion_proto::http::SessionMemory;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dense::DepthPrior;
-use relfusion_slam::export::{mesh_glb_bytes, mesh_ply_bytes};
 use relfusion_slam::pipeline::{Event, FrameInput, Stats, TrackingState};
 use serde_json::json;
 
@@ -96,6 +96,10 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         .and_then(|spill| engine.attach_spill(Arc::new(spill)));
     if let Err(e) = spill {
         return fail(session, None, e);
+    }
+    // The session's copy of the mesh spills with it, past the fusion's own bound.
+    if let Some(spill) = engine.spill() {
+        session.bound_mesh(spill, session.config.fusion.resident_blocks as usize);
     }
     // An extended map's keyframes are the session's too: listed with their poses, counted
     // towards its keyframe limit.
@@ -380,7 +384,13 @@ impl Runner<'_> {
                     let keyframe = p.keyframe_id as u64;
                     if self.tracked_keyframe.replace(keyframe) != Some(keyframe) {
                         self.since_checkpoint += 1;
-                        *super::handle::lock(&s.memory) = self.engine.memory();
+                        let (held, spilled) = s.mesh_block_counts();
+                        *super::handle::lock(&s.memory) =
+                            self.engine.memory().map(|m| SessionMemory {
+                                mesh_blocks: held as u64,
+                                mesh_blocks_spilled: spilled as u64,
+                                ..m
+                            });
                     }
                     metrics
                         .observe_stage(Stage::FrameToPose, frame.received.elapsed().as_secs_f64());
@@ -480,9 +490,7 @@ impl Runner<'_> {
             trajectory,
             keyframes,
             pointcloud,
-            mesh: s
-                .current_mesh()
-                .map(|m| (mesh_ply_bytes(&m), mesh_glb_bytes(&m))),
+            mesh: s.mesh_files(),
             summary: json!({
                 "final": final_,
                 "info": s.info(),

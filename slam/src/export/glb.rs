@@ -15,6 +15,7 @@
 //! the first keyframe's camera frame (x right, y down, z forward), so the scene's up axis is
 //! not known and a viewer may show the scene tilted or upside down.
 
+use std::io::Write;
 use std::path::Path;
 
 use serde_json::{Value, json};
@@ -81,34 +82,46 @@ pub fn write_mesh_glb(path: &Path, mesh: &Mesh) -> Result<()> {
 /// comes first), then one pass per buffer view (positions, normals, colours, indices), each
 /// welding as it goes ([`crate::fusion::weld`]). Atomic like [`write_mesh_glb`].
 pub fn write_mesh_glb_from(path: &Path, source: &mut dyn BlockSource) -> Result<WeldCounts> {
-    write_atomic_with(path, |out| {
-        let mut bounds = Bounds::default();
-        let counts = weld(source, &mut bounds)?;
-        let io = |e| Error::io(path, e);
-        if counts.triangles == 0 {
-            out.write_all(&container(&scene(None), None)).map_err(io)?;
-            return Ok(counts);
-        }
-        let (n, indices) = (counts.vertices as usize, counts.triangles as usize * 3);
-        let doc = scene(Some((n, indices, bounds)));
-        out.write_all(&container(&doc, Some(n * 28 + indices * 4)))
-            .map_err(io)?;
-        for view in 0..3 {
-            each_vertex(source, |p, normal, c| {
-                let bytes: Vec<u8> = match view {
-                    0 => p.iter().flat_map(|v| v.to_le_bytes()).collect(),
-                    1 => normal.iter().flat_map(|v| v.to_le_bytes()).collect(),
-                    _ => color_element(c).to_vec(),
-                };
-                out.write_all(&bytes).map_err(io)
-            })?;
-        }
-        each_triangle(source, |t| {
-            let bytes: Vec<u8> = t.iter().flat_map(|i| i.to_le_bytes()).collect();
+    write_atomic_with(path, |out| encode(source, out, &|e| Error::io(path, e)))
+}
+
+/// The bytes [`write_mesh_glb_from`] writes.
+pub fn mesh_glb_bytes_from(source: &mut dyn BlockSource) -> Result<Vec<u8>> {
+    let mut bytes = Vec::new();
+    encode(source, &mut bytes, &|e| Error::io(Path::new("mesh.glb"), e))?;
+    Ok(bytes)
+}
+
+fn encode(
+    source: &mut dyn BlockSource,
+    out: &mut dyn Write,
+    io: &dyn Fn(std::io::Error) -> Error,
+) -> Result<WeldCounts> {
+    let mut bounds = Bounds::default();
+    let counts = weld(source, &mut bounds)?;
+    if counts.triangles == 0 {
+        out.write_all(&container(&scene(None), None)).map_err(io)?;
+        return Ok(counts);
+    }
+    let (n, indices) = (counts.vertices as usize, counts.triangles as usize * 3);
+    let doc = scene(Some((n, indices, bounds)));
+    out.write_all(&container(&doc, Some(n * 28 + indices * 4)))
+        .map_err(io)?;
+    for view in 0..3 {
+        each_vertex(source, |p, normal, c| {
+            let bytes: Vec<u8> = match view {
+                0 => p.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                1 => normal.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                _ => color_element(c).to_vec(),
+            };
             out.write_all(&bytes).map_err(io)
         })?;
-        Ok(counts)
-    })
+    }
+    each_triangle(source, |t| {
+        let bytes: Vec<u8> = t.iter().flat_map(|i| i.to_le_bytes()).collect();
+        out.write_all(&bytes).map_err(io)
+    })?;
+    Ok(counts)
 }
 
 /// A colour as its `COLOR_0` element: normalised u8 VEC3 padded to 4 bytes.

@@ -1,6 +1,7 @@
 //! The fused mesh as binary little-endian PLY with per-vertex normals and colours and an
 //! indexed triangle list — the layout MeshLab, CloudCompare, Open3D and Blender all read.
 
+use std::io::Write;
 use std::path::Path;
 
 use super::{write_atomic, write_atomic_with};
@@ -44,24 +45,37 @@ pub fn write_mesh_ply(path: &Path, mesh: &Mesh) -> Result<()> {
 /// vertices, one the faces, each welding as it goes ([`crate::fusion::weld`]), so only a slab
 /// of the surface is in memory. Atomic like [`write_mesh_ply`]; returns the counts.
 pub fn write_mesh_ply_from(path: &Path, source: &mut dyn BlockSource) -> Result<WeldCounts> {
-    write_atomic_with(path, |out| {
-        let counts = weld(source, &mut Bounds::default())?;
-        let io = |e| Error::io(path, e);
-        out.write_all(header(counts.vertices as usize, counts.triangles as usize).as_bytes())
-            .map_err(io)?;
-        let mut record = Vec::with_capacity(VERTEX_BYTES);
-        each_vertex(source, |p, n, c| {
-            record.clear();
-            vertex_record(&mut record, p, n, c);
-            out.write_all(&record).map_err(io)
-        })?;
-        each_triangle(source, |t| {
-            record.clear();
-            face_record(&mut record, t);
-            out.write_all(&record).map_err(io)
-        })?;
-        Ok(counts)
-    })
+    write_atomic_with(path, |out| encode(source, out, &|e| Error::io(path, e)))
+}
+
+/// The bytes [`write_mesh_ply_from`] writes (a session's mesh download: the welded mesh is
+/// never built, only its encoding).
+pub fn mesh_ply_bytes_from(source: &mut dyn BlockSource) -> Result<Vec<u8>> {
+    let mut bytes = Vec::new();
+    encode(source, &mut bytes, &|e| Error::io(Path::new("mesh.ply"), e))?;
+    Ok(bytes)
+}
+
+fn encode(
+    source: &mut dyn BlockSource,
+    out: &mut dyn Write,
+    io: &dyn Fn(std::io::Error) -> Error,
+) -> Result<WeldCounts> {
+    let counts = weld(source, &mut Bounds::default())?;
+    out.write_all(header(counts.vertices as usize, counts.triangles as usize).as_bytes())
+        .map_err(io)?;
+    let mut record = Vec::with_capacity(VERTEX_BYTES);
+    each_vertex(source, |p, n, c| {
+        record.clear();
+        vertex_record(&mut record, p, n, c);
+        out.write_all(&record).map_err(io)
+    })?;
+    each_triangle(source, |t| {
+        record.clear();
+        face_record(&mut record, t);
+        out.write_all(&record).map_err(io)
+    })?;
+    Ok(counts)
 }
 
 /// The PLY header for `vertices` and `faces` (see [`mesh_ply_bytes`]).

@@ -5,8 +5,10 @@ pub mod glb;
 pub mod mesh_ply;
 pub mod ply;
 
-pub use glb::{mesh_glb_bytes, write_mesh_glb, write_mesh_glb_from};
-pub use mesh_ply::{mesh_ply_bytes, read_mesh_ply, write_mesh_ply, write_mesh_ply_from};
+pub use glb::{mesh_glb_bytes, mesh_glb_bytes_from, write_mesh_glb, write_mesh_glb_from};
+pub use mesh_ply::{
+    mesh_ply_bytes, mesh_ply_bytes_from, read_mesh_ply, write_mesh_ply, write_mesh_ply_from,
+};
 pub use ply::{ColoredPoint, points_ply_bytes, read_points_ply, write_points_ply};
 
 use std::io::Write;

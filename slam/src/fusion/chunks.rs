@@ -276,11 +276,13 @@ impl Residency {
     }
 
     /// The whole surface: `resident` block meshes and the spilled chunks' meshes.
-    pub fn surface<'a>(&'a self, resident: &'a BTreeMap<BlockIndex, BlockMesh>) -> Surface<'a> {
-        Surface {
+    pub fn surface<'a>(&self, resident: &'a BTreeMap<BlockIndex, BlockMesh>) -> Surface<'a> {
+        Surface::new(
             resident,
-            spilled: &self.spilled,
-        }
+            self.spilled
+                .iter()
+                .map(|(c, s)| (*c, Arc::clone(&s.stored))),
+        )
     }
 
     /// Blocks, chunks and mesh triangles in the store, and chunk loads so far.
@@ -294,13 +296,26 @@ impl Residency {
     }
 }
 
-/// A fuser's whole surface as a [`BlockSource`]: its resident block meshes and its spilled
-/// chunks' meshes, read back from the store a slab of chunks (one chunk x) at a time and
-/// dropped after (not loaded into the pool), so writing the mesh holds one slab of it.
+/// A whole surface as a [`BlockSource`]: block meshes in memory and chunks of them spilled
+/// to the store (a fuser's, or a session's copy of it), read back a slab of chunks (one chunk
+/// x) at a time and dropped after, so walking the surface holds one slab of what is spilled.
 #[derive(Debug)]
 pub struct Surface<'a> {
     resident: &'a BTreeMap<BlockIndex, BlockMesh>,
-    spilled: &'a BTreeMap<ChunkIndex, Spilled>,
+    /// Sorted by chunk.
+    spilled: Vec<(ChunkIndex, Arc<Stored<ChunkData>>)>,
+}
+
+impl<'a> Surface<'a> {
+    /// `resident` and the `spilled` chunks' meshes (no block in both).
+    pub fn new(
+        resident: &'a BTreeMap<BlockIndex, BlockMesh>,
+        spilled: impl IntoIterator<Item = (ChunkIndex, Arc<Stored<ChunkData>>)>,
+    ) -> Self {
+        let mut spilled: Vec<_> = spilled.into_iter().collect();
+        spilled.sort_by_key(|(c, _)| *c);
+        Self { resident, spilled }
+    }
 }
 
 impl BlockSource for Surface<'_> {
@@ -309,14 +324,14 @@ impl BlockSource for Surface<'_> {
             .resident
             .keys()
             .map(|b| ChunkIndex::of(b).0[0])
-            .chain(self.spilled.keys().map(|c| c.0[0]))
+            .chain(self.spilled.iter().map(|(c, _)| c.0[0]))
             .collect();
         for cx in slabs {
-            let first = |x: i32| ChunkIndex([x, i32::MIN, i32::MIN]);
-            let loaded = self
-                .spilled
-                .range(first(cx)..first(cx + 1))
-                .map(|(_, s)| s.stored.get())
+            let from = self.spilled.partition_point(|(c, _)| c.0[0] < cx);
+            let to = self.spilled.partition_point(|(c, _)| c.0[0] <= cx);
+            let loaded = self.spilled[from..to]
+                .iter()
+                .map(|(_, s)| s.get())
                 .collect::<Result<Vec<_>>>()?;
             let block = |x: i32| BlockIndex::new(x * CHUNK_SIDE, i32::MIN, i32::MIN);
             let mut blocks: Vec<&BlockMesh> = self
