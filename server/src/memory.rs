@@ -15,8 +15,7 @@
 //! map by its estimates, descriptor) of under 20 B per pixel in memory, and every older one
 //! spills that and its dense maps to the session's store (`session::spill`), keeping its
 //! descriptor, pose and graph entries. The fusion keeps the inputs of re-integration up to
-//! `fusion.keyframe_memory_mb` and spills older ones, and keeps about `fusion.resident_blocks`
-//! voxel blocks with their meshes, spilling the rest. The estimate below rounds each term up.
+//! `fusion.keyframe_memory_mb` and spills older ones. The estimate below rounds each term up.
 
 use crate::config::Limits;
 
@@ -49,15 +48,6 @@ const KEYFRAME_PER_PIXEL: u64 = 1;
 /// keyframes; 8 B (0.92 MB per keyframe with the per-pixel term) is over three times that
 /// (docs/tuning.md, "Long sessions, issue 37 — fourth stage").
 const KEYFRAME_PER_DENSE_PIXEL: u64 = 8;
-/// Bytes of one block's mesh: about 44 triangles a block in `bench long`'s room, about
-/// 1.9 KiB with the vertices' edge keys.
-const MESH_BLOCK: u64 = 2 * 1024;
-/// Bytes of one voxel block the fusion keeps in memory: its voxels (8³ × 12 B) and its mesh.
-/// The pool holds about `fusion.resident_blocks` of them once the session's store takes the
-/// rest (issue 37, item 3), but up to twice that: a re-integration pass evicts only past
-/// twice the budget, and the pool's capacity grows by doubling and keeps its high water. The
-/// session's own copy of the mesh (`session::mesh_state`) keeps as many block meshes again.
-const FUSION_BLOCK: u64 = 6 * 1024 + MESH_BLOCK;
 /// Bytes per dense pixel of a fusion input held for re-integration (depth, weight, colour),
 /// up to `fusion.keyframe_memory_mb`.
 const FUSION_INPUT_PER_DENSE_PIXEL: u64 = 12;
@@ -92,17 +82,8 @@ pub struct MapShape {
     /// (`backend.held_keyframes`).
     pub resident: usize,
     pub held: usize,
-    /// The fusion's bounds (`None`: no fusion).
-    pub fusion: Option<FusionShape>,
-}
-
-/// What bounds a session's fusion memory.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct FusionShape {
-    /// `fusion.keyframe_memory_mb` in bytes: the inputs kept for re-integration.
-    pub inputs: u64,
-    /// `fusion.resident_blocks`: voxel blocks kept in memory.
-    pub resident_blocks: u64,
+    /// `fusion.keyframe_memory_mb` in bytes (`None`: no fusion).
+    pub fusion_inputs: Option<u64>,
 }
 
 impl SessionCost {
@@ -111,7 +92,7 @@ impl SessionCost {
         let dense = shape.dense_pixels.unwrap_or(0);
         let working =
             RESIDENT_PER_PIXEL * shape.resident as u64 + COMPACT_PER_PIXEL * shape.held as u64;
-        let fusion = shape.fusion.filter(|_| shape.dense_pixels.is_some());
+        let fused = shape.fusion_inputs.is_some() && shape.dense_pixels.is_some();
         Self {
             base: BASE_FIXED
                 + (BASE_PER_PIXEL + working) * shape.pixels
@@ -119,12 +100,20 @@ impl SessionCost {
                     BASE_DENSE
                 } else {
                     0
-                }
-                + fusion.map_or(0, |f| f.resident_blocks * (2 * FUSION_BLOCK + MESH_BLOCK)),
+                },
             per_keyframe: KEYFRAME_PER_PIXEL * shape.pixels + KEYFRAME_PER_DENSE_PIXEL * dense,
             input: POINTCLOUD_PER_PIXEL * shape.pixels
-                + fusion.map_or(0, |_| FUSION_INPUT_PER_DENSE_PIXEL * dense),
-            input_cap: POINTCLOUD_CAP + fusion.map_or(0, |f| f.inputs),
+                + if fused {
+                    FUSION_INPUT_PER_DENSE_PIXEL * dense
+                } else {
+                    0
+                },
+            input_cap: POINTCLOUD_CAP
+                + if fused {
+                    shape.fusion_inputs.unwrap_or(0)
+                } else {
+                    0
+                },
         }
     }
 
@@ -261,10 +250,7 @@ mod tests {
             dense_pixels: dense,
             resident: 8,
             held: 24,
-            fusion: Some(FusionShape {
-                inputs: 512 * MIB,
-                resident_blocks: 16384,
-            }),
+            fusion_inputs: Some(512 * MIB),
         };
         let vga = SessionCost::estimate(shape(640 * 480, Some(320 * 240)));
         let qvga = SessionCost::estimate(shape(320 * 240, Some(320 * 240)));
@@ -286,19 +272,6 @@ mod tests {
         let huge = SessionCost::estimate(shape(8192 * 8192, Some(320 * 240)));
         let e = plan.keyframes_for(huge).expect_err("8192² does not fit");
         assert!(e.contains("smaller image"), "{e}");
-        // The fusion's resident blocks are charged up front, twice over (a pass may hold
-        // twice the budget, and the pool keeps its high water), with the session's mesh copy.
-        let mut bigger_pool = shape(640 * 480, Some(320 * 240));
-        bigger_pool.fusion = Some(FusionShape {
-            inputs: 512 * MIB,
-            resident_blocks: 65536,
-        });
-        let bigger_pool = SessionCost::estimate(bigger_pool);
-        assert_eq!(
-            bigger_pool.base - vga.base,
-            (65536 - 16384) * (2 * FUSION_BLOCK + MESH_BLOCK)
-        );
-        assert!(plan.keyframes_for(bigger_pool).expect("fits") < vga_kf);
         let capped = MemoryPlan::new(&limits(16 * 1024, 4, 20));
         assert_eq!(capped.keyframes_for(qvga), Ok(20));
     }

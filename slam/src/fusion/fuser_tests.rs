@@ -349,10 +349,12 @@ fn spilled_chunks_change_where_the_volume_lives_never_the_mesh() {
         std::fs::create_dir_all(&out).expect("export dir");
         let ply = out.join("mesh.ply");
         let glb = out.join("mesh.glb");
-        let mut surface = spilled.surface().expect("surface");
-        let counts = crate::export::write_mesh_ply_from(&ply, &mut surface).expect("ply");
-        crate::export::write_mesh_glb_from(&glb, &mut surface).expect("glb");
-        assert_eq!(counts.triangles as usize, a.triangle_count());
+        {
+            let mut surface = spilled.surface().expect("surface");
+            let counts = crate::export::write_mesh_ply_from(&ply, &mut surface).expect("ply");
+            crate::export::write_mesh_glb_from(&glb, &mut surface).expect("glb");
+            assert_eq!(counts.triangles as usize, a.triangle_count());
+        }
         let read = |p: &std::path::Path| std::fs::read(p).expect("read");
         assert!(read(&ply) == crate::export::mesh_ply_bytes(&a), "PLY");
         assert!(read(&glb) == crate::export::mesh_glb_bytes(&a), "GLB");

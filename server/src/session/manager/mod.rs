@@ -40,7 +40,7 @@ use super::worker::{self, Outcome, WorkerEnv};
 use crate::config::Config;
 use crate::gpu_pool::{GpuPool, device_count};
 use crate::maps::MapStore;
-use crate::memory::{FusionShape, MapShape, MemoryPlan, SessionCost, resident_bytes};
+use crate::memory::{MapShape, MemoryPlan, SessionCost, resident_bytes};
 use crate::metrics::Metrics;
 use crate::storage::ObjectStore;
 use crate::{ApiError, ServerError};
@@ -274,10 +274,10 @@ impl SessionManager {
                 dense_pixels,
                 resident: config.backend.resident_keyframes,
                 held: config.backend.held_keyframes,
-                fusion: config.fusion.enabled.then_some(FusionShape {
-                    inputs: (config.fusion.keyframe_memory_mb * 1024.0 * 1024.0) as u64,
-                    resident_blocks: u64::from(config.fusion.resident_blocks),
-                }),
+                fusion_inputs: config
+                    .fusion
+                    .enabled
+                    .then_some((config.fusion.keyframe_memory_mb * 1024.0 * 1024.0) as u64),
             }))
             .map_err(ApiError::bad_request)
     }
