@@ -20,7 +20,7 @@ use std::path::Path;
 
 use serde_json::{Value, json};
 
-use super::{write_atomic, write_atomic_with};
+use super::{encode_to_bytes, encode_to_file, write_atomic};
 use crate::fusion::Mesh;
 use crate::fusion::weld::{BlockSource, Bounds, WeldCounts, each_triangle, each_vertex, weld};
 use crate::{Error, Result};
@@ -82,14 +82,12 @@ pub fn write_mesh_glb(path: &Path, mesh: &Mesh) -> Result<()> {
 /// comes first), then one pass per buffer view (positions, normals, colours, indices), each
 /// welding as it goes ([`crate::fusion::weld`]). Atomic like [`write_mesh_glb`].
 pub fn write_mesh_glb_from(path: &Path, source: &mut dyn BlockSource) -> Result<WeldCounts> {
-    write_atomic_with(path, |out| encode(source, out, &|e| Error::io(path, e)))
+    encode_to_file(path, source, encode)
 }
 
 /// The bytes [`write_mesh_glb_from`] writes.
 pub fn mesh_glb_bytes_from(source: &mut dyn BlockSource) -> Result<Vec<u8>> {
-    let mut bytes = Vec::new();
-    encode(source, &mut bytes, &|e| Error::io(Path::new("mesh.glb"), e))?;
-    Ok(bytes)
+    encode_to_bytes("mesh.glb", source, encode)
 }
 
 fn encode(
@@ -109,17 +107,29 @@ fn encode(
         .map_err(io)?;
     for view in 0..3 {
         each_vertex(source, |p, normal, c| {
-            let bytes: Vec<u8> = match view {
-                0 => p.iter().flat_map(|v| v.to_le_bytes()).collect(),
-                1 => normal.iter().flat_map(|v| v.to_le_bytes()).collect(),
-                _ => color_element(c).to_vec(),
+            let mut element = [0u8; 12];
+            let bytes: &[u8] = match view {
+                0 | 1 => {
+                    let v = if view == 0 { p } else { normal };
+                    for (k, x) in v.iter().enumerate() {
+                        element[4 * k..4 * k + 4].copy_from_slice(&x.to_le_bytes());
+                    }
+                    &element
+                }
+                _ => {
+                    element[..4].copy_from_slice(&color_element(c));
+                    &element[..4]
+                }
             };
-            out.write_all(&bytes).map_err(io)
+            out.write_all(bytes).map_err(io)
         })?;
     }
     each_triangle(source, |t| {
-        let bytes: Vec<u8> = t.iter().flat_map(|i| i.to_le_bytes()).collect();
-        out.write_all(&bytes).map_err(io)
+        let mut element = [0u8; 12];
+        for (k, i) in t.iter().enumerate() {
+            element[4 * k..4 * k + 4].copy_from_slice(&i.to_le_bytes());
+        }
+        out.write_all(&element).map_err(io)
     })?;
     Ok(counts)
 }

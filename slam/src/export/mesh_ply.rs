@@ -4,7 +4,7 @@
 use std::io::Write;
 use std::path::Path;
 
-use super::{write_atomic, write_atomic_with};
+use super::{encode_to_bytes, encode_to_file, write_atomic};
 use crate::fusion::Mesh;
 use crate::fusion::weld::{BlockSource, Bounds, WeldCounts, each_triangle, each_vertex, weld};
 use crate::{Error, Result};
@@ -45,15 +45,13 @@ pub fn write_mesh_ply(path: &Path, mesh: &Mesh) -> Result<()> {
 /// vertices, one the faces, each welding as it goes ([`crate::fusion::weld`]), so only a slab
 /// of the surface is in memory. Atomic like [`write_mesh_ply`]; returns the counts.
 pub fn write_mesh_ply_from(path: &Path, source: &mut dyn BlockSource) -> Result<WeldCounts> {
-    write_atomic_with(path, |out| encode(source, out, &|e| Error::io(path, e)))
+    encode_to_file(path, source, encode)
 }
 
 /// The bytes [`write_mesh_ply_from`] writes (a session's mesh download: the welded mesh is
 /// never built, only its encoding).
 pub fn mesh_ply_bytes_from(source: &mut dyn BlockSource) -> Result<Vec<u8>> {
-    let mut bytes = Vec::new();
-    encode(source, &mut bytes, &|e| Error::io(Path::new("mesh.ply"), e))?;
-    Ok(bytes)
+    encode_to_bytes("mesh.ply", source, encode)
 }
 
 fn encode(

@@ -26,6 +26,35 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
+/// A streaming mesh encoder: writes the surface of a source to `out`, mapping write errors
+/// with the function given.
+type SurfaceEncoder = fn(
+    &mut dyn crate::fusion::weld::BlockSource,
+    &mut dyn Write,
+    &dyn Fn(std::io::Error) -> Error,
+) -> Result<crate::fusion::weld::WeldCounts>;
+
+/// `encode`s `source` into the file `path`, atomically.
+fn encode_to_file(
+    path: &Path,
+    source: &mut dyn crate::fusion::weld::BlockSource,
+    encode: SurfaceEncoder,
+) -> Result<crate::fusion::weld::WeldCounts> {
+    write_atomic_with(path, |out| encode(source, out, &|e| Error::io(path, e)))
+}
+
+/// `encode`s `source` into bytes (`name` only names the output in errors, which a `Vec`
+/// never raises).
+fn encode_to_bytes(
+    name: &str,
+    source: &mut dyn crate::fusion::weld::BlockSource,
+    encode: SurfaceEncoder,
+) -> Result<Vec<u8>> {
+    let mut bytes = Vec::new();
+    encode(source, &mut bytes, &|e| Error::io(Path::new(name), e))?;
+    Ok(bytes)
+}
+
 /// [`write_atomic`] for a file written piece by piece by `write` (buffered).
 fn write_atomic_with<T>(path: &Path, write: impl FnOnce(&mut dyn Write) -> Result<T>) -> Result<T> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);

@@ -50,7 +50,7 @@ use crate::dense::DenseKeyframe;
 use crate::dense::layer::{DenseLayer, SharedPrior};
 use crate::dense::prior::DepthPrior;
 use crate::frame::CompactFrame;
-use crate::fusion::weld::{Bounds, WeldCounts, weld};
+use crate::fusion::weld::WeldCounts;
 use crate::fusion::worker::FusionLink;
 use crate::fusion::{FusionStats, Mesh};
 use crate::geometry::{PinholeCamera, SE3, Sim3, UndistortMap};
@@ -476,11 +476,15 @@ impl Pipeline {
             return Ok(None);
         };
         let mut surface = fuser.surface()?;
-        if weld(&mut surface, &mut Bounds::default())?.triangles == 0 {
+        // The PLY's counting pass tells whether there is a surface at all.
+        let ply = dir.join("mesh.ply");
+        let counts = crate::export::write_mesh_ply_from(&ply, &mut surface)?;
+        if counts.triangles == 0 {
+            std::fs::remove_file(&ply).map_err(|e| crate::Error::io(&ply, e))?;
             return Ok(None);
         }
         crate::export::write_mesh_glb_from(&dir.join("mesh.glb"), &mut surface)?;
-        crate::export::write_mesh_ply_from(&dir.join("mesh.ply"), &mut surface).map(Some)
+        Ok(Some(counts))
     }
 
     /// The fusion's figures (voxel size, blocks, timings): current when the fuser is at hand
