@@ -15,7 +15,8 @@
 //! map by its estimates, descriptor) of under 20 B per pixel in memory, and every older one
 //! spills that and its dense maps to the session's store (`session::spill`), keeping its
 //! descriptor, pose and graph entries. The fusion keeps the inputs of re-integration up to
-//! `fusion.keyframe_memory_mb` and spills older ones. The estimate below rounds each term up.
+//! `fusion.keyframe_memory_mb` and its voxel blocks up to `fusion.resident_blocks`, and spills
+//! older ones. The estimate below rounds each term up.
 
 use crate::config::Limits;
 
@@ -55,6 +56,15 @@ const FUSION_INPUT_PER_DENSE_PIXEL: u64 = 12;
 /// points, 32 B each with their PLY bytes, up to `session::engine::POINTCLOUD_MAX_POINTS`.
 const POINTCLOUD_PER_PIXEL: u64 = 8;
 const POINTCLOUD_CAP: u64 = 128 * MIB;
+/// Voxel blocks one keyframe adds to the fusion: the most the shared sequences fill per
+/// keyframe is about 240 (fr1/rpy 0-249: 6852 blocks in 29 keyframes; redkitchen about 100;
+/// docs/tuning.md "Bounded fusion"), rounded up.
+const FUSION_BLOCKS_PER_KEYFRAME: u64 = 256;
+/// Memory of one resident block: its voxels (6 KiB) and mesh (about 2 KiB) in the fusion, both
+/// counted twice because a re-integration pass evicts only past twice `fusion.resident_blocks`
+/// and the pool keeps its high water; and its mesh in the session's copy (about 2 KiB,
+/// `session::mesh_state`, bounded by the same figure).
+const FUSION_BYTES_PER_BLOCK: u64 = 2 * (6 + 2) * 1024 + 2 * 1024;
 
 /// Fewest keyframes a session's share must hold for the session to be worth starting.
 pub const MIN_KEYFRAMES: usize = 16;
@@ -66,7 +76,9 @@ pub struct SessionCost {
     pub base: u64,
     pub per_keyframe: u64,
     /// What grows with the keyframes only up to `input_cap`: the fusion inputs held for
-    /// re-integration (`fusion.keyframe_memory_mb`) and the checkpoint's point cloud.
+    /// re-integration (`fusion.keyframe_memory_mb`), the fusion's resident blocks and their
+    /// meshes (`fusion.resident_blocks`) and the checkpoint's point cloud. Charged as it grows
+    /// rather than up front, so a small share still holds a short map.
     pub input: u64,
     pub input_cap: u64,
 }
@@ -84,6 +96,8 @@ pub struct MapShape {
     pub held: usize,
     /// `fusion.keyframe_memory_mb` in bytes (`None`: no fusion).
     pub fusion_inputs: Option<u64>,
+    /// `fusion.resident_blocks`: the voxel blocks the fusion keeps in memory.
+    pub fusion_blocks: u64,
 }
 
 impl SessionCost {
@@ -105,12 +119,13 @@ impl SessionCost {
             input: POINTCLOUD_PER_PIXEL * shape.pixels
                 + if fused {
                     FUSION_INPUT_PER_DENSE_PIXEL * dense
+                        + FUSION_BLOCKS_PER_KEYFRAME * FUSION_BYTES_PER_BLOCK
                 } else {
                     0
                 },
             input_cap: POINTCLOUD_CAP
                 + if fused {
-                    shape.fusion_inputs.unwrap_or(0)
+                    shape.fusion_inputs.unwrap_or(0) + shape.fusion_blocks * FUSION_BYTES_PER_BLOCK
                 } else {
                     0
                 },
@@ -251,6 +266,7 @@ mod tests {
             resident: 8,
             held: 24,
             fusion_inputs: Some(512 * MIB),
+            fusion_blocks: 16384,
         };
         let vga = SessionCost::estimate(shape(640 * 480, Some(320 * 240)));
         let qvga = SessionCost::estimate(shape(320 * 240, Some(320 * 240)));
@@ -274,6 +290,37 @@ mod tests {
         assert!(e.contains("smaller image"), "{e}");
         let capped = MemoryPlan::new(&limits(16 * 1024, 4, 20));
         assert_eq!(capped.keyframes_for(qvga), Ok(20));
+    }
+
+    #[test]
+    fn the_fusion_is_charged_as_its_blocks_grow_up_to_their_bound() {
+        let shape = |blocks: u64| MapShape {
+            pixels: 320 * 240,
+            dense_pixels: Some(320 * 240),
+            resident: 8,
+            held: 0,
+            fusion_inputs: Some(512 * MIB),
+            fusion_blocks: blocks,
+        };
+        let default = SessionCost::estimate(shape(16384));
+        let small = SessionCost::estimate(shape(1024));
+        // The same while the blocks grow; the bound sets the cap, so past it a map of many
+        // keyframes costs more with a larger pool.
+        assert_eq!(default.at(10), small.at(10));
+        assert!(default.at(5000) - small.at(5000) >= 15 * 1024 * 18 * 1024);
+        // A small share (the service test's: 964 MiB, one session) still holds a short map,
+        // where charging the whole pool up front refused it (35 keyframes; 36 before the
+        // fusion was charged at all).
+        let plan = MemoryPlan::new(&limits(964, 1, 0));
+        let n = plan.keyframes_for(default).expect("fits");
+        assert!(n >= 32, "{n}");
+        let on_a_large_machine = MemoryPlan::new(&limits(16 * 1024, 4, 0));
+        let many = on_a_large_machine.keyframes_for(default).expect("fits");
+        assert!(default.at(many) <= on_a_large_machine.share);
+        assert!(
+            default.at(many) >= default.base + default.input_cap,
+            "past the cap"
+        );
     }
 
     #[test]

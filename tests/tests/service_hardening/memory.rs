@@ -180,9 +180,10 @@ fn compact_keyframes_let_a_session_map_past_the_old_limit_within_its_budget() {
         keyframes > 20,
         "the sequence maps past the old limit: {info}"
     );
+    // 36 before the fusion's blocks were charged as they grow (`memory::SessionCost`), 35 since.
     assert!(
-        limit >= 36,
-        "the share holds almost twice the old 20: {info}"
+        limit >= 32,
+        "the share holds over half as much again as the old 20: {info}"
     );
     assert!(
         !info["notice"]

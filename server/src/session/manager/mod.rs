@@ -278,6 +278,7 @@ impl SessionManager {
                     .fusion
                     .enabled
                     .then_some((config.fusion.keyframe_memory_mb * 1024.0 * 1024.0) as u64),
+                fusion_blocks: u64::from(config.fusion.resident_blocks),
             }))
             .map_err(ApiError::bad_request)
     }
