@@ -39,6 +39,7 @@ pub mod error;
 pub mod eval;
 pub mod export;
 pub mod frame;
+pub mod frame_log;
 pub mod fusion;
 pub mod gpu;
 pub mod graph;

@@ -33,7 +33,7 @@ use foxglove::messages::{
     packed_element_field::NumericType, scene_entity_deletion::Type as DeletionType,
 };
 use foxglove::websocket::{ChannelView, Client, ServerListener};
-use foxglove::{Channel, Context, McapWriterHandle, WebSocketServerHandle};
+use foxglove::{Channel, Context, McapWriteOptions, McapWriterHandle, WebSocketServerHandle};
 use relfusion_core::geometry::PinholeCamera;
 
 use crate::foxglove_front::FoxgloveFront;
@@ -243,8 +243,12 @@ impl FoxgloveLog {
                     message: e.to_string(),
                 };
                 let file = File::create(path).map_err(|e| create(&e))?;
+                // One compression thread: zstd's multi-threaded mode held 42 MB of buffers per
+                // recording on 2 cores (heaptrack, `bench long`), and more with more cores,
+                // for a log of a few MB a minute.
+                let options = McapWriteOptions::default().compression_threads(0);
                 let handle = context
-                    .mcap_writer()
+                    .mcap_writer_with_options(options)
                     .create(BufWriter::new(file))
                     .map_err(|e| create(&e))?;
                 Some((path.clone(), handle))

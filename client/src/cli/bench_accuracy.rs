@@ -350,7 +350,7 @@ fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::R
     let dense = (config.pipeline.deterministic && config.dense.enabled)
         .then(|| dense_figures(&loaded.seq.root, &mut pipeline))
         .transpose()?;
-    let trajectory = pipeline.trajectory();
+    let trajectory = pipeline.trajectory()?;
     let keyframes = pipeline.keyframe_trajectory();
     let ate_of = |poses: &[(f64, Sim3)]| loaded.ate(&stamped_se3(poses));
     let drift = loaded.scale_drift(&stamped_se3(&trajectory));

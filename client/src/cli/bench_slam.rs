@@ -107,7 +107,7 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
             "keyframes_densified": stats.keyframes_densified,
             "keyframes_not_densified": stats.keyframes_not_densified,
             "frames_lost": stats.frames_lost,
-            "ate_trajectory_m": ate_of(&pipeline.trajectory()),
+            "ate_trajectory_m": ate_of(&pipeline.trajectory()?),
             "ate_keyframes_m": ate_of(&pipeline.keyframe_trajectory()),
         }));
     }

@@ -198,7 +198,7 @@ pub(super) fn write_results(
     out: &std::path::Path,
     pipeline: &mut Pipeline,
 ) -> anyhow::Result<Written> {
-    write_trajectory(&out.join("trajectory.txt"), &pipeline.trajectory())?;
+    write_trajectory(&out.join("trajectory.txt"), &pipeline.trajectory()?)?;
     write_trajectory(&out.join("keyframes.txt"), &pipeline.keyframe_trajectory())?;
     write_points_ply(&out.join("semidense.ply"), &pipeline.semidense_points()?)?;
     if pipeline.config().dense.enabled {

@@ -87,7 +87,9 @@ pub async fn trajectory(
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     let session = state.sessions.get(&id, &owner)?;
-    let text = produce(session, Session::trajectory_tum).await?;
+    let text = produce(session, Session::trajectory_tum)
+        .await?
+        .map_err(ApiError::internal)?;
     Ok(file(TEXT, format!("{id}-trajectory.txt"), text))
 }
 

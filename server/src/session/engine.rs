@@ -215,7 +215,11 @@ impl Engine {
     pub fn result_files(&self, pointcloud: bool) -> Result<Option<ResultFiles>, String> {
         match self {
             Engine::Map(pipeline) => Ok(Some((
-                crate::convert::tum_text(&pipeline.trajectory()),
+                crate::convert::tum_text(
+                    &pipeline
+                        .trajectory()
+                        .map_err(|e| format!("the trajectory: {e}"))?,
+                ),
                 crate::convert::tum_text(&pipeline.keyframe_trajectory()),
                 if pointcloud {
                     Some(points_ply(

@@ -20,7 +20,7 @@ pub fn snapshot(session: &Session) -> Result<MapSnapshot, ApiError> {
         frames_processed: info.frames_processed,
         frames_received: info.frames_received,
         frames_dropped: info.frames_dropped,
-        trajectory: stamped_poses(session.trajectory())?,
+        trajectory: stamped_poses(session.trajectory().map_err(ApiError::internal)?)?,
         keyframes: stamped_poses(session.keyframes())?,
         mesh_blocks: blocks.iter().map(mesh_block).collect(),
         block_size,

@@ -9,10 +9,11 @@ use std::sync::{Mutex, MutexGuard};
 
 use relfusion_slam::dataset::trajectory::{StampedPose, format_tum_trajectory, stamped_se3};
 use relfusion_slam::export::{mesh_glb_bytes_from, mesh_ply_bytes_from};
+use relfusion_slam::frame_log::{FrameLog, LogRecord};
 use relfusion_slam::fusion::weld::BlockSource;
 use relfusion_slam::fusion::{BlockMesh, MeshDelta};
 use relfusion_slam::geometry::Sim3;
-use relfusion_slam::spill::Spill;
+use relfusion_slam::spill::{Reader, Spill, Writer};
 
 use super::handle::Session;
 use super::mesh_state::{MeshSnapshot, MeshState};
@@ -25,13 +26,37 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 /// The poses reported so far (the live trajectory, before the final optimisation).
 #[derive(Debug, Default)]
 pub(crate) struct Track {
-    /// Every processed frame: timestamp, pose at tracking time, lost.
-    frames: Vec<(f64, Sim3, bool)>,
+    /// Every processed frame; full chunks spill with the session (`frame_log`).
+    frames: FrameLog<Reported>,
     /// Keyframe id → (timestamp, latest pose).
     keyframes: BTreeMap<u64, (f64, Sim3)>,
     /// The fused mesh as the subscribers have it: every delta applied (bounded in memory once
     /// the session spills).
     mesh: MeshState,
+}
+
+/// One processed frame: timestamp, pose at tracking time, lost.
+#[derive(Clone, Copy, Debug)]
+struct Reported {
+    timestamp: f64,
+    pose: Sim3,
+    lost: bool,
+}
+
+impl LogRecord for Reported {
+    fn encode(&self, out: &mut Writer) {
+        out.f64(self.timestamp);
+        out.sim3(&self.pose);
+        out.u8(u8::from(self.lost));
+    }
+
+    fn decode(input: &mut Reader<'_>) -> relfusion_slam::Result<Self> {
+        Ok(Self {
+            timestamp: input.f64()?,
+            pose: input.sim3()?,
+            lost: input.u8()? != 0,
+        })
+    }
 }
 
 /// A session's poses: the stored file once it has ended (final, optimised), else the poses
@@ -53,19 +78,23 @@ impl Poses {
 }
 
 impl Session {
-    /// The trajectory: final (optimised) once finished, else the poses as tracked so far.
-    pub fn trajectory(&self) -> Poses {
+    /// The trajectory: final (optimised) once finished, else the poses as tracked so far
+    /// (spilled ones read back; `Err` when the store cannot give them).
+    pub fn trajectory(&self) -> Result<Poses, String> {
         if let Some(text) = self.stored_text("trajectory.txt") {
-            return Poses::Stored(text);
+            return Ok(Poses::Stored(text));
         }
         let track = lock(&self.track);
-        let poses: Vec<(f64, Sim3)> = track
+        let mut poses = Vec::with_capacity(track.frames.len());
+        track
             .frames
-            .iter()
-            .filter(|(_, _, lost)| !lost)
-            .map(|(t, p, _)| (*t, *p))
-            .collect();
-        Poses::Live(stamped_se3(&poses))
+            .for_each(|r| {
+                if !r.lost {
+                    poses.push((r.timestamp, r.pose));
+                }
+            })
+            .map_err(|e| format!("reading the session's poses back: {e}"))?;
+        Ok(Poses::Live(stamped_se3(&poses)))
     }
 
     /// The keyframe poses (final once finished).
@@ -79,8 +108,8 @@ impl Session {
     }
 
     /// [`Session::trajectory`] in TUM format.
-    pub fn trajectory_tum(&self) -> String {
-        self.trajectory().into_tum()
+    pub fn trajectory_tum(&self) -> Result<String, String> {
+        self.trajectory().map(Poses::into_tum)
     }
 
     /// [`Session::keyframes`] in TUM format.
@@ -147,7 +176,11 @@ impl Session {
     // ---- used by the worker ----
 
     pub(crate) fn record_pose(&self, timestamp: f64, pose: Sim3, lost: bool) {
-        lock(&self.track).frames.push((timestamp, pose, lost));
+        lock(&self.track).frames.push(Reported {
+            timestamp,
+            pose,
+            lost,
+        });
     }
 
     pub(crate) fn record_keyframe(&self, id: u64, timestamp: f64, pose: Sim3) {
@@ -196,9 +229,13 @@ impl Session {
             .ok()
     }
 
-    /// The session's mesh copy spills past `resident_blocks` blocks through `spill` (issue 37).
-    pub(crate) fn bound_mesh(&self, spill: Spill, resident_blocks: usize) {
-        lock(&self.track).mesh.bound(spill, resident_blocks);
+    /// The session's records spill through `spill` (issue 37): its copy of the mesh past
+    /// `resident_blocks` blocks, its poses a chunk at a time. Called before the first frame.
+    pub(crate) fn bound_memory(&self, spill: Spill, resident_blocks: usize) {
+        let mut track = lock(&self.track);
+        debug_assert!(track.frames.is_empty(), "bound before the first frame");
+        track.frames = FrameLog::new(&spill);
+        track.mesh.bound(spill, resident_blocks);
     }
 
     /// Mesh blocks held in memory and spilled.

@@ -97,9 +97,10 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
     if let Err(e) = spill {
         return fail(session, None, e);
     }
-    // The session's copy of the mesh spills with it, past the fusion's own bound.
+    // The session's copy of the mesh and its poses spill with it (the mesh past the fusion's
+    // own bound).
     if let Some(spill) = engine.spill() {
-        session.bound_mesh(spill, session.config.fusion.resident_blocks as usize);
+        session.bound_memory(spill, session.config.fusion.resident_blocks as usize);
     }
     // An extended map's keyframes are the session's too: listed with their poses, counted
     // towards its keyframe limit.
@@ -471,14 +472,14 @@ impl Runner<'_> {
         let (written_at, written_bytes) = self.pointcloud.get();
         let rebuild = final_ || written_at == 0 || keyframe_count >= 2 * written_at;
         // A localising session's trajectory is the poses it reported, in the map's frame.
-        let (trajectory, keyframes, pointcloud) =
-            self.engine.result_files(rebuild)?.unwrap_or_else(|| {
-                (
-                    s.trajectory_tum(),
-                    String::new(),
-                    Some(crate::convert::points_ply(&[])),
-                )
-            });
+        let (trajectory, keyframes, pointcloud) = match self.engine.result_files(rebuild)? {
+            Some(files) => files,
+            None => (
+                s.trajectory_tum()?,
+                String::new(),
+                Some(crate::convert::points_ply(&[])),
+            ),
+        };
         let kept_bytes = match &pointcloud {
             Some(ply) => {
                 self.pointcloud.set((keyframe_count, ply.len() as u64));

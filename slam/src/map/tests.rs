@@ -299,7 +299,7 @@ fn an_extended_map_keeps_its_keyframes_and_maps_on_in_its_frame() {
     // within the map's own accuracy under the map's alignment to the ground truth; beyond it,
     // the extension keeps the map's scale (its own alignment's scale within 10 % of the map's)
     // and its shape.
-    let trajectory = pipeline.trajectory();
+    let trajectory = pipeline.trajectory().expect("trajectory");
     let matched = associate_poses(&truth, &stamped_se3(&trajectory), 1e-3).expect("matched");
     let rms_under = |gt_from_est: &Sim3, until: f64| {
         let e: Vec<f64> = matched

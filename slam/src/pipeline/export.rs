@@ -56,20 +56,20 @@ impl Pipeline {
     }
 
     /// Every frame's pose (camera-to-world) through its keyframe's current pose; lost frames
-    /// are left out.
-    pub fn trajectory(&self) -> Vec<(f64, Sim3)> {
+    /// are left out. Spilled records are read back.
+    pub fn trajectory(&self) -> Result<Vec<(f64, Sim3)>> {
         let poses = self.keyframe_poses();
         let exported = self.exported();
-        self.frames
-            .iter()
-            .filter(|f| !f.lost && exported[f.keyframe])
-            .map(|f| {
-                (
+        let mut out = Vec::with_capacity(self.frames.len());
+        self.frames.for_each(|f| {
+            if !f.lost && exported[f.keyframe] {
+                out.push((
                     f.timestamp,
                     poses[f.keyframe].1 * Sim3::from_se3(&f.keyframe_from_frame, 1.0),
-                )
-            })
-            .collect()
+                ));
+            }
+        })?;
+        Ok(out)
     }
 
     /// The semi-dense points of every keyframe at its current pose, coloured from its image.

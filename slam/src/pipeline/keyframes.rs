@@ -11,10 +11,12 @@ use super::events::{Event, KeyframeEvent, PoseEvent, TrackingState};
 use super::{DepthInit, Pipeline};
 use crate::dense::layer::{DenseJob, predict};
 use crate::frame::Frame;
+use crate::frame_log::LogRecord;
 use crate::geometry::{Matrix7, PinholeCamera, SE3, SO3, Sim3};
 use crate::graph::{KeyframeData, KeyframeId, NewKeyframe, ParentEdge, Thumbnail};
 use crate::image::ImageF32;
 use crate::mapping::{CompactDepth, DepthFilter, DepthMap, PriorFillParams};
+use crate::spill::{Reader, Writer};
 use crate::tracking::TrackingReference;
 use crate::{Error, Result};
 
@@ -26,6 +28,27 @@ pub(super) struct FrameRecord {
     pub keyframe: KeyframeId,
     pub keyframe_from_frame: SE3,
     pub lost: bool,
+}
+
+impl LogRecord for FrameRecord {
+    fn encode(&self, out: &mut Writer) {
+        out.f64(self.timestamp);
+        out.u64(self.keyframe as u64);
+        out.sim3(&Sim3::from_se3(&self.keyframe_from_frame, 1.0));
+        out.u8(u8::from(self.lost));
+    }
+
+    fn decode(input: &mut Reader<'_>) -> Result<Self> {
+        let timestamp = input.f64()?;
+        let keyframe = input.usize()?;
+        let pose = input.sim3()?;
+        Ok(Self {
+            timestamp,
+            keyframe,
+            keyframe_from_frame: SE3::new(pose.rotation, pose.translation),
+            lost: input.u8()? != 0,
+        })
+    }
 }
 
 /// A finished (or current) keyframe.

@@ -102,7 +102,7 @@ fn a_metric_prior_puts_the_trajectory_in_metres() {
     let stats = pipeline.stats();
     assert_eq!(stats.scale, "metric");
     assert!(stats.keyframes_densified >= 3, "{stats:?}");
-    let est = crate::dataset::trajectory::stamped_se3(&pipeline.trajectory());
+    let est = crate::dataset::trajectory::stamped_se3(&pipeline.trajectory().expect("trajectory"));
     let sim3 = ate(gt, &est, AlignMode::Sim3).expect("ate");
     let se3 = ate(gt, &est, AlignMode::Se3).expect("ate");
     eprintln!(

@@ -50,6 +50,7 @@ use crate::dense::DenseKeyframe;
 use crate::dense::layer::{DenseLayer, SharedPrior};
 use crate::dense::prior::DepthPrior;
 use crate::frame::CompactFrame;
+use crate::frame_log::FrameLog;
 use crate::fusion::weld::WeldCounts;
 use crate::fusion::worker::FusionLink;
 use crate::fusion::{FusionStats, Mesh};
@@ -171,7 +172,8 @@ pub struct Pipeline {
     mapper: KeyframeMapper,
     /// Seconds spent creating keyframes (propagation); the mapper adds its own.
     keyframe_creation_s: f64,
-    frames: Vec<FrameRecord>,
+    /// Where every frame ended up; full chunks spill with `spill` (`crate::frame_log`).
+    frames: FrameLog<FrameRecord>,
     /// Pose of the last good frame relative to the current keyframe (the tracking prior).
     last_frame_from_keyframe: SE3,
     /// Motion of the camera between the last two good frames, `last_from_previous`, in the
@@ -282,7 +284,7 @@ impl Pipeline {
             reactivated: None,
             mapper: KeyframeMapper::new(mapping_thread, config.pipeline.mapping_queue)?,
             keyframe_creation_s: 0.0,
-            frames: Vec::new(),
+            frames: FrameLog::new(&spill),
             last_frame_from_keyframe: SE3::identity(),
             velocity: None,
             lost: false,

@@ -79,9 +79,13 @@ fn a_camera_that_comes_back_reactivates_old_keyframes_instead_of_making_new_ones
     let on = run(&sequence, 3, None);
     let off = run(&sequence, 0, None);
     let ate_of = |p: &Pipeline| {
-        ate(gt, &stamped(&p.trajectory()), AlignMode::Sim3)
-            .expect("ate")
-            .rmse
+        ate(
+            gt,
+            &stamped(&p.trajectory().expect("trajectory")),
+            AlignMode::Sim3,
+        )
+        .expect("ate")
+        .rmse
     };
     let (ate_on, ate_off) = (ate_of(&on), ate_of(&off));
     println!(
@@ -97,7 +101,11 @@ fn a_camera_that_comes_back_reactivates_old_keyframes_instead_of_making_new_ones
         on.stats().keyframes < off.stats().keyframes,
         "re-activation must save keyframes on the way back"
     );
-    assert_eq!(on.trajectory().len(), gt.len(), "every frame keeps a pose");
+    assert_eq!(
+        on.trajectory().expect("trajectory").len(),
+        gt.len(),
+        "every frame keeps a pose"
+    );
     // The same bound as the orbit's (tests.rs): re-activation may not cost accuracy.
     assert!(ate_on <= 0.025 * path, "ATE {ate_on} > 2.5% of {path} m");
 
@@ -138,7 +146,10 @@ fn reactivated_keyframes_read_back_from_the_store_give_the_same_results() {
         held.stats().keyframes_reactivated,
         spilled.stats().keyframes_reactivated
     );
-    assert_eq!(held.trajectory(), spilled.trajectory());
+    assert_eq!(
+        held.trajectory().expect("trajectory"),
+        spilled.trajectory().expect("trajectory")
+    );
     assert_eq!(held.keyframe_trajectory(), spilled.keyframe_trajectory());
 }
 

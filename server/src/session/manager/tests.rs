@@ -211,7 +211,7 @@ async fn frames_are_checked_processed_and_results_persisted() {
             .expect("get")
             .is_some()
     );
-    assert!(s.trajectory_tum().lines().count() > 1);
+    assert!(s.trajectory_tum().expect("trajectory").lines().count() > 1);
     assert!(s.pointcloud_ply().starts_with(b"ply\n"));
     assert!(s.mesh_ply().is_none());
     m.shutdown().await;
@@ -221,7 +221,10 @@ async fn frames_are_checked_processed_and_results_persisted() {
     let again = m2.get(s.id(), &me).expect("finished session reloaded");
     assert_eq!(again.info().state, SessionState::Finished);
     assert_eq!(again.info().frames_processed, 6);
-    assert_eq!(again.trajectory_tum(), s.trajectory_tum());
+    assert_eq!(
+        again.trajectory_tum().expect("trajectory"),
+        s.trajectory_tum().expect("trajectory")
+    );
     assert_eq!(
         again
             .push_frame(frame(None, 9.0, png(64, 48, 0.0)))
@@ -278,7 +281,7 @@ async fn recovery_drops_unacknowledged_uploads_and_fails_interrupted_live_sessio
     assert_eq!(info.state, SessionState::Failed);
     assert!(info.error.as_deref().unwrap_or("").contains("interrupted"));
     assert_eq!(
-        s.trajectory_tum(),
+        s.trajectory_tum().expect("trajectory"),
         "# checkpoint\n",
         "the checkpoint stays downloadable"
     );
@@ -406,7 +409,7 @@ async fn shutdown_finishes_live_sessions_and_persists_their_results() {
     assert_eq!(again.info().state, SessionState::Finished);
     let tracked = 4 - again.info().frames_lost as usize;
     assert_eq!(
-        again.trajectory_tum().lines().count(),
+        again.trajectory_tum().expect("trajectory").lines().count(),
         1 + tracked,
         "header + a pose per tracked frame"
     );
