@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use relfusion_proto::http::SessionMemory;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dense::DepthPrior;
-use relfusion_slam::pipeline::{Event, FrameInput, Stats, TrackingState};
+use relfusion_slam::pipeline::{Event, FrameInput, KeyframeEvent, PoseEvent, Stats, TrackingState};
 use serde_json::json;
 
 use super::engine::Engine;
@@ -352,17 +352,45 @@ impl Runner<'_> {
     fn process(&mut self, frame: QueuedFrame) -> Result<(), String> {
         #[cfg(debug_assertions)]
         fault::maybe_panic(frame.frame_id);
+        let (frame_id, received) = (frame.frame_id, frame.received);
         let events = self
             .engine
             .push(
-                frame.frame_id,
+                frame_id,
                 FrameInput {
                     timestamp: frame.timestamp,
                     rgb: frame.rgb,
                     depth: None,
                 },
             )
-            .map_err(|e| format!("pipeline, frame {}: {e}", frame.frame_id))?;
+            .map_err(|e| format!("pipeline, frame {frame_id}: {e}"))?;
+        self.observe_stages();
+        self.session
+            .counters
+            .processed
+            .fetch_add(1, Ordering::Relaxed);
+        self.env.metrics.frames_processed.inc();
+        for event in events {
+            match event {
+                Event::Pose(p) => self.pose(frame_id, received, p),
+                Event::Keyframe(k) => self.keyframe(frame_id, k),
+                event => self.emit_background(event),
+            }
+        }
+        self.end_mapping_when_bounded(frame_id);
+        if self.since_checkpoint >= self.env.checkpoint_keyframes {
+            self.since_checkpoint = 0;
+            if let Err(e) = self.save_results(false) {
+                tracing::error!(session = %self.session.id(), "checkpoint: {e}");
+            }
+            self.session.persist_meta();
+            crate::memory::release_free_memory();
+        }
+        Ok(())
+    }
+
+    /// The time the pipeline's stages took since the last frame, into the metrics.
+    fn observe_stages(&mut self) {
         let stats = self.engine.stats().clone();
         let metrics = &self.env.metrics;
         metrics.observe_stage(
@@ -371,89 +399,80 @@ impl Runner<'_> {
         );
         metrics.observe_stage(Stage::Mapping, stats.mapping_s - self.last_stats.mapping_s);
         self.last_stats = stats;
+    }
+
+    /// A frame's pose: recorded, counted, sent; a new tracking keyframe refreshes the memory
+    /// figures and counts towards the next checkpoint.
+    fn pose(&mut self, frame_id: u64, received: Instant, p: PoseEvent) {
         let s = self.session;
-        s.counters.processed.fetch_add(1, Ordering::Relaxed);
-        metrics.frames_processed.inc();
-        for event in events {
-            match event {
-                Event::Pose(p) => {
-                    let lost = p.state == TrackingState::Lost;
-                    if lost {
-                        s.counters.lost.fetch_add(1, Ordering::Relaxed);
-                    }
-                    s.record_pose(p.timestamp, p.world_from_camera, lost);
-                    let keyframe = p.keyframe_id as u64;
-                    if self.tracked_keyframe.replace(keyframe) != Some(keyframe) {
-                        self.since_checkpoint += 1;
-                        let (held, spilled) = s.mesh_block_counts();
-                        *super::handle::lock(&s.memory) =
-                            self.engine.memory().map(|m| SessionMemory {
-                                mesh_blocks: held as u64,
-                                mesh_blocks_spilled: spilled as u64,
-                                ..m
-                            });
-                    }
-                    metrics
-                        .observe_stage(Stage::FrameToPose, frame.received.elapsed().as_secs_f64());
-                    self.emit(SessionEvent::Pose {
-                        frame_id: frame.frame_id,
-                        timestamp: p.timestamp,
-                        pose: p.world_from_camera,
-                        state: p.state,
-                        is_keyframe: p.is_keyframe,
-                        keyframe_id: p.keyframe_id as u64,
-                    });
-                }
-                Event::Keyframe(k) => {
-                    s.counters.keyframes.fetch_add(1, Ordering::Relaxed);
-                    s.record_keyframe(k.keyframe_id as u64, k.timestamp, k.world_from_keyframe);
-                    self.keyframe_frames
-                        .insert(k.keyframe_id as u64, (frame.frame_id, k.timestamp));
-                    self.emit(SessionEvent::Keyframe {
-                        keyframe_id: k.keyframe_id as u64,
-                        frame_id: frame.frame_id,
-                        timestamp: k.timestamp,
-                        pose: k.world_from_keyframe,
-                    });
-                }
-                event => self.emit_background(event),
-            }
+        let lost = p.state == TrackingState::Lost;
+        if lost {
+            s.counters.lost.fetch_add(1, Ordering::Relaxed);
         }
+        s.record_pose(p.timestamp, p.world_from_camera, lost);
+        let keyframe = p.keyframe_id as u64;
+        if self.tracked_keyframe.replace(keyframe) != Some(keyframe) {
+            self.since_checkpoint += 1;
+            let (held, spilled) = s.mesh_block_counts();
+            *super::handle::lock(&s.memory) = self.engine.memory().map(|m| SessionMemory {
+                mesh_blocks: held as u64,
+                mesh_blocks_spilled: spilled as u64,
+                ..m
+            });
+        }
+        self.env
+            .metrics
+            .observe_stage(Stage::FrameToPose, received.elapsed().as_secs_f64());
+        self.emit(SessionEvent::Pose {
+            frame_id,
+            timestamp: p.timestamp,
+            pose: p.world_from_camera,
+            state: p.state,
+            is_keyframe: p.is_keyframe,
+            keyframe_id: p.keyframe_id as u64,
+        });
+    }
+
+    /// A new keyframe: counted, recorded with the frame it came from, sent.
+    fn keyframe(&mut self, frame_id: u64, k: KeyframeEvent) {
+        let s = self.session;
+        s.counters.keyframes.fetch_add(1, Ordering::Relaxed);
+        s.record_keyframe(k.keyframe_id as u64, k.timestamp, k.world_from_keyframe);
+        self.keyframe_frames
+            .insert(k.keyframe_id as u64, (frame_id, k.timestamp));
+        self.emit(SessionEvent::Keyframe {
+            keyframe_id: k.keyframe_id as u64,
+            frame_id,
+            timestamp: k.timestamp,
+            pose: k.world_from_keyframe,
+        });
+    }
+
+    /// Mapping ends, with a notice, when the store refuses spilled keyframes (the memory
+    /// model counts on old keyframes leaving memory; issue 37, item 4) or at the map limit.
+    fn end_mapping_when_bounded(&mut self, frame_id: u64) {
+        if self.mapping_ended {
+            return;
+        }
+        let s = self.session;
         let keyframes = s.counters.keyframes.load(Ordering::Relaxed);
-        // The memory model counts on old keyframes leaving memory: when the store refuses
-        // them (full, or gone), mapping ends here with what it has (issue 37, item 4).
-        if !self.mapping_ended
-            && let Some(e) = self.engine.spill_failure()
-        {
-            self.mapping_ended = true;
-            let notice = format!(
+        let notice = if let Some(e) = self.engine.spill_failure() {
+            format!(
                 "ended: the session's store refused its spilled keyframes ({e}); results up \
-                 to frame {} are kept, later frames were not processed",
-                frame.frame_id
-            );
-            tracing::warn!(session = %s.id(), "{notice}");
-            s.set_notice(Some(notice));
-        }
-        if keyframes >= s.max_keyframes as u64 && !self.mapping_ended {
-            self.mapping_ended = true;
-            let notice = format!(
+                 to frame {frame_id} are kept, later frames were not processed"
+            )
+        } else if keyframes >= s.max_keyframes as u64 {
+            format!(
                 "ended at the map limit: {keyframes} keyframes, what this session's share of \
                  the server's memory holds (limits.memory_budget_mb, limits.max_keyframes); \
-                 frames after {} were not processed",
-                frame.frame_id
-            );
-            tracing::info!(session = %s.id(), "{notice}");
-            s.set_notice(Some(notice));
-        }
-        if self.since_checkpoint >= self.env.checkpoint_keyframes {
-            self.since_checkpoint = 0;
-            if let Err(e) = self.save_results(false) {
-                tracing::error!(session = %s.id(), "checkpoint: {e}");
-            }
-            s.persist_meta();
-            crate::memory::release_free_memory();
-        }
-        Ok(())
+                 frames after {frame_id} were not processed"
+            )
+        } else {
+            return;
+        };
+        self.mapping_ended = true;
+        tracing::warn!(session = %s.id(), "{notice}");
+        s.set_notice(Some(notice));
     }
 
     /// Writes the current results.

@@ -10,6 +10,10 @@ use super::{Backend, ProcessReport};
 use crate::Result;
 use crate::geometry::Sim3;
 
+/// The pairs of edges accepted by a keyframe's reciprocal tests, and the candidates that failed
+/// with the initial pose each was tried from.
+type Outcomes = (Vec<(Constraint, Constraint)>, Vec<(KeyframeId, Sim3)>);
+
 impl Backend {
     /// Runs the constraint search of keyframe `id` (its tracked edges only unless
     /// `with_candidates`); returns whether edges were added.
@@ -22,57 +26,8 @@ impl Backend {
         let Some(pose) = self.graph.pose(id) else {
             return Ok(false);
         };
-        let candidates = if with_candidates {
-            self.candidates(id)
-        } else {
-            Vec::new()
-        };
-        let mut accepted: Vec<(Constraint, Constraint)> = Vec::new();
-        let mut failed: Vec<(KeyframeId, Sim3)> = Vec::new();
-        {
-            let entry = &self.keyframes[&id];
-            let mut tests: Vec<(KeyframeId, Sim3, f64)> = Vec::new();
-            for (cid, source) in candidates {
-                let Some(cpose) = self.graph.pose(cid) else {
-                    continue;
-                };
-                let initial = match source {
-                    Source::Pose => cpose.inverse() * pose,
-                    Source::Appearance => Sim3::identity(),
-                };
-                let tried_before = entry.failed.iter().any(|(f, init)| {
-                    *f == cid
-                        && (initial * init.inverse()).log().norm() < self.config.retry_min_change
-                });
-                if !tried_before {
-                    tests.push((cid, initial, self.config.loop_closure_strictness));
-                }
-            }
-            for p in entry
-                .tracked()
-                .filter(|p| self.keyframes.contains_key(&p.id) && !entry.neighbours.contains(&p.id))
-            {
-                // candidate_from_keyframe = parent_from_keyframe.
-                tests.push((p.id, p.parent_from_keyframe, self.config.parent_strictness));
-            }
-            let this = self.resident.get(&entry.kept)?;
-            for (cid, initial, strictness) in tests {
-                report.candidates_tested += 1;
-                let candidate = self.resident.get(&self.keyframes[&cid].kept)?;
-                let check = reciprocal_test(&self.tracker, &this, &candidate, &initial, strictness);
-                tracing::debug!(
-                    keyframe = id,
-                    candidate = cid,
-                    consistency = check.consistency,
-                    failed_stage = ?check.failed_stage,
-                    "reciprocal Sim(3) test"
-                );
-                match check.constraints {
-                    Some(pair) => accepted.push(pair),
-                    None => failed.push((cid, initial)),
-                }
-            }
-        }
+        let tests = self.tests_of(id, pose, with_candidates);
+        let (accepted, failed) = self.run_tests(id, tests, report)?;
         // A tracked edge whose Sim(3) test failed falls back to the tracking estimate.
         let fallbacks: Vec<_> = self.keyframes[&id]
             .tracked()
@@ -114,6 +69,76 @@ impl Backend {
             entry.failed.extend(failed);
         }
         Ok(any)
+    }
+
+    /// The reciprocal tests keyframe `id` (at `pose`) takes: the candidates not tried before
+    /// from about the same initial pose, at loop-closure strictness, then its tracked edges
+    /// not yet in the graph, at parent strictness.
+    fn tests_of(
+        &self,
+        id: KeyframeId,
+        pose: Sim3,
+        with_candidates: bool,
+    ) -> Vec<(KeyframeId, Sim3, f64)> {
+        let candidates = if with_candidates {
+            self.candidates(id)
+        } else {
+            Vec::new()
+        };
+        let entry = &self.keyframes[&id];
+        let mut tests: Vec<(KeyframeId, Sim3, f64)> = Vec::new();
+        for (cid, source) in candidates {
+            let Some(cpose) = self.graph.pose(cid) else {
+                continue;
+            };
+            let initial = match source {
+                Source::Pose => cpose.inverse() * pose,
+                Source::Appearance => Sim3::identity(),
+            };
+            let tried_before = entry.failed.iter().any(|(f, init)| {
+                *f == cid && (initial * init.inverse()).log().norm() < self.config.retry_min_change
+            });
+            if !tried_before {
+                tests.push((cid, initial, self.config.loop_closure_strictness));
+            }
+        }
+        for p in entry
+            .tracked()
+            .filter(|p| self.keyframes.contains_key(&p.id) && !entry.neighbours.contains(&p.id))
+        {
+            // candidate_from_keyframe = parent_from_keyframe.
+            tests.push((p.id, p.parent_from_keyframe, self.config.parent_strictness));
+        }
+        tests
+    }
+
+    /// Runs `tests` of keyframe `id`.
+    fn run_tests(
+        &mut self,
+        id: KeyframeId,
+        tests: Vec<(KeyframeId, Sim3, f64)>,
+        report: &mut ProcessReport,
+    ) -> Result<Outcomes> {
+        let mut accepted = Vec::new();
+        let mut failed = Vec::new();
+        let this = self.resident.get(&self.keyframes[&id].kept)?;
+        for (cid, initial, strictness) in tests {
+            report.candidates_tested += 1;
+            let candidate = self.resident.get(&self.keyframes[&cid].kept)?;
+            let check = reciprocal_test(&self.tracker, &this, &candidate, &initial, strictness);
+            tracing::debug!(
+                keyframe = id,
+                candidate = cid,
+                consistency = check.consistency,
+                failed_stage = ?check.failed_stage,
+                "reciprocal Sim(3) test"
+            );
+            match check.constraints {
+                Some(pair) => accepted.push(pair),
+                None => failed.push((cid, initial)),
+            }
+        }
+        Ok((accepted, failed))
     }
 
     /// Re-tests keyframe `id` against each neighbour from the current relative pose and
