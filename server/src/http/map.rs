@@ -14,7 +14,6 @@ use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, header};
 use axum::response::{IntoResponse, Response};
-use relfusion_proto::Message as _;
 use relfusion_proto::v1::{MapSnapshot, MeshBlock, StampedPose};
 use serde::Serialize;
 use serde_json::{Value, json};
@@ -84,18 +83,23 @@ pub async fn map_snapshot(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let session = state.sessions.get(&id, &owner)?;
-    let snapshot =
-        tokio::task::spawn_blocking(move || crate::session::snapshot::snapshot(&session))
-            .await
-            .map_err(|e| ApiError::internal(format!("building the map failed: {e}")))??;
     let wants_json = headers
         .get(header::ACCEPT)
         .and_then(|v| v.to_str().ok())
         .is_some_and(|v| v.contains("application/json"));
+    let built = |e| ApiError::internal(format!("building the map failed: {e}"));
     Ok(if wants_json {
+        let snapshot =
+            tokio::task::spawn_blocking(move || crate::session::snapshot::snapshot(&session))
+                .await
+                .map_err(built)??;
         Json(snapshot_json(&snapshot)).into_response()
     } else {
-        ([(header::CONTENT_TYPE, PROTOBUF)], snapshot.encode_to_vec()).into_response()
+        let bytes =
+            tokio::task::spawn_blocking(move || crate::session::snapshot::snapshot_bytes(&session))
+                .await
+                .map_err(built)??;
+        ([(header::CONTENT_TYPE, PROTOBUF)], bytes).into_response()
     })
 }
 

@@ -37,19 +37,6 @@ impl MeshSnapshot {
     pub(super) fn surface(&self) -> Surface<'_> {
         Surface::new(&self.resident, self.spilled.iter().cloned())
     }
-
-    /// Every block mesh, spilled ones read back (a map snapshot sends the whole mesh).
-    pub(super) fn all_blocks(&self) -> Vec<BlockMesh> {
-        let mut all: Vec<BlockMesh> = self.resident.values().cloned().collect();
-        for (c, s) in &self.spilled {
-            match s.get() {
-                Ok(data) => all.extend(data.meshes.iter().cloned()),
-                Err(e) => tracing::error!(chunk = ?c, error = %e, "mesh chunk unreadable"),
-            }
-        }
-        all.sort_by_key(|m| m.index);
-        all
-    }
 }
 
 #[derive(Debug)]
@@ -210,6 +197,7 @@ impl MeshState {
 mod tests {
     use super::*;
     use relfusion_slam::export::{mesh_glb_bytes, mesh_ply_bytes, mesh_ply_bytes_from};
+    use relfusion_slam::fusion::weld::BlockSource;
     use relfusion_slam::fusion::{EdgeKey, Mesh};
 
     /// A flat block mesh of block `b` on the shared grid (so neighbours weld), its height
@@ -288,10 +276,18 @@ mod tests {
         assert_eq!(resident + spilled, kept.block_counts().0);
         assert_eq!(bounded.triangles(), kept.triangles());
         // The revisit brought the first chunk back and changed it.
-        assert_eq!(
-            bounded.snapshot().all_blocks(),
-            kept.snapshot().all_blocks()
-        );
+        let all = |m: &MeshState| {
+            let mut out = Vec::new();
+            m.snapshot()
+                .surface()
+                .runs(&mut |blocks| {
+                    out.extend(blocks.iter().map(|b| (*b).clone()));
+                    Ok(())
+                })
+                .expect("read back");
+            out
+        };
+        assert_eq!(all(&bounded), all(&kept));
         let whole = Mesh::from_blocks(kept.blocks.values());
         let snapshot = bounded.snapshot();
         let streamed = mesh_ply_bytes_from(&mut snapshot.surface()).expect("ply");

@@ -1,8 +1,15 @@
 //! A session's whole map as it stands, as a protobuf `MapSnapshot` (trajectory, keyframes,
 //! mesh blocks): what the Zenoh map queryable and `GET /v1/sessions/{id}/map` serve. Poses are
 //! those of the downloadable TUM files, value for value.
+//!
+//! The protobuf is encoded with the mesh streamed into it ([`snapshot_bytes`]): the mesh of a
+//! long session is read back a slab of spilled chunks at a time and each block encoded as it
+//! comes, so the encoded message is the only whole copy (issue 37), bytes identical to
+//! encoding the [`snapshot`] message.
 
+use relfusion_proto::Message as _;
 use relfusion_proto::v1::{self, MapSnapshot, StampedPose};
+use relfusion_slam::fusion::BlockMesh;
 use relfusion_slam::geometry::Sim3;
 
 use super::track::Poses;
@@ -10,10 +17,60 @@ use super::{Session, SessionState, mesh_block};
 use crate::ApiError;
 use crate::convert::sim3_to_proto;
 
-/// The session's map as it stands (final once the session has finished).
+/// The session's map as it stands (final once the session has finished), as a message (the
+/// JSON form; [`snapshot_bytes`] encodes the same without holding the mesh twice).
 pub fn snapshot(session: &Session) -> Result<MapSnapshot, ApiError> {
+    let mut blocks = Vec::new();
+    let mut snapshot = without_mesh(session, &mut |b| blocks.push(mesh_block(b)))?;
+    snapshot.mesh_blocks = blocks;
+    Ok(snapshot)
+}
+
+/// [`snapshot`] encoded as protobuf, each mesh block encoded as it is read.
+pub fn snapshot_bytes(session: &Session) -> Result<Vec<u8>, ApiError> {
+    let mut blocks = Vec::new();
+    let snapshot = without_mesh(session, &mut |b| {
+        prost::encoding::message::encode(MESH_BLOCKS_TAG, &mesh_block(b), &mut blocks)
+    })?;
+    Ok(encode_with_blocks(&snapshot, &blocks))
+}
+
+/// `mesh_blocks` in `MapSnapshot` (updates.proto).
+const MESH_BLOCKS_TAG: u32 = 6;
+
+/// The message's encoding with `blocks` (encoded `mesh_blocks` entries) in place of its own: a
+/// message is its fields in tag order, so the fields before the mesh, the mesh, then those
+/// after it are exactly what encoding the whole message gives.
+fn encode_with_blocks(snapshot: &MapSnapshot, blocks: &[u8]) -> Vec<u8> {
+    let head = MapSnapshot {
+        mesh_blocks: Vec::new(),
+        block_size: 0.0,
+        mesh_revision: 0,
+        frames_received: 0,
+        frames_dropped: 0,
+        ..snapshot.clone()
+    };
+    let tail = MapSnapshot {
+        block_size: snapshot.block_size,
+        mesh_revision: snapshot.mesh_revision,
+        frames_received: snapshot.frames_received,
+        frames_dropped: snapshot.frames_dropped,
+        ..MapSnapshot::default()
+    };
+    let mut out = Vec::with_capacity(head.encoded_len() + blocks.len() + tail.encoded_len());
+    head.encode(&mut out).expect("a Vec grows");
+    out.extend_from_slice(blocks);
+    tail.encode(&mut out).expect("a Vec grows");
+    out
+}
+
+/// Everything of the snapshot but its mesh blocks, which go to `each` in index order.
+fn without_mesh(
+    session: &Session,
+    each: &mut dyn FnMut(&BlockMesh),
+) -> Result<MapSnapshot, ApiError> {
     let info = session.info();
-    let (blocks, mesh_revision, block_size) = session.mesh_blocks();
+    let (mesh_revision, block_size) = session.each_mesh_block(each).map_err(ApiError::internal)?;
     Ok(MapSnapshot {
         session_id: info.id.clone(),
         state: state_name(info.state),
@@ -22,7 +79,7 @@ pub fn snapshot(session: &Session) -> Result<MapSnapshot, ApiError> {
         frames_dropped: info.frames_dropped,
         trajectory: stamped_poses(session.trajectory().map_err(ApiError::internal)?)?,
         keyframes: stamped_poses(session.keyframes())?,
-        mesh_blocks: blocks.iter().map(mesh_block).collect(),
+        mesh_blocks: Vec::new(),
         block_size,
         mesh_revision,
     })
@@ -98,6 +155,53 @@ fn parse_tum(text: &str) -> Result<Vec<StampedPose>, ApiError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_mesh_streamed_into_the_message_gives_its_own_encoding() {
+        let block = |i: i32| v1::MeshBlock {
+            index: Some(v1::BlockIndex {
+                x: i,
+                y: -i,
+                z: 2 * i,
+            }),
+            vertices: (0..36).map(|b| (b * i) as u8).collect(),
+            colors: vec![255, 0, 255, 1, 2, 3],
+            normals: vec![7; 36],
+            indices: vec![0, 1, 2],
+        };
+        let pose = StampedPose {
+            timestamp: 1.5,
+            world_from_camera: Some(v1::Sim3Pose {
+                scale: 2.0,
+                ..Default::default()
+            }),
+        };
+        let whole = MapSnapshot {
+            session_id: "s-1".into(),
+            state: "running".into(),
+            frames_processed: 12,
+            trajectory: vec![pose; 3],
+            keyframes: vec![pose],
+            mesh_blocks: (1..5).map(block).collect(),
+            block_size: 0.08,
+            mesh_revision: 9,
+            frames_received: 14,
+            frames_dropped: 2,
+        };
+        let mut blocks = Vec::new();
+        for b in &whole.mesh_blocks {
+            prost::encoding::message::encode(MESH_BLOCKS_TAG, b, &mut blocks);
+        }
+        let streamed = encode_with_blocks(&whole, &blocks);
+        assert_eq!(streamed, whole.encode_to_vec());
+        assert_eq!(MapSnapshot::decode(&streamed[..]).expect("decodes"), whole);
+        // Without a mesh, and with nothing after it.
+        let bare = MapSnapshot {
+            session_id: "s-2".into(),
+            ..MapSnapshot::default()
+        };
+        assert_eq!(encode_with_blocks(&bare, &[]), bare.encode_to_vec());
+    }
 
     #[test]
     fn tum_text_becomes_stamped_poses_value_for_value() {

@@ -196,14 +196,26 @@ impl Session {
             .store(track.mesh.triangles(), Ordering::Relaxed);
     }
 
-    /// The mesh blocks with their revision and block size (the map snapshot's mesh).
-    pub(crate) fn mesh_blocks(&self) -> (Vec<BlockMesh>, u64, f32) {
+    /// The map snapshot's mesh: each block in index order to `each` (spilled chunks read
+    /// back a slab at a time, outside the session's lock), then the revision and block size
+    /// they are at. `Err` when the store cannot give a spilled chunk back.
+    pub(crate) fn each_mesh_block(
+        &self,
+        each: &mut dyn FnMut(&BlockMesh),
+    ) -> Result<(u64, f32), String> {
         let (snapshot, revision, block_size) = {
             let track = lock(&self.track);
             let m = &track.mesh;
             (m.snapshot(), m.revision, m.block_size)
         };
-        (snapshot.all_blocks(), revision, block_size)
+        snapshot
+            .surface()
+            .runs(&mut |blocks| {
+                blocks.iter().for_each(|b| each(b));
+                Ok(())
+            })
+            .map_err(|e| format!("reading the mesh back: {e}"))?;
+        Ok((revision, block_size))
     }
 
     /// The current mesh as PLY and GLB (`None` before the first mesh update), encoded a slab

@@ -18,7 +18,7 @@ use zenoh::query::Query;
 
 use super::{Shared, bump, proto_error, serve_queryable};
 
-use crate::session::snapshot::snapshot;
+use crate::session::snapshot::snapshot_bytes;
 use crate::{ApiError, ServerError};
 
 /// Declares `tenant`'s queryable and serves it until shutdown.
@@ -46,14 +46,14 @@ async fn answer(shared: &Shared, query: &Query) {
         .owner(query.attachment(), tenant)
         .and_then(|owner| shared.sessions.get(id, &owner))
     {
-        Ok(session) => tokio::task::spawn_blocking(move || snapshot(&session))
+        Ok(session) => tokio::task::spawn_blocking(move || snapshot_bytes(&session))
             .await
             .map_err(|e| ApiError::internal(format!("building the snapshot: {e}")))
             .and_then(|r| r),
         Err(e) => Err(e),
     };
     let sent = match result {
-        Ok(snapshot) => query.reply(key.as_str(), snapshot.encode_to_vec()).await,
+        Ok(bytes) => query.reply(key.as_str(), bytes).await,
         Err(error) => {
             bump(&shared.stats.queries_refused);
             query.reply_err(proto_error(&error).encode_to_vec()).await
