@@ -66,6 +66,20 @@ impl<T> std::fmt::Debug for FrameLog<T> {
     }
 }
 
+/// A copy to read outside a lock: the records in memory copied, the spilled chunks shared
+/// (they stay in the store while a copy holds them).
+impl<T: LogRecord> Clone for FrameLog<T> {
+    fn clone(&self) -> Self {
+        Self {
+            spill: self.spill.clone(),
+            chunk: self.chunk,
+            sealed: self.sealed.clone(),
+            tail: self.tail.clone(),
+            newest: self.newest,
+        }
+    }
+}
+
 impl<T: LogRecord> Default for FrameLog<T> {
     /// A log that never spills (no store will be attached to its own [`Spill`]).
     fn default() -> Self {
@@ -197,11 +211,18 @@ mod tests {
         assert_eq!(log.len(), all.len());
         assert_eq!(log.last(), all.last().copied());
         assert_eq!(read(&log), all, "bit-identical, in order");
+        let copy = log.clone();
         assert_eq!(spill.figures().spilled, 3);
         assert_eq!(std::fs::read_dir(&dir).expect("dir").count(), 3);
         // Only the tail is held: its capacity, never the spilled chunks.
         assert_eq!(log.held_bytes(), CHUNK * std::mem::size_of::<Rec>());
         drop(log);
+        assert_eq!(
+            read(&copy),
+            all,
+            "a copy keeps the spilled chunks it shares"
+        );
+        drop(copy);
         assert_eq!(
             std::fs::read_dir(&dir).expect("dir").count(),
             0,

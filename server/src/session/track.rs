@@ -84,10 +84,11 @@ impl Session {
         if let Some(text) = self.stored_text("trajectory.txt") {
             return Ok(Poses::Stored(text));
         }
-        let track = lock(&self.track);
-        let mut poses = Vec::with_capacity(track.frames.len());
-        track
-            .frames
+        // Copied under the lock (the newest chunk; the spilled ones shared), read outside it:
+        // recording a frame's pose never waits for the store.
+        let frames = lock(&self.track).frames.clone();
+        let mut poses = Vec::with_capacity(frames.len());
+        frames
             .for_each(|r| {
                 if !r.lost {
                     poses.push((r.timestamp, r.pose));
