@@ -1,13 +1,13 @@
 //! A record per frame, spilled a chunk at a time (issue 37: an hour of video in bounded
 //! memory).
 //!
-//! A session keeps one small record for every frame it tracked (its pose, for the trajectory
-//! it returns): about 80 B, 8.6 MB an hour at 30 fps, and a `Vec` of them doubles its capacity
-//! as it grows, so in the hour-long session it was most of the server's RSS growth from minute
-//! 30 to 60 (docs/tuning.md). The log keeps its newest [`CHUNK`] records in memory; each full
-//! chunk is sealed and spilled through the session's [`Spill`] (held, as before, when there is
-//! no store), and read back, bit-identical, when the whole log is read (the trajectory file,
-//! a download). Spilling changes where records live, never what is read.
+//! A session keeps one small record for every frame it tracked, twice (the pipeline's frame
+//! poses, the session's reported poses): about 80 B each, 17 MB an hour at 30 fps, in `Vec`s
+//! that double their capacity as they grow (heaptrack of `bench long`; docs/tuning.md). The
+//! log keeps its newest [`CHUNK`] records in memory; each full chunk is sealed and spilled
+//! through the session's [`Spill`] (held, as before, when there is no store), and read back,
+//! bit-identical, when the whole log is read (the trajectory file, a download). Spilling
+//! changes where records live, never what is read.
 
 use std::sync::Arc;
 
@@ -54,7 +54,6 @@ pub struct FrameLog<T> {
     chunk: usize,
     sealed: Vec<Arc<Stored<Chunk<T>>>>,
     tail: Vec<T>,
-    newest: Option<T>,
 }
 
 impl<T> std::fmt::Debug for FrameLog<T> {
@@ -75,7 +74,6 @@ impl<T: LogRecord> Clone for FrameLog<T> {
             chunk: self.chunk,
             sealed: self.sealed.clone(),
             tail: self.tail.clone(),
-            newest: self.newest,
         }
     }
 }
@@ -101,7 +99,6 @@ impl<T: LogRecord> FrameLog<T> {
             chunk,
             sealed: Vec::new(),
             tail: Vec::with_capacity(chunk),
-            newest: None,
         }
     }
 
@@ -109,7 +106,6 @@ impl<T: LogRecord> FrameLog<T> {
     /// was attached; a store that refuses keeps the chunk in memory (the [`Spill`] records
     /// why and the session reports it).
     pub fn push(&mut self, record: T) {
-        self.newest = Some(record);
         self.tail.push(record);
         if self.tail.len() < self.chunk {
             return;
@@ -135,11 +131,6 @@ impl<T: LogRecord> FrameLog<T> {
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
-    }
-
-    /// The newest record.
-    pub fn last(&self) -> Option<T> {
-        self.newest
     }
 
     /// Every record in order, spilled chunks read back one at a time.
@@ -195,7 +186,6 @@ mod tests {
         let spill = Spill::default();
         let mut log = FrameLog::new(&spill);
         let all = records(3 * CHUNK + 17);
-        assert_eq!(log.last(), None);
         // The first chunk is sealed before the store comes (a session attaches it after it
         // starts): it spills with the next one.
         for r in &all[..CHUNK + 5] {
@@ -209,7 +199,6 @@ mod tests {
             log.push(*r);
         }
         assert_eq!(log.len(), all.len());
-        assert_eq!(log.last(), all.last().copied());
         assert_eq!(read(&log), all, "bit-identical, in order");
         let copy = log.clone();
         assert_eq!(spill.figures().spilled, 3);
@@ -239,11 +228,6 @@ mod tests {
             log.push(*r);
         }
         assert_eq!(read(&log), all);
-        assert_eq!(
-            log.last(),
-            all.last().copied(),
-            "the newest, with the tail just sealed"
-        );
         assert!(log.held_bytes() >= all.len() * std::mem::size_of::<Rec>());
         assert!(FrameLog::<Rec>::new(&Spill::default()).is_empty());
     }
