@@ -3,13 +3,12 @@
 //! those of the downloadable TUM files, value for value.
 //!
 //! The protobuf is encoded with the mesh streamed into it ([`snapshot_bytes`]): the mesh of a
-//! long session is read back a slab of spilled chunks at a time and each block encoded as it
-//! comes, so the encoded message is the only whole copy (issue 37), bytes identical to
-//! encoding the [`snapshot`] message.
+//! long session is read back a slab of spilled chunks at a time and each block encoded into
+//! the message as it comes, so the message is the only whole copy (issue 37), bytes identical
+//! to encoding the [`snapshot`] message.
 
 use relfusion_proto::Message as _;
 use relfusion_proto::v1::{self, MapSnapshot, StampedPose};
-use relfusion_slam::fusion::BlockMesh;
 use relfusion_slam::geometry::Sim3;
 
 use super::track::Poses;
@@ -20,28 +19,39 @@ use crate::convert::sim3_to_proto;
 /// The session's map as it stands (final once the session has finished), as a message (the
 /// JSON form; [`snapshot_bytes`] encodes the same without holding the mesh twice).
 pub fn snapshot(session: &Session) -> Result<MapSnapshot, ApiError> {
+    let mut snapshot = without_mesh(session)?;
     let mut blocks = Vec::new();
-    let mut snapshot = without_mesh(session, &mut |b| blocks.push(mesh_block(b)))?;
+    let (mesh_revision, block_size) = session
+        .each_mesh_block(&mut |b| blocks.push(mesh_block(b)))
+        .map_err(ApiError::internal)?;
     snapshot.mesh_blocks = blocks;
+    snapshot.mesh_revision = mesh_revision;
+    snapshot.block_size = block_size;
     Ok(snapshot)
 }
 
-/// [`snapshot`] encoded as protobuf, each mesh block encoded as it is read.
+/// [`snapshot`] encoded as protobuf: the fields before the mesh, then each mesh block encoded
+/// into the message as it is read, then the fields after it. A message is its fields in tag
+/// order, so these are the bytes of encoding the whole message at once.
 pub fn snapshot_bytes(session: &Session) -> Result<Vec<u8>, ApiError> {
-    let mut blocks = Vec::new();
-    let snapshot = without_mesh(session, &mut |b| {
-        prost::encoding::message::encode(MESH_BLOCKS_TAG, &mesh_block(b), &mut blocks)
-    })?;
-    Ok(encode_with_blocks(&snapshot, &blocks))
+    let (head, mut tail) = split_at_mesh(&without_mesh(session)?);
+    let mut out = head.encode_to_vec();
+    let (mesh_revision, block_size) = session
+        .each_mesh_block(&mut |b| {
+            prost::encoding::message::encode(MESH_BLOCKS_TAG, &mesh_block(b), &mut out)
+        })
+        .map_err(ApiError::internal)?;
+    tail.mesh_revision = mesh_revision;
+    tail.block_size = block_size;
+    tail.encode(&mut out).expect("a Vec grows");
+    Ok(out)
 }
 
 /// `mesh_blocks` in `MapSnapshot` (updates.proto).
 const MESH_BLOCKS_TAG: u32 = 6;
 
-/// The message's encoding with `blocks` (encoded `mesh_blocks` entries) in place of its own: a
-/// message is its fields in tag order, so the fields before the mesh, the mesh, then those
-/// after it are exactly what encoding the whole message gives.
-fn encode_with_blocks(snapshot: &MapSnapshot, blocks: &[u8]) -> Vec<u8> {
+/// The message's fields before `mesh_blocks`, and those after it.
+fn split_at_mesh(snapshot: &MapSnapshot) -> (MapSnapshot, MapSnapshot) {
     let head = MapSnapshot {
         mesh_blocks: Vec::new(),
         block_size: 0.0,
@@ -57,20 +67,12 @@ fn encode_with_blocks(snapshot: &MapSnapshot, blocks: &[u8]) -> Vec<u8> {
         frames_dropped: snapshot.frames_dropped,
         ..MapSnapshot::default()
     };
-    let mut out = Vec::with_capacity(head.encoded_len() + blocks.len() + tail.encoded_len());
-    head.encode(&mut out).expect("a Vec grows");
-    out.extend_from_slice(blocks);
-    tail.encode(&mut out).expect("a Vec grows");
-    out
+    (head, tail)
 }
 
-/// Everything of the snapshot but its mesh blocks, which go to `each` in index order.
-fn without_mesh(
-    session: &Session,
-    each: &mut dyn FnMut(&BlockMesh),
-) -> Result<MapSnapshot, ApiError> {
+/// Everything of the snapshot but its mesh (blocks, revision, block size).
+fn without_mesh(session: &Session) -> Result<MapSnapshot, ApiError> {
     let info = session.info();
-    let (mesh_revision, block_size) = session.each_mesh_block(each).map_err(ApiError::internal)?;
     Ok(MapSnapshot {
         session_id: info.id.clone(),
         state: state_name(info.state),
@@ -79,9 +81,7 @@ fn without_mesh(
         frames_dropped: info.frames_dropped,
         trajectory: stamped_poses(session.trajectory().map_err(ApiError::internal)?)?,
         keyframes: stamped_poses(session.keyframes())?,
-        mesh_blocks: Vec::new(),
-        block_size,
-        mesh_revision,
+        ..MapSnapshot::default()
     })
 }
 
@@ -188,19 +188,26 @@ mod tests {
             frames_received: 14,
             frames_dropped: 2,
         };
-        let mut blocks = Vec::new();
-        for b in &whole.mesh_blocks {
-            prost::encoding::message::encode(MESH_BLOCKS_TAG, b, &mut blocks);
-        }
-        let streamed = encode_with_blocks(&whole, &blocks);
-        assert_eq!(streamed, whole.encode_to_vec());
-        assert_eq!(MapSnapshot::decode(&streamed[..]).expect("decodes"), whole);
+        let streamed = |m: &MapSnapshot| {
+            let (head, tail) = split_at_mesh(m);
+            let mut out = head.encode_to_vec();
+            for b in &m.mesh_blocks {
+                prost::encoding::message::encode(MESH_BLOCKS_TAG, b, &mut out);
+            }
+            tail.encode(&mut out).expect("a Vec grows");
+            out
+        };
+        assert_eq!(streamed(&whole), whole.encode_to_vec());
+        assert_eq!(
+            MapSnapshot::decode(&streamed(&whole)[..]).expect("decodes"),
+            whole
+        );
         // Without a mesh, and with nothing after it.
         let bare = MapSnapshot {
             session_id: "s-2".into(),
             ..MapSnapshot::default()
         };
-        assert_eq!(encode_with_blocks(&bare, &[]), bare.encode_to_vec());
+        assert_eq!(streamed(&bare), bare.encode_to_vec());
     }
 
     #[test]
