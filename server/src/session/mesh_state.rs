@@ -2,9 +2,9 @@
 //! memory (issue 37, item 3). Past `fusion.resident_blocks` blocks, the chunks of 4×4×4
 //! blocks changed least recently go to the session's store with their meshes, as the fuser's
 //! voxels do (`relfusion_slam::fusion::chunks`). A chunk comes back when a delta touches it;
-//! the downloads and results walk the surface a slab of chunks at a time (`fusion::weld`),
-//! and a map snapshot reads every chunk (it sends the whole mesh). Spilling changes where the
-//! mesh lives, never the mesh.
+//! the downloads, results and map snapshots walk the surface a slab of chunks at a time
+//! (`fusion::weld`, `session::snapshot`). Spilling changes where the mesh lives, never the
+//! mesh.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
