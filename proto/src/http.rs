@@ -85,8 +85,9 @@ pub struct CreateSession {
     /// The camera; required unless `ros2.camera_info_topic` gives it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera: Option<CameraJson>,
-    /// Partial pipeline configuration (sections `pipeline`, `tracking`, `mapping`,
-    /// `backend`); keys not given keep their defaults, unknown keys are rejected.
+    /// Partial pipeline configuration, nested JSON (`{"dense": {"enabled": false}}`): only
+    /// the user settings anyone may set (README, "Configuration"), each within its values;
+    /// keys not given keep their defaults, any other key is refused by name.
     #[serde(default, skip_serializing_if = "serde_json::Value::is_null")]
     #[cfg_attr(feature = "openapi", schema(value_type = Option<Object>))]
     pub config: serde_json::Value,

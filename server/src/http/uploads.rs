@@ -52,7 +52,8 @@ pub struct UploadParams {
     pub cy: Option<f64>,
     pub width: Option<u32>,
     pub height: Option<u32>,
-    /// Partial pipeline configuration as a JSON object (URL-encoded); unknown keys are refused.
+    /// Partial pipeline configuration as a JSON object (URL-encoded): only the user settings
+    /// anyone may set (README, "Configuration"); any other key is refused by name.
     pub config: Option<String>,
 }
 

@@ -178,10 +178,10 @@ impl Default for TwoViewParams {
     }
 }
 
-/// The `[dense]` section of the pipeline config. User settings: `enabled`, `width` / `height`
-/// (working resolution), `compute`, `two_view.ground_truth_depth` (the Table III baseline)
-/// and the energy's `densify.terms` (the Table II ablation); the filter's, the energy's and
-/// the consistency test's parameters are expert level (the paper's §IV values).
+/// The `[dense]` section of the pipeline config. Its user settings are listed in
+/// [`crate::pipeline::user_config`]; the rest is expert level: the filter's, the energy's and the
+/// consistency test's parameters (the paper's §IV values), and the paper's ablations
+/// (`densify.terms`, Table II; `two_view.ground_truth_depth`, the Table III baseline).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DenseConfig {

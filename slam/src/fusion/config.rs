@@ -10,8 +10,8 @@ use serde::{Deserialize, Serialize};
 use crate::dense::DenseCompute;
 use crate::{Error, Result};
 
-/// TSDF volume, integration weights, re-integration and meshing. User settings: `enabled`,
-/// `voxel_size` / `voxels_per_median_depth`; the rest is expert level.
+/// TSDF volume, integration weights, re-integration and meshing. Its user settings are listed
+/// in [`crate::pipeline::user_config`]; the rest is expert level.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FusionConfig {

@@ -10,9 +10,8 @@ use crate::optim::{LmSchedule, PhotometricParams};
 use crate::{Error, Result};
 
 /// Configuration of [`super::Sim3Tracker`], the constraint search and [`super::Backend`]. Every
-/// field has a default, so a config file only lists what it changes. User setting:
-/// `loop_closure_strictness` (how readily keyframes far apart are linked); the rest is expert
-/// level. Measured trade-offs of the defaults are in docs/tuning.md ("Back end").
+/// field has a default, so a config file only lists what it changes. Its user settings are
+/// listed in [`crate::pipeline::user_config`]; the rest is expert level. Measured trade-offs of the defaults are in docs/tuning.md ("Back end").
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct BackendConfig {
@@ -255,7 +254,7 @@ impl BackendConfig {
 /// map's scale: the first keyframe's depth is taken in metres, and every densified keyframe's
 /// observed scale ([`crate::metric_scale::observe`]) enters the pose graph as a weak unary
 /// factor on its vertex's scale ([`super::ScalePrior`]), as CNN-SLAM lets a network's depth
-/// hold a monocular map's scale. User setting: `enabled`; the rest is expert level.
+/// hold a monocular map's scale. `enabled` is a user setting; the rest is expert level.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MetricScaleConfig {

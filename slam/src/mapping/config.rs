@@ -10,9 +10,9 @@ use serde::{Deserialize, Serialize};
 use crate::{Error, Result};
 
 /// Configuration of [`super::DepthFilter`] and of [`super::keyframe_score`] /
-/// [`super::needs_new_keyframe`]. A config file only lists the fields it changes. User
-/// settings: `kf_dist_weight`, `kf_usage_weight` (how often keyframes are taken) and
-/// `min_use_grad` (low-texture scenes); the rest is expert level (LSD-SLAM's constants).
+/// [`super::needs_new_keyframe`]. A config file only lists the fields it changes. Its user
+/// settings are listed in [`crate::pipeline::user_config`]; the rest is expert level
+/// (LSD-SLAM's constants).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MappingConfig {

@@ -19,7 +19,8 @@
 //! - [`export`]: trajectories and point clouds at the current poses;
 //! - [`extend`]: a pipeline that starts from a saved map and extends it;
 //! - [`reactivate`]: an old keyframe made current again instead of a new one (revisits);
-//! - [`mapper`]: the current keyframe's depth mapping, in step or on its own thread.
+//! - [`mapper`]: the current keyframe's depth mapping, in step or on its own thread;
+//! - [`user_config`]: the few settings a user should ever touch, and who may set them.
 
 pub mod config;
 pub mod events;
@@ -36,6 +37,7 @@ mod reactivate;
 mod reactivate_tests;
 #[cfg(test)]
 mod tests;
+pub mod user_config;
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
@@ -43,6 +45,7 @@ use std::sync::Arc;
 pub use config::{Config, DepthInit, PipelineConfig};
 pub use events::{Event, KeyframeEvent, PoseEvent, TrackingState};
 pub use extend::ExtendConfig;
+pub use user_config::{Scope, USER_SETTINGS, UserConfig, UserConfigError};
 
 use crate::Result;
 use crate::background::{Link, Priority, WorkerSpec};

@@ -8,8 +8,8 @@ use crate::optim::{LmSchedule, PhotometricParams};
 use crate::{Error, Result};
 
 /// Configuration of [`super::SE3Tracker`]. Every field has LSD-SLAM's value as its default, so a
-/// config file only lists what it changes. User setting: `affine_lighting` (cameras with fixed
-/// exposure may turn it off); the rest is expert level (LSD-SLAM's constants).
+/// config file only lists what it changes. Its user settings are listed in
+/// [`crate::pipeline::user_config`]; the rest is expert level (LSD-SLAM's constants).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrackingConfig {
