@@ -20,7 +20,7 @@ use super::KeyframeId;
 use super::config::BackendConfig;
 use super::pose_graph::{Constraint, OptimizeReport, PoseGraph};
 use super::resident::Resident;
-use super::search::{CompactKeyframe, Keyframe, KeyframeData};
+use super::search::{CompactKeyframe, Keyframe, KeyframeData, KeyframeMaps};
 use super::sim3_tracker::Sim3Tracker;
 use crate::frame::Frame;
 use nalgebra::Matrix6;
@@ -80,11 +80,9 @@ impl ParentEdge {
 #[derive(Clone, Debug)]
 pub struct NewKeyframe {
     pub id: KeyframeId,
-    pub frame: Arc<Frame>,
-    pub depth: Arc<DepthMap>,
-    /// Its image and `depth` in compact form when the caller keeps them (shared, and spilled
-    /// once, instead of made again).
-    pub data: Option<KeyframeData>,
+    /// Its frame and depth map, and their compact form when the caller keeps it (shared, and
+    /// spilled once, instead of made again).
+    pub maps: KeyframeMaps,
     /// The front end's estimate; used as the vertex's initial pose when there is no parent in
     /// the graph.
     pub world_from_keyframe: Sim3,
@@ -235,8 +233,9 @@ impl Backend {
             return Err(Error::Backend(format!("keyframe {} added twice", new.id)));
         }
         let finest = self.config.finest_level();
-        let keyframe = Keyframe::from_level(new.id, new.frame, new.depth, finest)?;
-        let kept = keyframe.compact_sharing(new.data);
+        let (frame, depth, data) = new.maps.resolve()?;
+        let keyframe = Keyframe::from_level(new.id, frame, depth, finest)?;
+        let kept = keyframe.compact_sharing(data);
         let parent = new.parent.as_ref().and_then(|p| {
             Some((
                 self.graph.pose(p.id)?,

@@ -102,8 +102,9 @@ pub struct BackendConfig {
     pub pose_graph_huber: Option<f64>,
     /// Commands waiting for the back end's thread; a full queue makes the frame path wait.
     /// Default 256: below the frame path's priority the back end may fall tens of keyframes
-    /// behind under overload, and a short queue then stalls the frame path (docs/tuning.md);
-    /// the commands hold shared maps the graph keeps anyway.
+    /// behind under overload, and a short queue then stalls the frame path (docs/tuning.md).
+    /// A queued keyframe costs its compact form alone (`KeyframeMaps::Shared`), a depth
+    /// update its compact depth.
     pub channel_capacity: usize,
     /// Full constraint searches per back-end pass while it is behind (more new keyframes than
     /// this queued since its last pass), and deferred searches caught up per pass otherwise

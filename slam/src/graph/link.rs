@@ -13,17 +13,18 @@ use super::config::BackendConfig;
 use crate::Result;
 use crate::background::{Link, Priority, Service, WorkerSpec};
 use crate::geometry::Sim3;
-use crate::mapping::DepthMap;
+use crate::mapping::CompactDepth;
 
 /// What the back end is asked to do.
 #[derive(Debug)]
 pub enum BackendCommand {
     AddKeyframe(Box<NewKeyframe>),
     /// Replace a keyframe's depth map and re-estimate the constraints it takes part in
-    /// ([`Backend::update_keyframe_depth`]).
+    /// ([`Backend::update_keyframe_depth`]). The map waits in the queue in its compact form
+    /// (a quarter of the full one for semi-dense depth; expanded unchanged).
     UpdateDepth {
         id: KeyframeId,
-        depth: Arc<DepthMap>,
+        depth: CompactDepth,
     },
     /// A metric prior's observation of a keyframe's scale ([`Backend::observe_scale`]).
     ObserveScale {
@@ -67,9 +68,9 @@ impl Service for BackendService {
         for command in commands {
             let applied = match command {
                 BackendCommand::AddKeyframe(k) => self.backend.add_keyframe(*k),
-                BackendCommand::UpdateDepth { id, depth } => {
-                    self.backend.update_keyframe_depth(id, depth)
-                }
+                BackendCommand::UpdateDepth { id, depth } => self
+                    .backend
+                    .update_keyframe_depth(id, Arc::new(depth.expand())),
                 BackendCommand::ObserveScale { id, observation } => {
                     self.backend.observe_scale(id, &observation)
                 }

@@ -35,8 +35,8 @@ pub use config::BackendConfig;
 pub use link::{BackendCommand, BackendLink};
 pub use pose_graph::{Constraint, OptimizeReport, PoseGraph, ScalePrior};
 pub use search::{
-    CompactKeyframe, Keyframe, KeyframeData, ReciprocalCheck, Thumbnail, reciprocal_consistency,
-    reciprocal_test,
+    CompactKeyframe, Keyframe, KeyframeData, KeyframeMaps, ReciprocalCheck, Thumbnail,
+    reciprocal_consistency, reciprocal_test,
 };
 pub use sim3_tracker::{Sim3TrackResult, Sim3Tracker};
 

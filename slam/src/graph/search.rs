@@ -11,7 +11,7 @@
 //! composition `T_ba·T_ab` is the identity within the propagated uncertainty (Mahalanobis
 //! distance below a threshold), which rejects the wrong minima single alignments fall into.
 
-use std::sync::Arc;
+use std::sync::{Arc, Weak};
 
 use super::KeyframeId;
 use super::config::BackendConfig;
@@ -262,6 +262,48 @@ impl KeyframeData {
     /// Bytes held in memory (shared buffers counted in full).
     pub fn held_bytes(&self) -> usize {
         self.image.held_bytes() + self.depth.held_bytes()
+    }
+}
+
+/// A new keyframe's full frame and depth map as the command that hands it to the back end
+/// holds them.
+#[derive(Clone, Debug)]
+pub enum KeyframeMaps {
+    /// Held by the command; `data` is their compact form when the caller keeps one.
+    Held {
+        frame: Arc<Frame>,
+        depth: Arc<DepthMap>,
+        data: Option<KeyframeData>,
+    },
+    /// Shared with the front end, which keeps the full maps of its newest keyframes only:
+    /// a command waiting in a long queue (a back end fallen behind) does not keep them alive,
+    /// and they are rebuilt, identical, from `data` when the front end has let go of them.
+    /// Queued keyframes so cost their compact form alone (issue 37: at 640×480 the full maps
+    /// are about 8 MB a keyframe, and a queue of 256 commands held 1.2 GB).
+    Shared {
+        frame: Weak<Frame>,
+        depth: Weak<DepthMap>,
+        data: KeyframeData,
+    },
+}
+
+impl KeyframeMaps {
+    /// The full frame and depth map (rebuilt when shared and let go of) and the compact form.
+    pub fn resolve(self) -> Result<(Arc<Frame>, Arc<DepthMap>, Option<KeyframeData>)> {
+        match self {
+            KeyframeMaps::Held { frame, depth, data } => Ok((frame, depth, data)),
+            KeyframeMaps::Shared { frame, depth, data } => {
+                let frame = match frame.upgrade() {
+                    Some(frame) => frame,
+                    None => Arc::new(data.frame()?),
+                };
+                let depth = match depth.upgrade() {
+                    Some(depth) => depth,
+                    None => Arc::new(data.depth_map()?),
+                };
+                Ok((frame, depth, Some(data)))
+            }
+        }
     }
 }
 

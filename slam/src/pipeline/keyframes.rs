@@ -13,7 +13,7 @@ use crate::dense::layer::{DenseJob, predict};
 use crate::frame::Frame;
 use crate::frame_log::LogRecord;
 use crate::geometry::{Matrix7, PinholeCamera, SE3, SO3, Sim3};
-use crate::graph::{KeyframeData, KeyframeId, NewKeyframe, ParentEdge, Thumbnail};
+use crate::graph::{KeyframeData, KeyframeId, KeyframeMaps, NewKeyframe, ParentEdge, Thumbnail};
 use crate::image::ImageF32;
 use crate::mapping::{CompactDepth, DepthFilter, DepthMap, PriorFillParams};
 use crate::spill::{Reader, Writer};
@@ -326,9 +326,11 @@ impl Pipeline {
         record.mean_idepth = mapped.mean_idepth;
         let new = NewKeyframe {
             id,
-            frame: frame.clone(),
-            depth: mapped.depth.clone(),
-            data: Some(record.data.clone()),
+            maps: KeyframeMaps::Shared {
+                frame: Arc::downgrade(&frame),
+                depth: Arc::downgrade(&mapped.depth),
+                data: record.data.clone(),
+            },
             world_from_keyframe: record.world_from_keyframe,
             parent: record.parent.clone(),
             handover: record.handover.clone(),

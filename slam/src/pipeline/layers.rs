@@ -14,6 +14,7 @@ use crate::fusion::MeshDelta;
 use crate::fusion::worker::{FusionJob, FusionLink, FusionReply};
 use crate::geometry::Sim3;
 use crate::graph::{BackendCommand, KeyframeId};
+use crate::mapping::CompactDepth;
 use crate::spill::Stored;
 
 impl Pipeline {
@@ -65,8 +66,10 @@ impl Pipeline {
             }
             if let Some(depth) = output.refined_depth {
                 self.stats.depth_refinements += 1;
-                self.backend
-                    .send(BackendCommand::UpdateDepth { id, depth })?;
+                self.backend.send(BackendCommand::UpdateDepth {
+                    id,
+                    depth: CompactDepth::of(&depth),
+                })?;
             }
             let kf = output.keyframe;
             self.stats.keyframes_densified += 1;

@@ -9,8 +9,8 @@ use nalgebra::Vector3;
 use super::{DepthScale, SynthKeyframe, render, view};
 use crate::geometry::{Matrix7, Sim3, Vector7};
 use crate::graph::{
-    Backend, BackendCommand, BackendConfig, BackendLink, Constraint, KeyframeId, NewKeyframe,
-    ParentEdge, Thumbnail,
+    Backend, BackendCommand, BackendConfig, BackendLink, Constraint, KeyframeData, KeyframeId,
+    KeyframeMaps, NewKeyframe, ParentEdge, Thumbnail,
 };
 
 /// Keyframes around a horizontal circle of radius 0.25 m (the last one 36° before the first,
@@ -58,9 +58,11 @@ fn drifting_inputs(keyframes: &[SynthKeyframe]) -> Vec<NewKeyframe> {
             });
             NewKeyframe {
                 id: k,
-                frame: Arc::clone(&kf.frame),
-                depth: Arc::clone(&kf.depth),
-                data: None,
+                maps: KeyframeMaps::Held {
+                    frame: Arc::clone(&kf.frame),
+                    depth: Arc::clone(&kf.depth),
+                    data: None,
+                },
                 world_from_keyframe,
                 parent,
                 handover: None,
@@ -177,6 +179,60 @@ fn backend_in_step_closes_the_loop_and_is_deterministic() {
 }
 
 #[test]
+fn a_queued_keyframe_whose_maps_the_front_end_let_go_of_is_rebuilt_identical() {
+    // A back end fallen behind gets keyframes whose full maps the front end has dropped: it
+    // rebuilds them from their compact form, and nothing it computes changes.
+    let keyframes = &loop_keyframes()[..6];
+    let held = drifting_inputs(keyframes);
+    let shared: Vec<NewKeyframe> = held
+        .iter()
+        .map(|new| {
+            let KeyframeMaps::Held { frame, depth, .. } = &new.maps else {
+                panic!("held");
+            };
+            let data = KeyframeData::new(
+                &crate::spill::Spill::default(),
+                frame.compact(),
+                crate::mapping::CompactDepth::of(depth),
+            );
+            // Weak references to copies nobody holds: the front end let go of them.
+            let (frame, depth) = (
+                Arc::new(data.frame().expect("frame")),
+                Arc::new((**depth).clone()),
+            );
+            let maps = KeyframeMaps::Shared {
+                frame: Arc::downgrade(&frame),
+                depth: Arc::downgrade(&depth),
+                data,
+            };
+            NewKeyframe {
+                maps,
+                ..new.clone()
+            }
+        })
+        .collect();
+    let KeyframeMaps::Shared { frame, depth, .. } = &shared[0].maps else {
+        panic!("shared");
+    };
+    assert!(frame.upgrade().is_none() && depth.upgrade().is_none());
+    assert_eq!(run_in_step(&shared), run_in_step(&held));
+
+    // While the front end holds them, the back end uses the same maps, not a copy.
+    let frame = Arc::clone(&keyframes[0].frame);
+    let maps = KeyframeMaps::Shared {
+        frame: Arc::downgrade(&frame),
+        depth: Arc::downgrade(&keyframes[0].depth),
+        data: KeyframeData::new(
+            &crate::spill::Spill::default(),
+            frame.compact(),
+            crate::mapping::CompactDepth::of(&keyframes[0].depth),
+        ),
+    };
+    let (resolved, _, data) = maps.resolve().expect("resolve");
+    assert!(Arc::ptr_eq(&resolved, &frame) && data.is_some());
+}
+
+#[test]
 fn backend_appearance_search_links_a_keyframe_with_a_wrong_pose() {
     // Keyframe 3 revisits keyframe 0's view but arrives without a parent and with a pose 5 m
     // and 90° off: only the appearance thumbnail can propose the candidate, and the Sim(3)
@@ -195,9 +251,11 @@ fn backend_appearance_search_links_a_keyframe_with_a_wrong_pose() {
     );
     inputs.push(NewKeyframe {
         id: 3,
-        frame: Arc::clone(&revisit.frame),
-        depth: Arc::clone(&revisit.depth),
-        data: None,
+        maps: KeyframeMaps::Held {
+            frame: Arc::clone(&revisit.frame),
+            depth: Arc::clone(&revisit.depth),
+            data: None,
+        },
         world_from_keyframe: wrong,
         parent: None,
         handover: None,
@@ -333,7 +391,7 @@ fn backend_depth_update_re_estimates_the_constraints() {
     // depth update, must replace them and pull the pose back.
     let keyframes = loop_keyframes();
     let mut inputs = drifting_inputs(&keyframes[..4]);
-    let good_depth = Arc::clone(&inputs[2].depth);
+    let good_depth = Arc::clone(&keyframes[2].depth);
     let mut warped = (*good_depth).clone();
     let width = warped.width;
     for (i, p) in warped.pixels.iter_mut().enumerate() {
@@ -345,7 +403,11 @@ fn backend_depth_update_re_estimates_the_constraints() {
             };
         }
     }
-    inputs[2].depth = Arc::new(warped);
+    inputs[2].maps = KeyframeMaps::Held {
+        frame: Arc::clone(&keyframes[2].frame),
+        depth: Arc::new(warped),
+        data: None,
+    };
     let mut backend = Backend::new(test_config()).expect("config");
     for input in inputs {
         backend.add_keyframe(input).expect("add");
