@@ -18,6 +18,9 @@ pub const PYRAMID_LEVELS: usize = 5;
 pub struct Frame {
     /// Sequence number given by the pipeline (0, 1, 2, ... in arrival order).
     pub id: u64,
+    /// The caller's id of the frame (`pipeline::FrameInput::frame_id`, a client's), echoed in
+    /// the events about it and about the keyframe made from it; `id` when none was given.
+    pub input_id: u64,
     /// Capture time in seconds (the dataset's / client's clock).
     pub timestamp: f64,
     /// Undistorted pinhole camera of level 0 (no distortion coefficients).
@@ -55,6 +58,7 @@ impl Frame {
         let pyramid = Pyramid::build_cpu(gray, PYRAMID_LEVELS)?;
         Ok(Self {
             id,
+            input_id: id,
             timestamp,
             camera,
             pyramid,
@@ -130,6 +134,7 @@ impl Frame {
 #[derive(Clone, Debug)]
 pub struct CompactFrame {
     pub id: u64,
+    pub input_id: u64,
     pub timestamp: f64,
     /// Undistorted pinhole camera of level 0.
     pub camera: PinholeCamera,
@@ -151,6 +156,7 @@ impl CompactFrame {
             .is_some_and(|rgb| ImageF32::from_rgb8(rgb) == *base);
         Self {
             id: frame.id,
+            input_id: frame.input_id,
             timestamp: frame.timestamp,
             camera: frame.camera,
             rgb: frame.rgb.clone(),
@@ -177,6 +183,7 @@ impl CompactFrame {
         };
         let mut frame = Frame::new(self.id, self.timestamp, self.camera, gray, self.rgb.clone())?;
         frame.sensor_depth = self.sensor_depth.clone();
+        frame.input_id = self.input_id;
         Ok(frame)
     }
 
@@ -198,6 +205,7 @@ impl CompactFrame {
 impl crate::spill::Spillable for CompactFrame {
     fn encode(&self, out: &mut Writer) {
         out.u64(self.id);
+        out.u64(self.input_id);
         out.f64(self.timestamp);
         out.camera(&self.camera);
         match &self.rgb {
@@ -215,6 +223,7 @@ impl crate::spill::Spillable for CompactFrame {
 
     fn decode(input: &mut Reader<'_>) -> Result<Self> {
         let id = input.u64()?;
+        let input_id = input.u64()?;
         let timestamp = input.f64()?;
         let camera = input.camera()?;
         let dim = |v: u64| u32::try_from(v).map_err(|_| Error::Spill("a size does not fit".into()));
@@ -233,6 +242,7 @@ impl crate::spill::Spillable for CompactFrame {
         let sensor_depth = input.opt_image()?.map(Arc::new);
         Ok(Self {
             id,
+            input_id,
             timestamp,
             camera,
             rgb,

@@ -6,9 +6,12 @@
 //!   [`foxglove_front`] lets viewers in with either name of the protocol.
 //! - [`rerun_log`] (feature `rerun`): rerun `.rrd` recordings.
 //! - [`ros2`]: the session as ROS 2 messages (CDR, REP-2011 type hashes) for rmw_zenoh.
+//! - [`pipeline_log`] (feature `pipeline`): the pipeline's events given to a [`SessionLog`].
 
 pub mod foxglove_front;
 pub mod foxglove_log;
+#[cfg(feature = "pipeline")]
+pub mod pipeline_log;
 #[cfg(feature = "rerun")]
 pub mod rerun_log;
 pub mod ros2;

@@ -265,6 +265,7 @@ pub(super) fn load(dataset: &Path, limit: Option<usize>) -> anyhow::Result<Loade
     let frames = (0..n)
         .map(|i| {
             Ok(FrameInput {
+                frame_id: None,
                 timestamp: seq.frames[i].timestamp,
                 rgb: seq.load_rgb(i)?,
                 depth: None,

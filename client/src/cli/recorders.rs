@@ -11,8 +11,9 @@ use anyhow::Context as _;
 use relfusion_sdk::dataset_stream::StreamEvent;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::geometry::PinholeCamera;
-use relfusion_slam::pipeline::{Event, TrackingState};
+use relfusion_slam::pipeline::Event;
 use relfusion_viz::foxglove_log::{FoxgloveLog, FoxgloveOptions, parse_serve_address};
+use relfusion_viz::pipeline_log::log_event;
 use relfusion_viz::ros2::mcap::Ros2Bag;
 use relfusion_viz::session_log::{DepthRef, LogError, MeshBlockRef, Pose, SessionLog};
 use serde_json::{Map, Value};
@@ -247,60 +248,8 @@ impl Logs {
 
     /// Events of the local pipeline that came out without a frame (the final flush).
     pub fn on_run_events(&mut self, events: &[Event]) {
-        if self.is_empty() {
-            return;
-        }
         for event in events {
-            match event {
-                Event::Pose(p) if p.state != TrackingState::Lost => {
-                    let pose = Pose::from(&p.world_from_camera);
-                    self.each(|l| l.pose(p.frame_id, p.timestamp, &pose));
-                }
-                Event::Keyframe(k) => {
-                    let pose = Pose::from(&k.world_from_keyframe);
-                    self.each(|l| l.keyframe(k.keyframe_id as u64, &pose));
-                }
-                Event::KeyframePoses { poses } => {
-                    for (id, pose) in poses {
-                        let pose = Pose::from(pose);
-                        self.each(|l| l.keyframe(*id as u64, &pose));
-                    }
-                }
-                Event::KeyframeDensified {
-                    keyframe_id,
-                    keyframe,
-                    ..
-                } => {
-                    let c = &keyframe.camera;
-                    let depth = DepthRef {
-                        width: keyframe.idepth.width,
-                        height: keyframe.idepth.height,
-                        inverse_depth: &keyframe.idepth.data,
-                        fx: c.fx,
-                        fy: c.fy,
-                        cx: c.cx,
-                        cy: c.cy,
-                    };
-                    self.each(|l| l.keyframe_depth(*keyframe_id as u64, &depth));
-                }
-                Event::MeshUpdated { delta, .. } => {
-                    let removed: Vec<[i32; 3]> =
-                        delta.removed.iter().map(|b| [b.x, b.y, b.z]).collect();
-                    let changed: Vec<MeshBlockRef<'_>> = delta
-                        .changed
-                        .iter()
-                        .map(|b| MeshBlockRef {
-                            index: [b.index.x, b.index.y, b.index.z],
-                            positions: &b.positions,
-                            colors: &b.colors,
-                            normals: &b.normals,
-                            indices: &b.indices,
-                        })
-                        .collect();
-                    self.each(|l| l.mesh_update(&changed, &removed));
-                }
-                Event::Pose(_) => {}
-            }
+            self.each(|l| log_event(l, event));
         }
     }
 

@@ -273,6 +273,7 @@ pub fn run_sequence(
         };
         load_s += tl.elapsed().as_secs_f64();
         let events = pipeline.push(FrameInput {
+            frame_id: None,
             timestamp: frame.timestamp,
             rgb,
             depth,

@@ -7,7 +7,7 @@ use relfusion_slam::dense::DepthPrior;
 use relfusion_slam::geometry::{PinholeCamera, Sim3};
 use relfusion_slam::map::{LocalizationState, Localizer, read_map};
 use relfusion_slam::pipeline::{
-    Config, Event, FrameInput, Pipeline, PoseEvent, Stats, TrackingState,
+    Config, Event, FrameInput, KeyframePose, Pipeline, PoseEvent, Stats, TrackingState,
 };
 
 use crate::convert::points_ply;
@@ -23,7 +23,7 @@ pub const POINTCLOUD_MAX_POINTS: usize = 4_000_000;
 pub type ResultFiles = (String, String, Option<Vec<u8>>);
 
 /// The optimised keyframe poses and the events finishing produced.
-type Finished = (Vec<(usize, Sim3)>, Vec<Event>);
+type Finished = (Vec<KeyframePose>, Vec<Event>);
 
 /// The session's engine.
 pub(crate) enum Engine {
@@ -140,7 +140,7 @@ impl Engine {
 
     /// One frame; what happened, as pipeline events (a localised frame is a pose: `tracking`
     /// or `relocalized` in the map's frame; a frame not in the map is `lost`, at the identity).
-    pub fn push(&mut self, frame_id: u64, input: FrameInput) -> relfusion_slam::Result<Vec<Event>> {
+    pub fn push(&mut self, input: FrameInput) -> relfusion_slam::Result<Vec<Event>> {
         match self {
             Engine::Map(pipeline) => pipeline.push(input),
             Engine::Localize { localizer, stats } => {
@@ -157,7 +157,7 @@ impl Engine {
                     stats.frames_lost += 1;
                 }
                 Ok(vec![Event::Pose(PoseEvent {
-                    frame_id,
+                    frame_id: input.frame_id.unwrap_or(stats.frames as u64 - 1),
                     timestamp: result.timestamp,
                     world_from_camera: result.world_from_camera.unwrap_or_else(Sim3::identity),
                     state,
@@ -203,7 +203,7 @@ impl Engine {
         match self {
             Engine::Map(pipeline) => {
                 let poses = pipeline.finish()?;
-                Ok((poses, pipeline.take_events()))
+                Ok((pipeline.with_frames(poses), pipeline.take_events()))
             }
             Engine::Localize { .. } => Ok((Vec::new(), Vec::new())),
         }

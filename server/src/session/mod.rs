@@ -40,7 +40,7 @@ pub mod types;
 pub mod upload;
 mod worker;
 
-pub use events::{KeyframePose, SessionEvent, mesh_block};
+pub use events::{SessionEvent, mesh_block};
 pub use handle::Session;
 pub use manager::{NewUpload, SessionManager};
 pub use overrides::merge_config;

@@ -14,7 +14,7 @@ use std::path::PathBuf;
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_viz::SessionLog;
 use relfusion_viz::foxglove_log::{FoxgloveLog, FoxgloveOptions};
-use relfusion_viz::session_log::{DepthRef, LogError, MeshBlockRef, Pose};
+use relfusion_viz::session_log::LogError;
 
 use super::events::SessionEvent;
 use crate::storage::{ObjectStore, result_key};
@@ -134,58 +134,12 @@ impl Recorder {
     }
 }
 
-/// Gives `log` what `event` holds for a viewer (the session's part of a [`SessionLog`]: poses
-/// of tracked frames, keyframes made or moved, dense depth, mesh updates); other events are
-/// not a viewer's. One translation for the recording and the ROS 2 topics.
+/// Gives `log` what `event` holds for a viewer (the pipeline's events, through
+/// `relfusion_viz::pipeline_log`); the others are not a viewer's. Used by the recording and
+/// the ROS 2 topics.
 pub(crate) fn log_event(log: &mut dyn SessionLog, event: &SessionEvent) -> Result<(), LogError> {
     match event {
-        SessionEvent::Pose {
-            frame_id,
-            timestamp,
-            pose,
-            state,
-            ..
-        } if *state != relfusion_slam::pipeline::TrackingState::Lost => {
-            log.pose(*frame_id, *timestamp, &Pose::from(pose))
-        }
-        SessionEvent::Keyframe {
-            keyframe_id, pose, ..
-        } => log.keyframe(*keyframe_id, &Pose::from(pose)),
-        SessionEvent::KeyframePoses { poses } => poses
-            .iter()
-            .try_for_each(|k| log.keyframe(k.keyframe_id, &Pose::from(&k.pose))),
-        SessionEvent::KeyframeDensified {
-            keyframe_id, dense, ..
-        } => {
-            let c = &dense.camera;
-            log.keyframe_depth(
-                *keyframe_id,
-                &DepthRef {
-                    width: dense.idepth.width,
-                    height: dense.idepth.height,
-                    inverse_depth: &dense.idepth.data,
-                    fx: c.fx,
-                    fy: c.fy,
-                    cx: c.cx,
-                    cy: c.cy,
-                },
-            )
-        }
-        SessionEvent::MeshUpdated { delta, .. } => {
-            let removed: Vec<[i32; 3]> = delta.removed.iter().map(|b| [b.x, b.y, b.z]).collect();
-            let changed: Vec<MeshBlockRef<'_>> = delta
-                .changed
-                .iter()
-                .map(|b| MeshBlockRef {
-                    index: [b.index.x, b.index.y, b.index.z],
-                    positions: &b.positions,
-                    colors: &b.colors,
-                    normals: &b.normals,
-                    indices: &b.indices,
-                })
-                .collect();
-            log.mesh_update(&changed, &removed)
-        }
+        SessionEvent::Pipeline(event) => relfusion_viz::pipeline_log::log_event(log, event),
         _ => Ok(()),
     }
 }

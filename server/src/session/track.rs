@@ -13,6 +13,7 @@ use relfusion_slam::frame_log::{FrameLog, LogRecord};
 use relfusion_slam::fusion::weld::BlockSource;
 use relfusion_slam::fusion::{BlockMesh, MeshDelta};
 use relfusion_slam::geometry::Sim3;
+use relfusion_slam::pipeline::KeyframePose;
 use relfusion_slam::spill::{Reader, Spill, Writer};
 
 use super::handle::Session;
@@ -256,11 +257,12 @@ impl Session {
         lock(&self.track).mesh.block_counts()
     }
 
-    pub(crate) fn update_keyframe_poses(&self, poses: &[(usize, Sim3)]) {
+    /// The keyframes' poses after a pose-graph optimisation.
+    pub(crate) fn update_keyframe_poses(&self, poses: &[KeyframePose]) {
         let mut track = lock(&self.track);
-        for (id, pose) in poses {
-            if let Some(entry) = track.keyframes.get_mut(&(*id as u64)) {
-                entry.1 = *pose;
+        for p in poses {
+            if let Some(entry) = track.keyframes.get_mut(&(p.keyframe_id as u64)) {
+                entry.1 = p.world_from_keyframe;
             }
         }
     }

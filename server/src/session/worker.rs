@@ -26,7 +26,7 @@ use serde_json::json;
 
 use super::engine::Engine;
 
-use super::events::{KeyframePose, SessionEvent};
+use super::events::SessionEvent;
 use super::handle::Session;
 use super::input::QueuedFrame;
 use super::persist::Results;
@@ -125,7 +125,6 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         since_checkpoint: 0,
         tracked_keyframe: None,
         pointcloud: Cell::new((0, 0)),
-        keyframe_frames: std::collections::HashMap::new(),
         mapping_ended: false,
     };
     let fed = match session.kind() {
@@ -165,8 +164,6 @@ struct Runner<'a> {
     /// the keyframes have doubled since, so a session's checkpoints read its spilled keyframes
     /// back O(log n) times, not once per checkpoint (issue 37).
     pointcloud: Cell<(u64, u64)>,
-    /// Client frame id and timestamp of each keyframe, for pose-graph updates.
-    keyframe_frames: std::collections::HashMap<u64, (u64, f64)>,
     /// Mapping ended early (the map limit, or a store that refused spilled keyframes): no more
     /// frames go in.
     mapping_ended: bool,
@@ -185,68 +182,29 @@ impl Runner<'_> {
         self.session.emit(event);
     }
 
-    /// The pose-graph update of `poses` with each keyframe's frame id and timestamp.
-    fn keyframe_poses_event(
-        &self,
-        poses: &[(usize, relfusion_slam::geometry::Sim3)],
-    ) -> SessionEvent {
-        SessionEvent::KeyframePoses {
-            poses: poses
-                .iter()
-                .filter_map(|(id, p)| {
-                    let id = *id as u64;
-                    let &(frame_id, timestamp) = self.keyframe_frames.get(&id)?;
-                    Some(KeyframePose {
-                        keyframe_id: id,
-                        frame_id,
-                        timestamp,
-                        pose: *p,
-                    })
-                })
-                .collect(),
-        }
-    }
-
     /// Reports what the threads beside tracking produced: moved keyframe poses, dense
     /// keyframes and mesh updates. They come with a frame, from a poll while the camera
     /// pauses, or from the final optimisation. Frame events cannot come without a frame.
     fn emit_background(&self, event: Event) {
-        match event {
-            Event::KeyframePoses { poses } => {
-                self.session.update_keyframe_poses(&poses);
-                self.emit(self.keyframe_poses_event(&poses));
-            }
-            Event::KeyframeDensified { keyframe, .. } => self.emit_densified(keyframe),
-            Event::MeshUpdated { delta, .. } => {
-                let s = self.session;
-                s.apply_mesh_delta(&delta);
-                self.emit(SessionEvent::MeshUpdated {
-                    revision: delta.revision,
-                    changed_blocks: delta.changed.len(),
-                    removed_blocks: delta.removed.len(),
-                    delta,
-                });
-            }
-            _ => {}
-        }
-    }
-
-    /// Reports a dense keyframe (with the client's frame id of its keyframe).
-    fn emit_densified(&self, dense: Arc<relfusion_slam::dense::DenseKeyframe>) {
         let s = self.session;
-        s.counters.densified.fetch_add(1, Ordering::Relaxed);
-        let id = dense.keyframe_id as u64;
-        let frame_id = self.keyframe_frames.get(&id).map_or(0, |&(f, _)| f);
-        self.emit(SessionEvent::KeyframeDensified {
-            keyframe_id: id,
-            frame_id,
-            timestamp: dense.timestamp,
-            pose: dense.world_from_keyframe,
-            mode: dense.mode,
-            width: dense.idepth.width,
-            height: dense.idepth.height,
-            dense,
-        });
+        match event {
+            Event::KeyframePoses { mut poses } => {
+                s.update_keyframe_poses(&poses);
+                // Subscribers hear of the keyframes of the session's own frames (a saved
+                // map's keyframes, which an extending session starts from, have none).
+                poses.retain(|p| p.frame_id.is_some());
+                self.emit(SessionEvent::Pipeline(Event::KeyframePoses { poses }));
+            }
+            Event::KeyframeDensified { .. } => {
+                s.counters.densified.fetch_add(1, Ordering::Relaxed);
+                self.emit(SessionEvent::Pipeline(event));
+            }
+            Event::MeshUpdated { ref delta, .. } => {
+                s.apply_mesh_delta(delta);
+                self.emit(SessionEvent::Pipeline(event));
+            }
+            Event::Pose(_) | Event::Keyframe(_) => {}
+        }
     }
 
     fn feed_live(&mut self) -> Result<Outcome, String> {
@@ -355,14 +313,12 @@ impl Runner<'_> {
         let (frame_id, received) = (frame.frame_id, frame.received);
         let events = self
             .engine
-            .push(
-                frame_id,
-                FrameInput {
-                    timestamp: frame.timestamp,
-                    rgb: frame.rgb,
-                    depth: None,
-                },
-            )
+            .push(FrameInput {
+                frame_id: Some(frame_id),
+                timestamp: frame.timestamp,
+                rgb: frame.rgb,
+                depth: None,
+            })
             .map_err(|e| format!("pipeline, frame {frame_id}: {e}"))?;
         self.observe_stages();
         self.session
@@ -372,8 +328,8 @@ impl Runner<'_> {
         self.env.metrics.frames_processed.inc();
         for event in events {
             match event {
-                Event::Pose(p) => self.pose(frame_id, received, p),
-                Event::Keyframe(k) => self.keyframe(frame_id, k),
+                Event::Pose(p) => self.pose(received, p),
+                Event::Keyframe(k) => self.keyframe(k),
                 event => self.emit_background(event),
             }
         }
@@ -403,7 +359,7 @@ impl Runner<'_> {
 
     /// A frame's pose: recorded, counted, sent; a new tracking keyframe refreshes the memory
     /// figures and counts towards the next checkpoint.
-    fn pose(&mut self, frame_id: u64, received: Instant, p: PoseEvent) {
+    fn pose(&mut self, received: Instant, p: PoseEvent) {
         let s = self.session;
         let lost = p.state == TrackingState::Lost;
         if lost {
@@ -423,29 +379,15 @@ impl Runner<'_> {
         self.env
             .metrics
             .observe_stage(Stage::FrameToPose, received.elapsed().as_secs_f64());
-        self.emit(SessionEvent::Pose {
-            frame_id,
-            timestamp: p.timestamp,
-            pose: p.world_from_camera,
-            state: p.state,
-            is_keyframe: p.is_keyframe,
-            keyframe_id: p.keyframe_id as u64,
-        });
+        self.emit(SessionEvent::Pipeline(Event::Pose(p)));
     }
 
-    /// A new keyframe: counted, recorded with the frame it came from, sent.
-    fn keyframe(&mut self, frame_id: u64, k: KeyframeEvent) {
+    /// A new keyframe: counted, recorded, sent.
+    fn keyframe(&mut self, k: KeyframeEvent) {
         let s = self.session;
         s.counters.keyframes.fetch_add(1, Ordering::Relaxed);
         s.record_keyframe(k.keyframe_id as u64, k.timestamp, k.world_from_keyframe);
-        self.keyframe_frames
-            .insert(k.keyframe_id as u64, (frame_id, k.timestamp));
-        self.emit(SessionEvent::Keyframe {
-            keyframe_id: k.keyframe_id as u64,
-            frame_id,
-            timestamp: k.timestamp,
-            pose: k.world_from_keyframe,
-        });
+        self.emit(SessionEvent::Pipeline(Event::Keyframe(k)));
     }
 
     /// Mapping ends, with a notice, when the store refuses spilled keyframes (the memory
@@ -618,8 +560,7 @@ impl Runner<'_> {
         for event in events {
             self.emit_background(event);
         }
-        s.update_keyframe_poses(&poses);
-        self.emit(self.keyframe_poses_event(&poses));
+        self.emit_background(Event::KeyframePoses { poses });
         if s.lifecycle.is_deleted() {
             return Outcome::Cancelled;
         }

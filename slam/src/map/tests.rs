@@ -26,6 +26,7 @@ fn synth() -> SynthConfig {
 fn render(scene: &Scene, camera: &PinholeCamera, pose: &SE3, t: f64) -> FrameInput {
     let (rgb, _) = render_frame(scene, camera, pose);
     FrameInput {
+        frame_id: None,
         timestamp: t,
         rgb,
         depth: None,

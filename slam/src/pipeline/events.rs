@@ -24,6 +24,8 @@ pub enum TrackingState {
 /// The pose of one frame, as soon as it is tracked.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct PoseEvent {
+    /// The caller's id of the frame (`FrameInput::frame_id`; the pipeline's count when it
+    /// gave none).
     pub frame_id: u64,
     pub timestamp: f64,
     /// Camera-to-world in the map's (monocular, arbitrary) scale, at the time of tracking; the
@@ -35,10 +37,22 @@ pub struct PoseEvent {
     pub is_keyframe: bool,
 }
 
+/// A keyframe's pose after a pose-graph optimisation.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct KeyframePose {
+    pub keyframe_id: KeyframeId,
+    /// The caller's id of the frame it was made from; `None` for a keyframe of the saved map
+    /// an extending pipeline started from.
+    pub frame_id: Option<u64>,
+    pub timestamp: f64,
+    pub world_from_keyframe: Sim3,
+}
+
 /// A keyframe was created.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct KeyframeEvent {
     pub keyframe_id: KeyframeId,
+    /// The caller's id of the frame it was made from, as in [`PoseEvent::frame_id`].
     pub frame_id: u64,
     pub timestamp: f64,
     pub world_from_keyframe: Sim3,
@@ -52,12 +66,14 @@ pub enum Event {
     Keyframe(KeyframeEvent),
     /// The back end optimised the pose graph: the current pose of every keyframe.
     KeyframePoses {
-        poses: Vec<(KeyframeId, Sim3)>,
+        poses: Vec<KeyframePose>,
     },
     /// The dense layer finished a keyframe: dense inverse depth and variance at the working
     /// resolution (320×240 by default) with the keyframe's pose (paper §III-D).
     KeyframeDensified {
         keyframe_id: KeyframeId,
+        /// As in [`KeyframePose::frame_id`].
+        frame_id: Option<u64>,
         timestamp: f64,
         mode: DenseMode,
         #[serde(skip)]

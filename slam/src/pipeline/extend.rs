@@ -117,6 +117,7 @@ impl Pipeline {
         for (kf, data) in map.keyframes.iter().zip(data) {
             self.keyframes.push(KeyframeRecord {
                 timestamp: kf.timestamp,
+                frame_id: None,
                 camera: kf.image.camera,
                 data,
                 thumbnail: kf.thumbnail.clone(),

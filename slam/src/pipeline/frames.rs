@@ -117,7 +117,7 @@ impl Pipeline {
         let world_from_camera =
             self.tracking_pose(keyframe) * Sim3::from_se3(&keyframe_from_frame, 1.0);
         Event::Pose(PoseEvent {
-            frame_id: frame.id,
+            frame_id: frame.input_id,
             timestamp: frame.timestamp,
             world_from_camera,
             state,
@@ -136,6 +136,7 @@ impl Pipeline {
             self.undistort.as_ref(),
             input.rgb,
         )?;
+        frame.input_id = input.frame_id.unwrap_or(frame.id);
         self.next_frame_id += 1;
         let sensor_depth = match input.depth {
             Some(depth) if self.config.dense.two_view.ground_truth_depth => {

@@ -56,6 +56,9 @@ impl LogRecord for FrameRecord {
 pub(super) struct KeyframeRecord {
     /// Its timestamp and undistorted camera (kept while its image may be spilled).
     pub timestamp: f64,
+    /// The caller's id of the frame it was made from (`FrameInput::frame_id`); `None` for a
+    /// keyframe of the saved map an extending pipeline started from.
+    pub frame_id: Option<u64>,
     pub camera: PinholeCamera,
     /// Its image without the pyramid and its semi-dense depth as last published (final once
     /// the keyframe is finished), in compact form, always kept: in memory, or in the session's
@@ -253,6 +256,7 @@ impl Pipeline {
         let mapped = self.mapper.begin(filter)?;
         self.keyframes.push(KeyframeRecord {
             timestamp: frame.timestamp,
+            frame_id: Some(frame.input_id),
             camera: frame.camera,
             data: KeyframeData::new(
                 &self.spill,
@@ -273,7 +277,7 @@ impl Pipeline {
         self.stats.keyframes = self.keyframes.len();
         let mut events = vec![Event::Keyframe(KeyframeEvent {
             keyframe_id: id,
-            frame_id: frame.id,
+            frame_id: frame.input_id,
             timestamp: frame.timestamp,
             world_from_keyframe,
         })];
@@ -288,7 +292,7 @@ impl Pipeline {
             });
             self.last_frame_from_keyframe = SE3::identity();
             events.push(Event::Pose(PoseEvent {
-                frame_id: frame.id,
+                frame_id: frame.input_id,
                 timestamp: frame.timestamp,
                 world_from_camera: world_from_keyframe,
                 state,

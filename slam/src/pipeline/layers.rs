@@ -75,6 +75,7 @@ impl Pipeline {
             self.stats.keyframes_densified += 1;
             self.pending_events.push(Event::KeyframeDensified {
                 keyframe_id: id,
+                frame_id: self.keyframes[id].frame_id,
                 timestamp: kf.timestamp,
                 mode: kf.mode,
                 keyframe: kf.clone(),

@@ -43,7 +43,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
 pub use config::{Config, DepthInit, PipelineConfig};
-pub use events::{Event, KeyframeEvent, PoseEvent, TrackingState};
+pub use events::{Event, KeyframeEvent, KeyframePose, PoseEvent, TrackingState};
 pub use extend::ExtendConfig;
 pub use user_config::{Scope, USER_SETTINGS, UserConfig, UserConfigError};
 
@@ -71,6 +71,10 @@ use mapper::KeyframeMapper;
 /// One input frame: a colour image (distorted as the camera delivers it) and its time.
 #[derive(Clone, Debug)]
 pub struct FrameInput {
+    /// The caller's id of this frame (a client's), echoed as `frame_id` in the frame's events
+    /// and in those of the keyframe made from it, so no caller keeps a map back to its ids;
+    /// `None`: the pipeline's own count (0, 1, 2, ... in arrival order).
+    pub frame_id: Option<u64>,
     pub timestamp: f64,
     pub rgb: ::image::RgbImage,
     /// Metric depth registered to `rgb` (same size, distorted alike; metres, 0 = none), from
@@ -401,10 +405,23 @@ impl Pipeline {
         if optimised.len() < 2 || optimised == self.reported_poses {
             return;
         }
-        self.pending_events.push(Event::KeyframePoses {
-            poses: self.keyframe_poses_from(&optimised),
-        });
+        let poses = self.with_frames(self.keyframe_poses_from(&optimised));
+        self.pending_events.push(Event::KeyframePoses { poses });
         self.reported_poses = optimised;
+    }
+
+    /// Keyframe `poses` with the caller's frame id and the timestamp of each (what
+    /// [`Event::KeyframePoses`] carries).
+    pub fn with_frames(&self, poses: Vec<(KeyframeId, Sim3)>) -> Vec<KeyframePose> {
+        poses
+            .into_iter()
+            .map(|(id, pose)| KeyframePose {
+                keyframe_id: id,
+                frame_id: self.keyframes[id].frame_id,
+                timestamp: self.keyframes[id].timestamp,
+                world_from_keyframe: pose,
+            })
+            .collect()
     }
 
     /// Current pose of every keyframe: optimised where the back end has one, else the front

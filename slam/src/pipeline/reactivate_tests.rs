@@ -29,6 +29,7 @@ fn forward_and_back() -> (PinholeCamera, Vec<FrameInput>, Vec<StampedPose>) {
         let timestamp = i as f64 / synth.fps;
         let (rgb, _) = render_frame(&scene, &camera, pose);
         frames.push(FrameInput {
+            frame_id: None,
             timestamp,
             rgb,
             depth: None,

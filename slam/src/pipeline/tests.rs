@@ -30,6 +30,7 @@ pub(super) fn sequence() -> &'static (PinholeCamera, Vec<FrameInput>, Vec<Stampe
             let timestamp = i as f64 / config.fps;
             let (rgb, depth) = render_frame(&scene, &camera, pose);
             frames.push(FrameInput {
+                frame_id: None,
                 timestamp,
                 rgb,
                 depth: Some(depth),
@@ -333,8 +334,9 @@ fn threaded_back_end_tracks_the_sequence_too() {
 
 /// Live use: frames arrive at the sequence's 30 fps and the mapping runs on its own thread,
 /// keyframes made there while tracking goes on. Every frame still gets exactly one pose,
-/// every keyframe one keyframe event, the back end's moves arrive as `KeyframePoses`, and the
-/// trajectory stays within the threaded bound.
+/// every keyframe one keyframe event, the back end's moves arrive as `KeyframePoses`, every
+/// event names the caller's own frame id (keyframes made from frames pushed earlier
+/// included), and the trajectory stays within the threaded bound.
 #[test]
 fn mapping_thread_tracks_a_live_stream() {
     let (camera, frames, gt) = sequence();
@@ -344,25 +346,46 @@ fn mapping_thread_tracks_a_live_stream() {
     let mut pipeline = Pipeline::new(config, *camera, None).expect("pipeline");
     let mut events = Vec::new();
     let t0 = std::time::Instant::now();
-    for frame in frames {
+    // A client's ids: neither the pipeline's count nor contiguous.
+    let client_id = |i: usize| 1000 + 3 * i as u64;
+    let sent: Vec<u64> = (0..frames.len()).map(client_id).collect();
+    for (i, frame) in frames.iter().enumerate() {
         let due = t0 + std::time::Duration::from_secs_f64(frame.timestamp);
         std::thread::sleep(due.saturating_duration_since(std::time::Instant::now()));
-        events.extend(pipeline.push(frame.clone()).expect("push"));
+        let frame = FrameInput {
+            frame_id: Some(client_id(i)),
+            ..frame.clone()
+        };
+        events.extend(pipeline.push(frame).expect("push"));
     }
     pipeline.finish().expect("finish");
     events.extend(pipeline.take_events());
     let stats = pipeline.stats().clone();
-    let mut frame_ids: Vec<u64> = events
+    let frame_ids: Vec<u64> = events
         .iter()
         .filter_map(|e| match e {
             Event::Pose(p) => Some(p.frame_id),
             _ => None,
         })
         .collect();
-    let reported = frame_ids.len();
-    frame_ids.dedup();
-    assert_eq!(frame_ids.len(), reported, "a frame reported twice");
-    assert_eq!(reported, frames.len(), "one pose event per frame");
+    assert_eq!(
+        frame_ids, sent,
+        "one pose event per frame, with its id, in order"
+    );
+    for e in &events {
+        let ids: Vec<Option<u64>> = match e {
+            Event::Keyframe(k) => vec![Some(k.frame_id)],
+            Event::KeyframePoses { poses } => poses.iter().map(|p| p.frame_id).collect(),
+            Event::KeyframeDensified { frame_id, .. } => vec![*frame_id],
+            _ => Vec::new(),
+        };
+        for id in ids {
+            assert!(
+                id.is_some_and(|id| sent.contains(&id)),
+                "{id:?} is not a sent frame's id"
+            );
+        }
+    }
     let keyframe_events = events
         .iter()
         .filter(|e| matches!(e, Event::Keyframe(_)))
@@ -413,6 +436,7 @@ fn a_frame_of_the_wrong_size_is_refused_and_nothing_is_lost() {
     let mut pipeline = Pipeline::new(config, *camera, None).expect("pipeline");
     pipeline.push(frames[0].clone()).expect("first frame");
     let wrong = FrameInput {
+        frame_id: None,
         timestamp: 0.5,
         rgb: ::image::RgbImage::new(100, 80),
         depth: None,
@@ -480,6 +504,7 @@ fn pipeline_scale_drift_over_a_1000_frame_loop_stays_within_1_1() {
         let (rgb, _) = crate::dataset::synth::render_frame_with(&scene, &camera, pose, 1);
         pipeline
             .push(FrameInput {
+                frame_id: None,
                 timestamp,
                 rgb,
                 depth: None,
@@ -534,6 +559,7 @@ fn covered_and_moved(config: Config, resumed_until: usize) -> (Pipeline, Vec<Sta
         let (rgb, _) = render_frame(s, &camera, &poses[i]);
         pipeline
             .push(FrameInput {
+                frame_id: None,
                 timestamp,
                 rgb,
                 depth: None,

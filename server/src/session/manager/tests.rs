@@ -13,6 +13,7 @@ use crate::session::persist::{SessionMeta, result_key};
 use crate::session::types::{CameraJson, CreateSession, camera_from_json};
 use crate::session::{FrameData, SessionEvent};
 use crate::storage::{FsStore, ObjectStore};
+use relfusion_slam::pipeline::Event;
 
 fn temp_config(tag: &str, max_sessions: usize) -> Config {
     let dir: PathBuf =
@@ -197,7 +198,7 @@ async fn frames_are_checked_processed_and_results_persisted() {
     let mut finished = false;
     while let Ok(e) = events.try_recv() {
         match e {
-            SessionEvent::Pose { frame_id, .. } => pose_ids.push(frame_id),
+            SessionEvent::Pipeline(Event::Pose(p)) => pose_ids.push(p.frame_id),
             SessionEvent::Finished { .. } => finished = true,
             _ => {}
         }
