@@ -21,8 +21,8 @@ pub enum DepthInit {
     Random,
 }
 
-/// Front-end orchestration settings. Its user settings are listed in [`crate::pipeline::user_config`];
-/// the rest is expert level.
+/// Front-end orchestration settings. Its user settings are listed in
+/// [`crate::pipeline::user_config`]; the rest is expert level.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct PipelineConfig {
