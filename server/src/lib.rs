@@ -15,10 +15,12 @@ pub mod error;
 pub mod folders;
 pub mod gpu_pool;
 pub mod http;
+pub mod locator;
 pub mod maps;
 pub mod memory;
 pub mod metrics;
 pub mod ros2_api;
+pub mod ros2_names;
 pub mod session;
 pub mod storage;
 pub mod zenoh_api;
@@ -38,8 +40,8 @@ pub struct AppState {
     pub metrics: Arc<metrics::Metrics>,
     /// Request bodies buffered at once ([`http::body`]).
     pub body_budget: http::body::BodyBudget,
-    /// This node in the cluster (placement, routing to other nodes; inert without Zenoh).
-    pub cluster: Arc<cluster::Cluster>,
+    /// Where sessions are: here or on another node of the cluster (inert without Zenoh).
+    pub locator: Arc<locator::Locator>,
     /// WebSocket and SSE streams open, per owner and per session ([`http::streams`]).
     pub streams: Arc<http::streams::StreamCounts>,
 }
@@ -50,7 +52,9 @@ impl AppState {
         let metrics = Arc::new(metrics::Metrics::new());
         let sessions = session::SessionManager::open(&config, metrics.clone())?;
         Ok(Self {
-            cluster: cluster::Cluster::new(sessions.clone()),
+            locator: Arc::new(locator::Locator::new(cluster::Cluster::new(
+                sessions.clone(),
+            ))),
             body_budget: http::body::BodyBudget::new(
                 config.limits.max_buffered_body_mb,
                 config
@@ -96,20 +100,20 @@ pub async fn run(
     ) {
         (false, _) => None,
         (true, false) => Some(ZenohSide::Up(
-            zenoh_api::start(&state.config, state.cluster.clone()).await?,
+            zenoh_api::start(&state.config, state.locator.clone()).await?,
         )),
         (true, true) => {
             zenoh_api::check(&state.config, &state.sessions)?;
-            let (config, cluster) = (state.config.clone(), state.cluster.clone());
+            let (config, locator) = (state.config.clone(), state.locator.clone());
             Some(ZenohSide::Joining(tokio::spawn(async move {
-                zenoh_api::start(&config, cluster).await
+                zenoh_api::start(&config, locator).await
             })))
         }
     };
     let janitor = state.sessions.spawn_janitor();
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let router = app(state.clone());
-    state.cluster.set_router(router.clone());
+    state.locator.serve_forwarded_with(router.clone());
     let limits = state.config.http.clone();
     let mut server = tokio::spawn(async move {
         http::serve::serve(listener, tls, router, &limits, async move {

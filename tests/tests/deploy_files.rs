@@ -4,6 +4,9 @@
 //! non-root pods and image, Prometheus annotations, images with a registry, a --locked build,
 //! NVIDIA's Vulkan libraries, restart policies and healthchecks, a .dockerignore). Fails on the
 //! checkout's files, and must fail on a copy with a known defect put back in.
+//!
+//! Also the shape of the code (issue 36): no module of the server, the CLI or the SDK imports
+//! in a circle (`scripts/module_cycles.py`, top-level modules and one level down).
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -75,5 +78,52 @@ fn deploy_files_validate_and_keep_their_promises() {
     assert!(!out.status.success(), "defects not found:\n{report}");
     assert!(report.contains("headless"), "{report}");
     assert!(report.contains("--locked"), "{report}");
+    let _ = std::fs::remove_dir_all(&work);
+}
+
+fn module_cycles(src: &Path, depth: u32) -> Output {
+    Command::new("python3")
+        .arg(repo().join("scripts/module_cycles.py"))
+        .arg(src)
+        .arg(depth.to_string())
+        .output()
+        .expect("run python3")
+}
+
+#[test]
+fn no_module_imports_in_a_circle() {
+    for krate in ["server", "client", "sdk"] {
+        for depth in [1, 2] {
+            let out = module_cycles(&repo().join(krate).join("src"), depth);
+            let report = String::from_utf8_lossy(&out.stdout);
+            assert!(out.status.success(), "{krate} at depth {depth}:\n{report}");
+            assert!(report.contains(" imports, depth "), "{report}");
+        }
+    }
+
+    // The circle this checks for (issue 36: relay <-> stream_ws <-> stream_remote), put back
+    // in a copy, must be found.
+    let work = temp_dir("module-cycles");
+    let http = work.join("http");
+    std::fs::create_dir_all(&http).expect("mkdir");
+    std::fs::write(work.join("lib.rs"), "pub mod http;\npub mod cluster;\n").expect("write");
+    std::fs::write(http.join("mod.rs"), "pub mod stream_ws;\n").expect("write");
+    std::fs::write(
+        http.join("stream_ws.rs"),
+        "use crate::cluster::relay::Relay;\npub fn handle() {}\n",
+    )
+    .expect("write");
+    std::fs::write(
+        work.join("cluster.rs"),
+        "pub mod relay { pub struct Relay; }\nfn call() { crate::http::stream_ws::handle() }\n",
+    )
+    .expect("write");
+    let out = module_cycles(&work, 2);
+    let report = String::from_utf8_lossy(&out.stdout);
+    assert!(!out.status.success(), "circle not found:\n{report}");
+    assert!(
+        report.contains("circle: cluster <-> http::stream_ws"),
+        "{report}"
+    );
     let _ = std::fs::remove_dir_all(&work);
 }

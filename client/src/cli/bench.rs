@@ -8,6 +8,7 @@ use relfusion_slam::image::pyramid::Pyramid;
 use serde_json::json;
 
 use super::gpu_info::{adapter_json, open_context};
+use super::timing::median_ms;
 
 #[derive(Debug, clap::Subcommand)]
 pub enum BenchCommand {
@@ -149,32 +150,6 @@ fn time(
             Ok(start.elapsed())
         })
         .collect()
-}
-
-/// Median in milliseconds (`samples` must be non-empty).
-pub(super) fn median_ms(samples: &mut [Duration]) -> f64 {
-    samples.sort_unstable();
-    let mid = samples.len() / 2;
-    let m = if samples.len() % 2 == 1 {
-        samples[mid]
-    } else {
-        (samples[mid - 1] + samples[mid]) / 2
-    };
-    m.as_secs_f64() * 1e3
-}
-
-/// Median of per-item figures (the upper median; NaN for none).
-pub(super) fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-/// Milliseconds since `t`.
-pub(super) fn ms(t: Instant) -> f64 {
-    1e3 * t.elapsed().as_secs_f64()
 }
 
 /// Deterministic uniform noise in [0, 255) (SplitMix64), so runs are comparable without a

@@ -15,8 +15,8 @@ use relfusion_slam::dense::store::DenseStore;
 use relfusion_slam::pipeline::Config;
 use serde_json::json;
 
-use super::bench::{median, ms};
 use super::gpu_info::adapter_json;
+use super::timing::{median, ms};
 
 #[derive(Debug, clap::Args)]
 pub struct DenseArgs {

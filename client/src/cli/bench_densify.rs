@@ -21,7 +21,7 @@ use relfusion_slam::npy;
 use relfusion_slam::pipeline::Config;
 use serde_json::json;
 
-use super::bench::median_ms;
+use super::timing::median_ms;
 
 #[derive(Debug, clap::Args)]
 pub struct DensifyArgs {

@@ -17,8 +17,8 @@ use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::Config;
 use serde_json::json;
 
-use super::bench::{median, ms};
 use super::gpu_info::adapter_json;
+use super::timing::{median, ms};
 
 #[derive(Debug, clap::Args)]
 pub struct FusionArgs {

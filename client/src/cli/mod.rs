@@ -26,4 +26,5 @@ pub mod recorders;
 pub mod run;
 pub mod stream;
 pub mod synth;
+pub mod timing;
 pub mod upload;

@@ -11,8 +11,9 @@
 //! `relfusion eval mesh`), and `OUT/map/` (the map to localise in later, `docs/map-format.md`);
 //! then prints a one-line JSON summary.
 //!
-//! With `--map MAP --mode localize` the sequence is localised in a saved map instead
-//! (`super::localize`); with `--mode extend` the pipeline starts from the map's keyframes
+//! The run is the pipeline's one driver, `relfusion_slam::pipeline::Engine`, as a service
+//! session's is. With `--map MAP --mode localize` the sequence is localised in a saved map
+//! instead (what it writes: `super::localize`); with `--mode extend` the pipeline starts from the map's keyframes
 //! (`relfusion_slam::pipeline::Pipeline::extending`) and everything above covers both
 //! sequences: `keyframes.txt` and `OUT/map/` hold the old keyframes and the new, the mesh is
 //! fused from all of them, `trajectory.txt` holds the new frames.
@@ -27,7 +28,7 @@ use relfusion_slam::dense::{DepthPrior, ModelConfig, OnnxDepthPrior};
 use relfusion_slam::eval::fused_mesh::write_mesh_stats;
 use relfusion_slam::export::write_points_ply;
 use relfusion_slam::geometry::Sim3;
-use relfusion_slam::pipeline::{Config, Event, FrameInput, Pipeline};
+use relfusion_slam::pipeline::{Config, Engine, Event, FrameInput, Pipeline, Start};
 
 use super::recorders::{LogArgs, Logs};
 use serde_json::json;
@@ -81,12 +82,8 @@ pub enum MapMode {
     Extend,
 }
 
+/// Maps the sequence, extends `--map` (`--mode extend`) or localises in it (`--mode localize`).
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let extend = match (&args.map, args.mode) {
-        (Some(map), MapMode::Localize) => return super::localize::run(&args, map),
-        (Some(map), MapMode::Extend) => Some(map.clone()),
-        (None, _) => None,
-    };
     let mut config = match &args.config {
         Some(path) => Config::load(path)?,
         None => Config::default(),
@@ -96,7 +93,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     // The stage maps are what `relfusion eval depth` / `eval ablation` score.
     config.dense.keep_stages = true;
-    let prior = load_prior(args.model.as_deref(), args.model_config.as_deref())?;
+    let localize = args.map.is_some() && args.mode == MapMode::Localize;
+    // A localiser has no dense layer: no model to load.
+    let prior = match localize {
+        true => None,
+        false => load_prior(args.model.as_deref(), args.model_config.as_deref())?,
+    };
     let seq = TumSequence::open(&args.dataset, None)
         .with_context(|| format!("opening {}", args.dataset.display()))?;
     let n = args.frames.unwrap_or(seq.len()).min(seq.len());
@@ -105,20 +107,52 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let mut logs = Logs::open(&args.logs, &seq.camera)?;
     let t_map_load = Instant::now();
-    let pipeline = match &extend {
-        Some(map_dir) => {
-            let map = relfusion_slam::map::read_map(map_dir, Some(&seq.camera))
-                .with_context(|| format!("loading the map {}", map_dir.display()))?;
-            Pipeline::extending(config, seq.camera, prior, None, &map)?
-        }
-        None => Pipeline::new(config, seq.camera, prior)?,
+    let map = match &args.map {
+        Some(dir) => Some(
+            relfusion_slam::map::read_map(dir, Some(&seq.camera))
+                .with_context(|| format!("loading the map {}", dir.display()))?,
+        ),
+        None => None,
     };
+    let start = match (&map, args.mode) {
+        (None, _) => Start::New,
+        (Some(map), MapMode::Extend) => Start::Extend(map),
+        (Some(map), MapMode::Localize) => Start::Localize(map),
+    };
+    let engine = Engine::start(&config, &seq.camera, prior, None, start)?;
+    let map_keyframes = map.as_ref().map(|m| m.keyframes.len());
+    drop(map);
+    let map_load_s = args
+        .map
+        .is_some()
+        .then(|| t_map_load.elapsed().as_secs_f64());
     if let Some(dir) = &args.spill {
         let store = relfusion_slam::spill::FolderStore::new(dir)?;
-        pipeline.spill().attach(std::sync::Arc::new(store))?;
+        engine.attach_spill(std::sync::Arc::new(store))?;
     }
-    let map_load_s = extend.is_some().then(|| t_map_load.elapsed().as_secs_f64());
-    let outcome = run_sequence(&seq, n, pipeline, !args.quiet, &mut |i, events| match i {
+    if localize {
+        let mut log = super::localize::Log::create(&args.out)?;
+        let outcome = run_sequence(&seq, n, engine, !args.quiet, &mut |i, events, engine| {
+            if let Some(i) = i {
+                log.frame(engine)?;
+                logs.on_run_frame(&seq, i, events)?;
+            }
+            Ok(())
+        })?;
+        let recorded = logs.finish()?;
+        let (trajectory, mut summary) = log.finish(outcome.frames, outcome.wall_s)?;
+        write_trajectory(&args.out.join("trajectory.txt"), &trajectory)?;
+        if let serde_json::Value::Object(fields) = &mut summary {
+            fields.insert("map".into(), json!(args.map));
+            fields.insert("map_keyframes".into(), json!(map_keyframes));
+            fields.insert("map_load_s".into(), json!(map_load_s));
+            fields.insert("out".into(), json!(args.out));
+            fields.extend(recorded);
+        }
+        println!("{summary}");
+        return Ok(());
+    }
+    let mut outcome = run_sequence(&seq, n, engine, !args.quiet, &mut |i, events, _| match i {
         Some(i) => logs.on_run_frame(&seq, i, events),
         None => {
             logs.on_run_events(events);
@@ -126,14 +160,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     })?;
     let recorded = logs.finish()?;
-    let (mut pipeline, wall_s, load_s) = (outcome.pipeline, outcome.wall_s, outcome.load_s);
+    let (wall_s, load_s) = (outcome.wall_s, outcome.load_s);
+    let Some(pipeline) = outcome.engine.pipeline_mut() else {
+        anyhow::bail!("a mapping run without a pipeline");
+    };
+    let extend = args.map.clone();
     let peak_rss_run_mb = peak_rss_mb();
 
     let Written {
         mesh_triangles,
         fusion,
         map_save_s,
-    } = write_results(&args.out, &mut pipeline)?;
+    } = write_results(&args.out, pipeline)?;
     let stats = pipeline.stats();
     let mut summary = json!({
             "frames": stats.frames,
@@ -230,30 +268,35 @@ pub(super) fn write_results(
     })
 }
 
-/// A finished run of the pipeline over a sequence.
-/// Sees the events of frame `Some(i)` after it went through the pipeline, and `None`'s: what
-/// finishing produced (the last dense keyframes, the mesh at the final poses).
-pub type FrameObserver<'a> = dyn FnMut(Option<usize>, &[Event]) -> anyhow::Result<()> + 'a;
+/// Sees the events of frame `Some(i)` after it went through the engine (which it may read),
+/// and `None`'s: what finishing produced (the last dense keyframes, the mesh at the final
+/// poses).
+pub type FrameObserver<'a> = dyn FnMut(Option<usize>, &[Event], &Engine) -> anyhow::Result<()> + 'a;
 
+/// A finished run over a sequence.
 #[derive(Debug)]
 pub struct RunOutcome {
-    pub pipeline: Pipeline,
+    pub engine: Engine,
+    /// Frames pushed.
+    pub frames: usize,
     /// Wall time of the whole run, image loading included (seconds).
     pub wall_s: f64,
     /// Of which loading and decoding images (seconds).
     pub load_s: f64,
 }
 
-/// Pushes the first `n` frames of `seq` through `pipeline` (new, or extending a map),
-/// unpaced, then finishes it (final pose-graph optimisation).
+/// Pushes the first `n` frames of `seq` through `engine`, unpaced, then finishes it (final
+/// pose-graph optimisation).
 pub fn run_sequence(
     seq: &TumSequence,
     n: usize,
-    mut pipeline: Pipeline,
+    mut engine: Engine,
     progress: bool,
     observe: &mut FrameObserver<'_>,
 ) -> anyhow::Result<RunOutcome> {
-    let sensor_depth = pipeline.config().dense.two_view.ground_truth_depth;
+    let sensor_depth = engine
+        .pipeline()
+        .is_some_and(|p| p.config().dense.two_view.ground_truth_depth);
     if sensor_depth && seq.frames.iter().take(n).all(|f| f.depth.is_none()) {
         anyhow::bail!(
             "dense.two_view.ground_truth_depth needs the sequence's depth images, and {} lists none",
@@ -272,25 +315,26 @@ pub fn run_sequence(
             None
         };
         load_s += tl.elapsed().as_secs_f64();
-        let events = pipeline.push(FrameInput {
+        let events = engine.push(FrameInput {
             frame_id: None,
             timestamp: frame.timestamp,
             rgb,
             depth,
         })?;
-        observe(Some(i), &events)?;
+        observe(Some(i), &events, &engine)?;
         if let Some(bar) = &bar {
             bar.inc(1);
         }
     }
-    pipeline.finish()?;
     // What finishing produced: the last dense keyframes, the mesh at the final poses.
-    observe(None, &pipeline.take_events())?;
+    let (_, events) = engine.finish()?;
+    observe(None, &events, &engine)?;
     if let Some(bar) = bar {
         bar.finish_and_clear();
     }
     Ok(RunOutcome {
-        pipeline,
+        engine,
+        frames: n,
         wall_s: t0.elapsed().as_secs_f64(),
         load_s,
     })

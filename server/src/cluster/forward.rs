@@ -246,27 +246,3 @@ pub(crate) async fn answer(cluster: Arc<Cluster>, query: zenoh::query::Query) {
         tracing::debug!("replying to a forwarded request: {e}");
     }
 }
-
-/// Which session a path names, and the rest of the path (`/v1/sessions/<id>/<rest>`).
-pub fn session_path(path: &str) -> Option<(&str, &str)> {
-    let rest = path.strip_prefix("/v1/sessions/")?;
-    let (id, tail) = rest.split_once('/').unwrap_or((rest, ""));
-    (!id.is_empty()).then_some((id, tail))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn session_paths_are_recognised() {
-        assert_eq!(session_path("/v1/sessions/s-1"), Some(("s-1", "")));
-        assert_eq!(
-            session_path("/v1/sessions/s-1/frames"),
-            Some(("s-1", "frames"))
-        );
-        assert_eq!(session_path("/v1/sessions"), None);
-        assert_eq!(session_path("/v1/sessions/"), None);
-        assert_eq!(session_path("/v1/maps/m-1"), None);
-    }
-}

@@ -1,4 +1,9 @@
-//! Placing uploads: an upload is received and stored by the node it was sent to (its bytes
+//! Placing sessions on another node.
+//!
+//! A Zenoh create placed elsewhere is relayed whole to the chosen node's own create queryable
+//! (`relfusion/cluster/nodes/<node>/create/<tenant>`), whose reply goes back as it is.
+//!
+//! An upload is received and stored by the node it was sent to (its bytes
 //! stay in one HTTP request, not a Zenoh message), which then hands the stored session to
 //! the node placement chose with one query, `relfusion/cluster/nodes/<node>/adopt` (payload:
 //! the session id). The chosen node reads the metadata from the shared store and queues the
@@ -13,11 +18,43 @@ use crate::session::types::valid_session_id;
 /// The queryable's leaf.
 pub const ADOPT: &str = "adopt";
 
+/// How long a create relayed to the node placement chose may take before this node creates
+/// the session itself.
+const PLACED_TIMEOUT: Duration = Duration::from_secs(5);
+
 /// How long the receiving node waits for the chosen one to take an upload (it only reads
 /// one small object and queues the session).
 const HANDOFF_TIMEOUT: Duration = Duration::from_secs(10);
 
 impl Cluster {
+    /// Relays a Zenoh create of `tenant` (its payload and token attachment) to `node`'s own
+    /// create queryable: the reply or refusal as it is; `None` when `node` did not answer in
+    /// [`PLACED_TIMEOUT`].
+    pub async fn relay_create(
+        &self,
+        node: &str,
+        tenant: &str,
+        payload: Vec<u8>,
+        attachment: Option<zenoh::bytes::ZBytes>,
+    ) -> Option<Result<Vec<u8>, Vec<u8>>> {
+        let mut get = self
+            .zenoh()?
+            .get(node_key(node, &format!("create/{tenant}")))
+            .payload(payload)
+            .timeout(PLACED_TIMEOUT);
+        if let Some(token) = attachment {
+            get = get.attachment(token);
+        }
+        let reply = match get.await {
+            Ok(replies) => replies.recv_async().await.ok(),
+            Err(_) => None,
+        }?;
+        Some(match reply.result() {
+            Ok(sample) => Ok(sample.payload().to_bytes().into_owned()),
+            Err(error) => Err(error.payload().to_bytes().into_owned()),
+        })
+    }
+
     /// Asks `node` to run the stored upload `id` (its metadata names `node`). `Err` says why
     /// it did not take it; the caller then runs it itself
     /// ([`crate::session::SessionManager::take_over`]).

@@ -55,7 +55,7 @@ impl Ros2Config {
         }
         let mut namespaces: Vec<(String, &str)> = tenants
             .iter()
-            .map(|t| (crate::ros2_api::names::tenant_namespace(t), *t))
+            .map(|t| (crate::ros2_names::tenant_namespace(t), *t))
             .collect();
         namespaces.sort();
         for pair in namespaces.windows(2) {

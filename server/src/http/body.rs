@@ -29,6 +29,11 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use crate::session::Owner;
 use crate::{ApiError, AppState};
 
+/// Raw bytes in a request or response body (an image, an archive, a PLY or glTF file).
+#[derive(Debug, utoipa::ToSchema)]
+#[schema(value_type = String, format = Binary)]
+pub struct Binary(pub Vec<u8>);
+
 /// The budget's unit: permits count KiB (a `Semaphore` holds at most `u32::MAX >> 3` permits).
 const UNIT: u64 = 1024;
 

@@ -45,9 +45,9 @@ pub struct ClusterView {
     ),
     security(("bearer" = [])))]
 pub async fn cluster(State(state): State<Arc<AppState>>, Auth(_caller): Auth) -> Json<ClusterView> {
-    let cluster = &state.cluster;
-    let nodes = cluster
-        .loads()
+    let locator = &state.locator;
+    let nodes = locator
+        .members()
         .into_iter()
         .map(|l| ClusterNode {
             node: l.node,
@@ -59,8 +59,8 @@ pub async fn cluster(State(state): State<Arc<AppState>>, Auth(_caller): Auth) ->
         })
         .collect();
     Json(ClusterView {
-        node: cluster.node().to_string(),
-        joined: cluster.zenoh().is_some(),
+        node: locator.node().to_string(),
+        joined: locator.joined(),
         nodes,
     })
 }

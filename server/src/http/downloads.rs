@@ -9,10 +9,10 @@ use axum::http::header;
 use axum::response::{IntoResponse, Response};
 
 use super::auth::Auth;
+use super::body::Binary;
 use super::error::ErrorBody;
-use super::openapi::Binary;
 use crate::session::Session;
-use crate::session::track::Stored;
+use crate::session::outputs::Stored;
 use crate::{ApiError, AppState};
 use relfusion_proto::http::SessionInfo;
 

@@ -17,8 +17,7 @@ use tokio::sync::broadcast::{self, error::RecvError};
 use super::auth::Auth;
 use super::error::ErrorBody;
 use super::streams::StreamSlot;
-use crate::cluster::forward::FORWARDED;
-use crate::cluster::relay::{Relay, RelayFormat, Relayed, RelayedSse, relayed};
+use crate::locator::{Feed, Hop, Located, RelayFormat, RelayedSse, Update};
 use crate::session::SessionEvent;
 use crate::{ApiError, AppState};
 
@@ -99,25 +98,18 @@ pub async fn events(
     // Counted against the owner's and the session's stream caps while it is open (once the
     // session is found: a cap must not tell whether another tenant's session exists).
     let open = || super::streams::open_stream(&state, &owner, &id);
-    let session = match state.sessions.get(&id, &owner) {
-        Ok(session) => session,
-        // Not here: another node of the cluster may run it; its owner relays the events (and
-        // checks the token).
-        Err(e) if e.status == 404 && !headers.contains_key(FORWARDED) => {
-            let Some(node) = state.cluster.owner_of(&id).await else {
-                return Err(e);
-            };
+    let session = match state.locator.locate(&id, &owner, Hop::of(&headers)).await? {
+        Located::Here(session) => session,
+        // Its node relays the events (and checks the token).
+        Located::Elsewhere(remote) => {
             let authorization = super::auth::relayed_authorization(&headers, &uri);
             let slot = open()?;
             let limit = state.config.limits.event_buffer;
-            let relay = state
-                .cluster
-                .watch(&node, &id, authorization, limit, RelayFormat::Sse)
+            let feed = remote
+                .follow(authorization, limit, RelayFormat::Sse)
                 .await?;
-            let departures = state.cluster.departures();
-            return Ok(sse(remote_stream(relay, departures, node), slot));
+            return Ok(sse(remote_stream(feed), slot));
         }
-        Err(e) => return Err(e),
     };
     let slot = open()?;
     // Subscribe before looking at the state, so an end between the two is not missed.
@@ -148,34 +140,23 @@ fn sse(events: Events, slot: StreamSlot) -> Sse<KeepAliveStream<Events>> {
 
 /// The events another node relays (its own SSE encoding); a `failed` event when that node
 /// leaves the cluster.
-fn remote_stream(relay: Relay, departures: broadcast::Receiver<String>, node: String) -> Events {
-    futures_util::stream::unfold(Some((relay, departures, node)), |state| async move {
-        let (relay, mut departures, node) = state?;
+fn remote_stream(feed: Feed) -> Events {
+    futures_util::stream::unfold(Some(feed), |feed| async move {
+        let mut feed = feed?;
         loop {
-            tokio::select! {
-                sample = relay.subscriber.recv_async() => match sample.as_ref().map(relayed) {
-                    Ok(Relayed::Message(bytes)) => {
-                        let Ok(sse) = serde_json::from_slice::<RelayedSse>(&bytes) else {
-                            continue;
-                        };
-                        let event = Event::default().event(sse.event).data(sse.data);
-                        return Some((Ok(event), Some((relay, departures, node))));
-                    }
-                    Ok(Relayed::End) | Err(_) => return None,
+            let event = match feed.next().await {
+                Update::Message(bytes) => match serde_json::from_slice::<RelayedSse>(&bytes) {
+                    Ok(sse) => Event::default().event(sse.event).data(sse.data),
+                    Err(_) => continue,
                 },
-                left = departures.recv() => {
-                    if left.as_deref().is_ok_and(|n| *n == node) {
-                        let failed = RelayedSse::of(&SessionEvent::Failed {
-                            message: format!(
-                                "node {node} running this session left the cluster: the \
-                                 session ended (results up to its last checkpoint are kept)"
-                            ),
-                        });
-                        let event = Event::default().event(failed.event).data(failed.data);
-                        return Some((Ok(event), None));
-                    }
+                Update::NodeLeft(message) => {
+                    let failed = RelayedSse::of(&SessionEvent::Failed { message });
+                    let event = Event::default().event(failed.event).data(failed.data);
+                    return Some((Ok(event), None));
                 }
-            }
+                Update::End | Update::Lost => return None,
+            };
+            return Some((Ok(event), Some(feed)));
         }
     })
     .boxed()

@@ -14,8 +14,8 @@ use serde::Deserialize;
 use utoipa::IntoParams;
 
 use super::auth::Auth;
+use super::body::Binary;
 use super::error::{ApiQuery, ErrorBody};
-use super::openapi::Binary;
 use crate::session::FrameData;
 use crate::{ApiError, AppState};
 

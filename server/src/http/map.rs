@@ -19,8 +19,8 @@ use serde::Serialize;
 use serde_json::{Value, json};
 
 use super::auth::Auth;
+use super::body::Binary;
 use super::error::ErrorBody;
-use super::openapi::Binary;
 use crate::{ApiError, AppState};
 
 const PROTOBUF: &str = "application/x-protobuf";

@@ -29,6 +29,7 @@ pub mod streams;
 pub mod tls;
 pub mod uploads;
 pub mod viewer;
+pub mod ws;
 
 use std::sync::Arc;
 

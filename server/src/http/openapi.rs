@@ -3,7 +3,7 @@
 //! every change of the API is a visible diff.
 
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
-use utoipa::{Modify, OpenApi, ToSchema};
+use utoipa::{Modify, OpenApi};
 
 use super::error::{ErrorBody, ErrorDetail};
 use super::{Version, downloads, events_sse, frames, sessions, stream_ws, uploads};
@@ -64,7 +64,7 @@ use relfusion_proto::http::{CreatedSession, FrameAccepted, SessionList};
         Version,
         super::cluster::ClusterView,
         super::cluster::ClusterNode,
-        Binary,
+        super::body::Binary,
         super::events_sse::SseEvent,
         super::map::ProtoFiles,
         relfusion_proto::http::MapStart,
@@ -107,11 +107,6 @@ impl Modify for BearerAuth {
         );
     }
 }
-
-/// Raw bytes in a request or response body (an image, an archive, a PLY or glTF file).
-#[derive(Debug, ToSchema)]
-#[schema(value_type = String, format = Binary)]
-pub struct Binary(pub Vec<u8>);
 
 /// The document as pretty JSON (what `/openapi.json` serves and the snapshot holds).
 pub fn spec_json() -> String {

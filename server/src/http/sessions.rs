@@ -10,6 +10,7 @@ use axum::response::{IntoResponse, Response};
 
 use super::auth::Auth;
 use super::error::{ApiJson, ErrorBody};
+use crate::locator::Hop;
 use crate::session::{CreateSession, SessionInfo, SessionRequest};
 use crate::{ApiError, AppState};
 
@@ -86,11 +87,11 @@ pub async fn list_sessions(
 ) -> Json<SessionList> {
     let mut sessions = state.sessions.list(&owner);
     // Asked directly (not by another node): the other nodes' sessions of the caller too.
-    if !headers.contains_key(crate::cluster::forward::FORWARDED) {
+    if Hop::of(&headers) == Hop::FromClient {
         let authorization = headers
             .get(axum::http::header::AUTHORIZATION)
             .and_then(|v| v.to_str().ok());
-        for body in state.cluster.gather("/v1/sessions", authorization).await {
+        for body in state.locator.gather("/v1/sessions", authorization).await {
             if let Ok(list) = serde_json::from_slice::<SessionList>(&body) {
                 sessions.extend(list.sessions);
             }

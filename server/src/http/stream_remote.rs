@@ -1,5 +1,5 @@
-//! The WebSocket stream of a session another node of the cluster runs (see
-//! [`crate::cluster::relay`]): the same protocol as [`super::stream_ws`], with frames handed
+//! The WebSocket stream of a session another node of the cluster runs
+//! ([`crate::locator::Remote`]): the same protocol as [`super::stream_ws`], with frames handed
 //! to the owner one at a time (the next read only once the owner took the last: the `wait`
 //! policy pushes back through both nodes) and the owner's updates relayed back.
 //!
@@ -15,64 +15,45 @@ use futures_util::{SinkExt, StreamExt};
 use relfusion_proto::v1::{ErrorCode, ServerMessage};
 use tokio::sync::mpsc;
 
-use super::stream_ws::{
+use super::streams::{KeepAliveClock, LastHeard};
+use super::ws::{
     CLOSE_GRACE, Held, REPLY_QUEUE, binary, error_message, keep_alive, receive_loop, sized,
 };
-use super::streams::{KeepAliveClock, LastHeard};
-use crate::cluster::Cluster;
-use crate::cluster::relay::{Relay, Relayed, relayed};
+use crate::locator::{Feed, RelayFormat, Remote, Update};
 use crate::{ApiError, AppState};
 
-/// Starts the owner's relay, then upgrades.
+/// Starts following the session on its node, then upgrades.
 pub(super) async fn open(
     state: &Arc<AppState>,
-    node: String,
-    id: String,
+    remote: Remote,
     authorization: Option<String>,
     upgrade: WebSocketUpgrade,
     held: Held,
 ) -> Result<Response, ApiError> {
-    let cluster = state.cluster.clone();
-    let relay = cluster
-        .watch(
-            &node,
-            &id,
-            authorization.clone(),
-            state.config.limits.event_buffer,
-            crate::cluster::relay::RelayFormat::Protobuf,
-        )
+    let limit = state.config.limits.event_buffer;
+    let feed = remote
+        .follow(authorization.clone(), limit, RelayFormat::Protobuf)
         .await?;
-    let stream = Stream {
-        cluster,
-        node,
-        id,
-        authorization,
-    };
-    Ok(sized(upgrade, state).on_upgrade(move |socket| serve(socket, stream, relay, held)))
+    Ok(sized(upgrade, state)
+        .on_upgrade(move |socket| serve(socket, remote, authorization, feed, held)))
 }
 
-/// Where this stream's session runs.
-#[derive(Clone)]
-struct Stream {
-    cluster: Arc<Cluster>,
-    node: String,
-    id: String,
+async fn serve(
+    socket: WebSocket,
+    remote: Remote,
     authorization: Option<String>,
-}
-
-async fn serve(socket: WebSocket, stream: Stream, relay: Relay, held: Held) {
+    feed: Feed,
+    held: Held,
+) {
     let (sink, incoming) = socket.split();
     let (reply_tx, reply_rx) = mpsc::channel(REPLY_QUEUE);
     let heard = LastHeard::now();
     let keepalive = KeepAliveClock::new(heard.clone(), held.idle);
-    let mut send_task = tokio::spawn(send_loop(sink, stream.clone(), relay, reply_rx, keepalive));
-    let to = stream.clone();
+    let mut send_task = tokio::spawn(send_loop(sink, feed, reply_rx, keepalive));
+    let to = remote.clone();
     let mut receive_task = tokio::spawn(receive_loop(incoming, reply_tx, heard, move |data| {
-        let to = to.clone();
-        async move {
-            let auth = to.authorization.clone();
-            to.cluster.push(&to.node, &to.id, auth, data.to_vec()).await
-        }
+        let (to, authorization) = (to.clone(), authorization.clone());
+        async move { to.push(authorization, data.to_vec()).await }
     }));
     tokio::select! {
         _ = &mut send_task => {
@@ -83,7 +64,7 @@ async fn serve(socket: WebSocket, stream: Stream, relay: Relay, held: Held) {
         _ = &mut receive_task => send_task.abort(),
     }
     drop(held);
-    tracing::debug!(session = %stream.id, node = %stream.node, "relayed websocket closed");
+    tracing::debug!(session = %remote.id(), node = %remote.node(), "relayed websocket closed");
 }
 
 fn close(code: u16, reason: String) -> Message {
@@ -95,18 +76,16 @@ fn close(code: u16, reason: String) -> Message {
 
 async fn send_loop(
     mut sink: SplitSink<WebSocket, Message>,
-    stream: Stream,
-    relay: Relay,
+    mut feed: Feed,
     mut replies: mpsc::Receiver<ServerMessage>,
     mut keepalive: KeepAliveClock,
 ) {
-    if relay.ended {
+    if feed.already_ended() {
         let _ = sink
             .send(close(close_code::NORMAL, "session already finished".into()))
             .await;
         return;
     }
-    let mut departures = stream.cluster.departures();
     let mut replies_open = true;
     loop {
         tokio::select! {
@@ -123,34 +102,27 @@ async fn send_loop(
                 }
                 None => replies_open = false,
             },
-            sample = relay.subscriber.recv_async() => match sample.as_ref().map(relayed) {
-                Ok(Relayed::Message(bytes)) => {
+            update = feed.next() => match update {
+                Update::Message(bytes) => {
                     if sink.send(Message::Binary(bytes.into())).await.is_err() {
                         return;
                     }
                 }
-                Ok(Relayed::End) => {
+                Update::End => {
                     while let Ok(message) = replies.try_recv() {
                         let _ = sink.send(binary(&message)).await;
                     }
                     let _ = sink.send(close(close_code::NORMAL, "session finished".into())).await;
                     return;
                 }
-                Err(_) => return,
-            },
-            left = departures.recv() => {
-                if left.as_deref().is_ok_and(|n| *n == stream.node) {
-                    let reason = format!(
-                        "node {} running this session left the cluster: the session ended \
-                         (results up to its last checkpoint are kept)",
-                        stream.node
-                    );
-                    let message = error_message(ErrorCode::ResourceExhausted, reason.clone());
+                Update::NodeLeft(reason) => {
+                    let message = error_message(ErrorCode::ResourceExhausted, reason);
                     let _ = sink.send(binary(&message)).await;
                     let _ = sink.send(close(close_code::ERROR, "the session's node left".into())).await;
                     return;
                 }
-            }
+                Update::Lost => return,
+            },
         }
     }
 }

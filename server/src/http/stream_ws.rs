@@ -15,36 +15,28 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use axum::body::Bytes;
 use axum::extract::ws::rejection::WebSocketUpgradeRejection;
 use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade, close_code};
 use axum::extract::{Extension, Path, State};
 use axum::http::{HeaderMap, Uri};
 use axum::response::Response;
-use futures_util::stream::{SplitSink, SplitStream};
+use futures_util::stream::SplitSink;
 use futures_util::{SinkExt, StreamExt};
-use relfusion_proto::Message as _;
-use relfusion_proto::v1::{self, ErrorCode, ServerMessage, server_message};
+use relfusion_proto::v1::{ErrorCode, ServerMessage};
 use tokio::sync::broadcast::{self, error::RecvError};
 use tokio::sync::mpsc;
 
 use super::auth::Auth;
 use super::error::ErrorBody;
 use super::serve::ConnectionSlot;
-use super::streams::{KeepAlive, KeepAliveClock, LastHeard, StreamSlot, open_stream};
-use crate::cluster::forward::FORWARDED;
+use super::streams::{KeepAliveClock, LastHeard, open_stream};
+use super::ws::{
+    CLOSE_GRACE, Held, REPLY_QUEUE, binary, checked_upgrade, error_message, keep_alive,
+    receive_loop, sized,
+};
+use crate::locator::{Hop, Located};
 use crate::session::{Session, SessionEvent};
 use crate::{ApiError, AppState};
-
-/// Room for protobuf framing around the largest allowed image.
-const MESSAGE_OVERHEAD: usize = 64 * 1024;
-
-/// How long a closed-by-us socket waits for the client's close reply before it is dropped.
-pub(super) const CLOSE_GRACE: Duration = Duration::from_secs(5);
-
-/// Error replies queued between the receiving and the sending task (bounded: a client that
-/// floods bad messages waits for its errors to be written).
-pub(super) const REPLY_QUEUE: usize = 16;
 
 /// Opens the session's protobuf WebSocket.
 #[utoipa::path(
@@ -72,26 +64,21 @@ pub async fn stream(
     // Counted only once the session is found: a cap must not tell whether another tenant's
     // session exists.
     let hold = |state: &Arc<AppState>| -> Result<Held, ApiError> {
-        Ok(Held {
-            _connection: connection.map(|Extension(slot)| slot),
-            _stream: open_stream(state, &owner, &id)?,
-            idle: Duration::from_secs(state.config.http.stream_idle_timeout_s),
-        })
+        Ok(Held::new(
+            connection.map(|Extension(slot)| slot),
+            open_stream(state, &owner, &id)?,
+            Duration::from_secs(state.config.http.stream_idle_timeout_s),
+        ))
     };
-    let session = match state.sessions.get(&id, &owner) {
-        Ok(session) => session,
-        // Not here: another node of the cluster may run it (its owner checks the token).
-        Err(e) if e.status == 404 && !headers.contains_key(FORWARDED) => {
-            let Some(node) = state.cluster.owner_of(&id).await else {
-                return Err(e);
-            };
+    let session = match state.locator.locate(&id, &owner, Hop::of(&headers)).await? {
+        Located::Here(session) => session,
+        // Its node checks the token.
+        Located::Elsewhere(remote) => {
             let upgrade = checked_upgrade(upgrade, &id)?;
             let held = hold(&state)?;
             let authorization = super::auth::relayed_authorization(&headers, &uri);
-            return super::stream_remote::open(&state, node, id, authorization, upgrade, held)
-                .await;
+            return super::stream_remote::open(&state, remote, authorization, upgrade, held).await;
         }
-        Err(e) => return Err(e),
     };
     let upgrade = checked_upgrade(upgrade, &id)?;
     let held = hold(&state)?;
@@ -99,38 +86,6 @@ pub async fn stream(
     // is open (a viewer joining late) then sees every later update, with no gap.
     let events = session.subscribe();
     Ok(sized(upgrade, &state).on_upgrade(move |socket| serve(socket, session, events, held)))
-}
-
-/// What an open stream holds until it closes: its connection slot, its place under the
-/// stream caps, and its idle timeout.
-#[derive(Debug)]
-pub(super) struct Held {
-    _connection: Option<ConnectionSlot>,
-    _stream: StreamSlot,
-    pub idle: Duration,
-}
-
-/// The upgrade, or the 400 that says this endpoint is a WebSocket.
-fn checked_upgrade(
-    upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
-    id: &str,
-) -> Result<WebSocketUpgrade, ApiError> {
-    upgrade.map_err(|rejection| ApiError {
-        status: rejection.status().as_u16(),
-        code: "invalid_argument",
-        message: format!(
-            "{}: this endpoint is a WebSocket (ws://.../v1/sessions/{id}/stream)",
-            rejection.body_text()
-        ),
-    })
-}
-
-/// The upgrade with the message limits: the largest allowed image and its framing.
-pub(super) fn sized(upgrade: WebSocketUpgrade, state: &AppState) -> WebSocketUpgrade {
-    let limit = usize::try_from(state.config.limits.max_frame_bytes)
-        .unwrap_or(usize::MAX)
-        .saturating_add(MESSAGE_OVERHEAD);
-    upgrade.max_message_size(limit).max_frame_size(limit)
 }
 
 async fn serve(
@@ -167,19 +122,6 @@ async fn serve(
     }
     drop(held);
     tracing::debug!(session = session.id(), "websocket closed");
-}
-
-pub(super) fn error_message(code: ErrorCode, message: impl Into<String>) -> ServerMessage {
-    ServerMessage {
-        message: Some(server_message::Message::Error(v1::Error {
-            code: code as i32,
-            message: message.into(),
-        })),
-    }
-}
-
-pub(super) fn binary(message: &ServerMessage) -> Message {
-    Message::Binary(Bytes::from(message.encode_to_vec()))
 }
 
 /// Forwards session updates and error replies to the client; closes after the session's end.
@@ -247,65 +189,6 @@ async fn send_loop(
                     return;
                 }
             },
-        }
-    }
-}
-
-/// Acts on a keep-alive tick: a ping, or the close of a silent peer. Whether the socket
-/// stays open.
-pub(super) async fn keep_alive(
-    sink: &mut SplitSink<WebSocket, Message>,
-    tick: KeepAlive,
-    clock: &KeepAliveClock,
-) -> bool {
-    match tick {
-        KeepAlive::Ping => sink.send(Message::Ping(Bytes::new())).await.is_ok(),
-        KeepAlive::Expired => {
-            let reason = format!(
-                "no message or pong for {} s (http.stream_idle_timeout_s)",
-                clock.idle().as_secs()
-            );
-            let _ = sink
-                .send(Message::Close(Some(CloseFrame {
-                    code: close_code::POLICY,
-                    reason: reason.into(),
-                })))
-                .await;
-            false
-        }
-    }
-}
-
-/// Reads client messages until the client closes, hands each binary one to `handle`; every
-/// failure becomes an `Error` reply; every message (pongs too) counts as `heard`. Shared by
-/// local and relayed streams.
-pub(super) async fn receive_loop<F, Fut>(
-    mut stream: SplitStream<WebSocket>,
-    replies: mpsc::Sender<ServerMessage>,
-    heard: LastHeard,
-    mut handle: F,
-) where
-    F: FnMut(Bytes) -> Fut,
-    Fut: std::future::Future<Output = Result<(), ApiError>>,
-{
-    while let Some(Ok(message)) = stream.next().await {
-        heard.heard();
-        let outcome = match message {
-            Message::Binary(data) => handle(data).await,
-            Message::Text(_) => Err(ApiError::bad_request(
-                "text messages are not understood: send binary protobuf relfusion.v1.ClientMessage",
-            )),
-            Message::Close(_) => break,
-            // Pings are answered by the WebSocket layer itself.
-            Message::Ping(_) | Message::Pong(_) => Ok(()),
-        };
-        if let Err(error) = outcome
-            && replies
-                .send(error_message(error.proto_code(), error.message))
-                .await
-                .is_err()
-        {
-            break;
         }
     }
 }

@@ -11,7 +11,7 @@
 //! stores it durably and only then returns: the 201 is the promise that the upload survives a
 //! crash. Processing follows on the worker pool; progress is in `GET /v1/sessions/{id}`.
 //! In a cluster with a shared store, it follows on the node placement chose
-//! ([`crate::cluster::handoff`]).
+//! ([`crate::locator::Locator::store_upload`]).
 
 use std::sync::Arc;
 
@@ -25,8 +25,8 @@ use tokio::io::AsyncWriteExt;
 use utoipa::IntoParams;
 
 use super::auth::Auth;
+use super::body::Binary;
 use super::error::{ApiQuery, ErrorBody};
-use super::openapi::Binary;
 use super::sessions::created;
 use relfusion_proto::http::CreatedSession;
 use relfusion_slam::geometry::PinholeCamera;
@@ -276,42 +276,16 @@ async fn receive(
     Ok((temp, received, head))
 }
 
-/// Stores an upload as a session, here or, with a store the cluster shares, on the node
-/// placement chose (handed to it; run here when it does not answer).
+/// Stores an upload as a session, here or on the node placement chose
+/// ([`crate::locator::Locator::store_upload`]).
 async fn store(
     state: &AppState,
     ticket: UploadTicket,
     upload: NewUpload<'_>,
     received: u64,
 ) -> Result<Response, ApiError> {
-    // With a shared store, the upload runs where placement says (stored here either way).
-    let placed = if state.sessions.shares_store() {
-        state.cluster.place()
-    } else {
-        None
-    };
-    let Some(node) = placed else {
-        let session = state.sessions.create_upload(ticket, upload).await?;
-        tracing::info!(session = session.id(), bytes = received, "upload stored");
-        return Ok(created(session.info()));
-    };
-    let mut info = state
-        .sessions
-        .create_upload_for(&node, ticket, upload)
-        .await?;
-    tracing::info!(session = %info.id, bytes = received, node = %node, "upload stored");
-    if let Err(e) = state.cluster.hand_off(&node, &info.id).await {
-        // Acknowledged already: run it here instead. Should this fail too, the metadata still
-        // names `node`, which runs it at its next start, or its heir when it leaves.
-        tracing::warn!(session = %info.id, "handing the upload to {node}: {e}; running it here");
-        let (sessions, id) = (state.sessions.clone(), info.id.clone());
-        let taken = tokio::task::spawn_blocking(move || sessions.take_over(&id, &node)).await;
-        match taken {
-            Ok(Ok(())) => info.node = Some(state.sessions.node().to_string()),
-            Ok(Err(e)) => tracing::error!(session = %info.id, "taking the upload back: {e}"),
-            Err(e) => tracing::error!(session = %info.id, "taking the upload back: {e}"),
-        }
-    }
+    let info = state.locator.store_upload(ticket, upload).await?;
+    tracing::info!(session = %info.id, bytes = received, node = ?info.node, "upload stored");
     Ok(created(info))
 }
 

@@ -20,9 +20,9 @@ use relfusion_viz::ros2::types::{CAMERA_INFO, COMPRESSED_IMAGE};
 use tokio::task::JoinHandle;
 use zenoh::handlers::FifoChannel;
 
-use super::names::{self, Entity};
 use super::{Ros2Bridge, Ros2Input};
 use crate::ApiError;
+use crate::ros2_names::{self as names, Entity};
 use crate::session::{FrameData, Session};
 
 /// Declares the session's camera subscription and its token, and starts feeding its frames.

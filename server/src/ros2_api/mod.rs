@@ -1,6 +1,6 @@
 //! Sessions on ROS 2 (`[ros2]`, issue 38): a robot on rmw_zenoh sees a session as a node with
 //! topics, and can feed it from its camera topics, through the server's own Zenoh session —
-//! no bridge, no DDS. The wire format is rmw_zenoh's ([`names`]): CDR payloads
+//! no bridge, no DDS. The wire format is rmw_zenoh's ([`crate::ros2_names`]): CDR payloads
 //! (`relfusion_viz::ros2`), keys `<domain>/<topic>/<type>/<hash>`, the 33-byte attachment,
 //! and liveliness tokens for the node, its publishers and its subscriptions, so
 //! `ros2 node list`, `ros2 topic list` and `ros2 topic echo` on an rmw_zenoh machine that
@@ -17,7 +17,6 @@
 //! ([`crate::zenoh_api::setup`]), as for relfusion's own keys.
 
 pub mod input;
-pub mod names;
 pub mod publish;
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -32,6 +31,7 @@ use tokio::task::JoinHandle;
 
 use crate::ApiError;
 use crate::config::Ros2Config;
+use crate::ros2_names as names;
 use crate::session::{Session, SessionManager};
 
 /// A create request's ROS 2 side, checked: names resolved in the tenant's namespace.

@@ -20,9 +20,9 @@ use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Publisher;
 use zenoh::qos::CongestionControl;
 
-use super::names::{self, Entity};
 use super::{Ros2Bridge, Ros2Stats};
 use crate::ApiError;
+use crate::ros2_names::{self as names, Entity};
 use crate::session::Session;
 use crate::session::recording::log_event;
 

@@ -12,10 +12,10 @@ use relfusion_slam::pipeline::Config as SlamConfig;
 use tokio::sync::broadcast;
 
 use super::events::SessionEvent;
-use super::input::QueuedFrame;
 use super::lifecycle::{Lifecycle, Stop};
 use super::persist::{CounterSnapshot, SessionMeta};
 use super::queue::FrameQueue;
+use super::types::QueuedFrame;
 use super::types::camera_json;
 use super::types::{
     FramePolicy, Owner, Progress, SessionId, SessionInfo, SessionKind, SessionState,

@@ -10,24 +10,13 @@ use relfusion_proto::v1::{ClientMessage, client_message};
 use super::decode::decode_frame;
 use super::events::SessionEvent;
 use super::handle::Session;
-use super::types::{FrameData, FramePolicy, SessionKind, SessionState};
+use super::types::{FrameData, FramePolicy, QueuedFrame, SessionKind, SessionState};
 use crate::ApiError;
 use crate::metrics::Stage;
 
 /// Largest timestamp magnitude accepted, in seconds (year ~5000 as Unix time): trajectories
 /// print timestamps with six decimals, which `f64` keeps exactly up to about here.
 const MAX_TIMESTAMP: f64 = 1e11;
-
-/// A decoded frame waiting for the pipeline.
-#[derive(Debug)]
-pub struct QueuedFrame {
-    /// The client's frame id (pose events carry it).
-    pub frame_id: u64,
-    pub timestamp: f64,
-    pub rgb: image::RgbImage,
-    /// When the server accepted it (frame-to-pose latency).
-    pub received: Instant,
-}
 
 impl Session {
     /// A protobuf `ClientMessage` as it arrived (WebSocket, or a stream relayed through

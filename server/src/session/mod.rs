@@ -28,6 +28,7 @@ pub mod input;
 pub(crate) mod lifecycle;
 pub mod manager;
 mod mesh_state;
+pub mod outputs;
 pub mod overrides;
 pub mod persist;
 pub mod prior;

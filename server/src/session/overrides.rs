@@ -10,8 +10,8 @@
 use relfusion_slam::pipeline::{Config as SlamConfig, Scope, UserConfig, UserConfigError};
 use serde_json::Value;
 
-use super::types::FramePolicy;
 use crate::ApiError;
+use relfusion_proto::http::FramePolicy;
 
 /// `overrides` (a JSON object, or null) applied over `base`; keys a client may not set,
 /// values out of bounds and invalid combinations are a 400 that names them.

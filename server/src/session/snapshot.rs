@@ -11,7 +11,7 @@ use relfusion_proto::Message as _;
 use relfusion_proto::v1::{self, MapSnapshot, StampedPose};
 use relfusion_slam::geometry::Sim3;
 
-use super::track::Poses;
+use super::outputs::Poses;
 use super::{Session, SessionState, mesh_block};
 use crate::ApiError;
 use crate::convert::sim3_to_proto;

@@ -92,6 +92,17 @@ pub struct FrameData {
     pub bytes: bytes::Bytes,
 }
 
+/// A decoded frame waiting for the pipeline.
+#[derive(Debug)]
+pub struct QueuedFrame {
+    /// The client's frame id (pose events carry it).
+    pub frame_id: u64,
+    pub timestamp: f64,
+    pub rgb: image::RgbImage,
+    /// When the server accepted it (frame-to-pose latency).
+    pub received: std::time::Instant,
+}
+
 /// The dense layer's mode for a session's config and model (`SessionInfo::dense_mode`).
 pub fn dense_mode(config: &relfusion_slam::pipeline::Config, model: &str) -> String {
     match (config.dense.enabled, model) {

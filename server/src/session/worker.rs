@@ -21,19 +21,18 @@ use std::time::{Duration, Instant};
 use relfusion_proto::http::SessionMemory;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dense::DepthPrior;
-use relfusion_slam::pipeline::{Event, FrameInput, KeyframeEvent, PoseEvent, Stats, TrackingState};
+use relfusion_slam::pipeline::{
+    Engine, Event, FrameInput, KeyframeEvent, PoseEvent, Stats, TrackingState,
+};
 use serde_json::json;
-
-use super::engine::Engine;
 
 use super::events::SessionEvent;
 use super::handle::Session;
-use super::input::QueuedFrame;
 use super::persist::Results;
 use super::prior::SharedModel;
 use super::queue::Pop;
 use super::recording::{Recorder, RecordingSummary};
-use super::types::{SessionKind, SessionState};
+use super::types::{QueuedFrame, SessionKind, SessionState};
 use crate::gpu_pool::PoolClient;
 use crate::metrics::{Metrics, Stage};
 
@@ -78,7 +77,7 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         .model
         .as_ref()
         .map(|m| Box::new(m.pooled(env.pool.clone(), env.metrics.clone())) as Box<dyn DepthPrior>);
-    let engine = match Engine::start(
+    let engine = match super::engine::start(
         &session.config,
         session.camera(),
         prior,
@@ -93,13 +92,17 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
     // runs (issue 37).
     let spill = super::spill::SessionSpill::open(session.store.clone(), session.id())
         .map_err(|e| format!("opening the session's spill area: {e}"))
-        .and_then(|spill| engine.attach_spill(Arc::new(spill)));
+        .and_then(|spill| {
+            engine
+                .attach_spill(Arc::new(spill))
+                .map_err(|e| format!("spilling: {e}"))
+        });
     if let Err(e) = spill {
         return fail(session, None, e);
     }
     // The session's copy of the mesh and its poses spill with it (the mesh past the fusion's
     // own bound).
-    if let Some(spill) = engine.spill() {
+    if let Some(spill) = engine.spill().cloned() {
         session.bound_memory(spill, session.config.fusion.resident_blocks as usize);
     }
     // An extended map's keyframes are the session's too: listed with their poses, counted
@@ -370,11 +373,12 @@ impl Runner<'_> {
         if self.tracked_keyframe.replace(keyframe) != Some(keyframe) {
             self.since_checkpoint += 1;
             let (held, spilled) = s.mesh_block_counts();
-            *super::handle::lock(&s.memory) = self.engine.memory().map(|m| SessionMemory {
-                mesh_blocks: held as u64,
-                mesh_blocks_spilled: spilled as u64,
-                ..m
-            });
+            *super::handle::lock(&s.memory) =
+                super::engine::memory(&self.engine).map(|m| SessionMemory {
+                    mesh_blocks: held as u64,
+                    mesh_blocks_spilled: spilled as u64,
+                    ..m
+                });
         }
         self.env
             .metrics
@@ -398,7 +402,7 @@ impl Runner<'_> {
         }
         let s = self.session;
         let keyframes = s.counters.keyframes.load(Ordering::Relaxed);
-        let notice = if let Some(e) = self.engine.spill_failure() {
+        let notice = if let Some(e) = self.engine.spill().and_then(|s| s.failure()) {
             format!(
                 "ended: the session's store refused its spilled keyframes ({e}); results up \
                  to frame {frame_id} are kept, later frames were not processed"
@@ -433,14 +437,15 @@ impl Runner<'_> {
         let (written_at, written_bytes) = self.pointcloud.get();
         let rebuild = final_ || written_at == 0 || keyframe_count >= 2 * written_at;
         // A localising session's trajectory is the poses it reported, in the map's frame.
-        let (trajectory, keyframes, pointcloud) = match self.engine.result_files(rebuild)? {
-            Some(files) => files,
-            None => (
-                s.trajectory_tum()?,
-                String::new(),
-                Some(crate::convert::points_ply(&[])),
-            ),
-        };
+        let (trajectory, keyframes, pointcloud) =
+            match super::engine::result_files(&self.engine, rebuild)? {
+                Some(files) => files,
+                None => (
+                    s.trajectory_tum()?,
+                    String::new(),
+                    Some(crate::convert::points_ply(&[])),
+                ),
+            };
         let kept_bytes = match &pointcloud {
             Some(ply) => {
                 self.pointcloud.set((keyframe_count, ply.len() as u64));
@@ -482,9 +487,7 @@ impl Runner<'_> {
         if final_ {
             // The map, to keep with `POST /v1/maps` (docs/map-format.md).
             let key = super::persist::result_key(s.id(), "map");
-            bytes += self
-                .engine
-                .write_map(s.store.as_ref(), &key)
+            bytes += super::engine::write_map(&self.engine, s.store.as_ref(), &key)
                 .map_err(|e| format!("saving the map: {e}"))?;
         }
         s.set_results_bytes(bytes);

@@ -12,7 +12,6 @@
 //! Queries on wildcard keys (`relfusion/**`) are ignored: creating needs the exact key.
 
 use std::sync::Arc;
-use std::time::Duration;
 
 use relfusion_proto::Message as _;
 use relfusion_proto::v1::{self, CreateSessionReply, SessionConfig};
@@ -21,26 +20,21 @@ use tokio::task::JoinHandle;
 use zenoh::query::Query;
 
 use super::{Shared, bump, proto_error, serve_queryable};
-use crate::cluster::node_key;
 use crate::convert::camera_from_proto;
 use crate::session::types::{FramePolicy, SessionRequest};
 use crate::{ApiError, ServerError};
 use relfusion_proto::http::{MapMode, MapStart, Ros2Session};
 
-/// How long a create relayed to the node placement chose may take before this node creates
-/// the session itself.
-const PLACED_TIMEOUT: Duration = Duration::from_secs(5);
-
 /// Declares `tenant`'s queryables and serves them until shutdown: the public one, whose
-/// sessions are placed ([`crate::cluster::Cluster::place`]), and this node's own,
-/// `relfusion/cluster/nodes/<node>/create/<tenant>`, which creates here what another node
+/// sessions are placed ([`crate::locator::Locator::place`]), and this node's own
+/// ([`crate::locator::Locator::placed_create_key`]), which creates here what another node
 /// placed on this one.
 pub(crate) async fn serve(
     shared: Arc<Shared>,
     tenant: &str,
 ) -> Result<Vec<JoinHandle<()>>, ServerError> {
     let public = create_key(tenant);
-    let own = node_key(shared.cluster.node(), &format!("create/{tenant}"));
+    let own = shared.locator.placed_create_key(tenant);
     let mut tasks = Vec::new();
     for (key, place) in [(public, true), (own, false)] {
         let tenant = tenant.to_string();
@@ -101,39 +95,29 @@ async fn answer(shared: &Arc<Shared>, query: &Query, key: &str, tenant: &str, pl
 
 /// Relays a create with a valid token to the node placement chose and returns its reply (or
 /// refusal); `None`: this node creates the session (no better node, or it did not answer in
-/// [`PLACED_TIMEOUT`]).
+/// time).
 async fn create_where_placed(
     shared: &Shared,
     query: &Query,
     tenant: &str,
 ) -> Option<Result<Vec<u8>, Vec<u8>>> {
     shared.owner(query.attachment(), tenant).ok()?;
-    let node = shared.cluster.place()?;
+    let node = shared.locator.place()?;
     let payload = query
         .payload()
         .map(|p| p.to_bytes().into_owned())
         .unwrap_or_default();
-    let mut get = shared
-        .zenoh
-        .get(node_key(&node, &format!("create/{tenant}")))
-        .payload(payload)
-        .timeout(PLACED_TIMEOUT);
-    if let Some(token) = query.attachment() {
-        get = get.attachment(token.clone());
+    let relayed = node
+        .create(tenant, payload, query.attachment().cloned())
+        .await;
+    match &relayed {
+        Some(_) => tracing::info!(node = %node.name(), "Zenoh create placed on another node"),
+        None => tracing::warn!(
+            node = %node.name(),
+            "a Zenoh create placed on another node got no answer; creating it here"
+        ),
     }
-    let reply = match get.await {
-        Ok(replies) => replies.recv_async().await.ok(),
-        Err(_) => None,
-    };
-    let Some(reply) = reply else {
-        tracing::warn!(node = %node, "a Zenoh create placed on {node} got no answer; creating it here");
-        return None;
-    };
-    tracing::info!(node = %node, "Zenoh create placed on another node");
-    Some(match reply.result() {
-        Ok(sample) => Ok(sample.payload().to_bytes().into_owned()),
-        Err(error) => Err(error.payload().to_bytes().into_owned()),
-    })
+    relayed
 }
 
 async fn create(shared: &Arc<Shared>, query: &Query, tenant: &str) -> Result<String, ApiError> {

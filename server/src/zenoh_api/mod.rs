@@ -38,6 +38,7 @@ use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
 use crate::config::Config;
+use crate::locator::Locator;
 use crate::session::{Owner, Session, SessionManager};
 use crate::{ApiError, ServerError};
 
@@ -96,8 +97,8 @@ pub(crate) struct Shared {
     pub shutdown: watch::Receiver<bool>,
     /// The tasks of each session on Zenoh ([`link`]), pruned as they end.
     pub links: Mutex<HashMap<String, Vec<JoinHandle<()>>>>,
-    /// This node in the cluster (its load in the status).
-    pub cluster: Arc<crate::cluster::Cluster>,
+    /// Where sessions are (placement of creates, this node's load in its status).
+    pub locator: Arc<Locator>,
 }
 
 impl Shared {
@@ -220,11 +221,8 @@ fn tenants(config: &Config) -> Vec<String> {
 /// Opens the Zenoh session from `config` and declares each tenant's create and map
 /// queryables and the node status publisher. Sessions created through Zenoh are served until
 /// [`ZenohHandle::close`].
-pub async fn start(
-    config: &Config,
-    cluster: Arc<crate::cluster::Cluster>,
-) -> Result<ZenohHandle, ServerError> {
-    let sessions = cluster.sessions.clone();
+pub async fn start(config: &Config, locator: Arc<Locator>) -> Result<ZenohHandle, ServerError> {
+    let sessions = locator.sessions().clone();
     // The user/password dictionary lives in the data dir's private tmp folder (emptied at
     // every start) for as long as the Zenoh runtime may re-read it.
     let users_file = sessions.temp_dir().join("zenoh-users");
@@ -237,7 +235,7 @@ pub async fn start(
         stats: Arc::default(),
         shutdown: shutdown_rx,
         links: Mutex::default(),
-        cluster: cluster.clone(),
+        locator: locator.clone(),
     });
     let ros2 = config.ros2.enabled.then(|| {
         let bridge = Arc::new(crate::ros2_api::Ros2Bridge::new(
@@ -252,7 +250,8 @@ pub async fn start(
     let mut tasks = Vec::new();
     // The same Zenoh session makes this node a member of the cluster.
     tasks.extend(
-        crate::cluster::failover::join(cluster, shared.zenoh.clone(), shared.shutdown.clone())
+        locator
+            .join(shared.zenoh.clone(), shared.shutdown.clone())
             .await?,
     );
     for tenant in tenants(config) {

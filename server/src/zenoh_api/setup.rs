@@ -27,7 +27,7 @@ use serde_json::{Value, json};
 
 use crate::ServerError;
 use crate::config::Config;
-use crate::ros2_api::names as ros2_names;
+use crate::ros2_names;
 
 /// The `zenoh::Config` for the server. `users_file` is where the user/password dictionary is
 /// written when auth is on (a private file the caller keeps for the session's lifetime).

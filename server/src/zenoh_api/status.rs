@@ -41,7 +41,7 @@ pub struct NodeStatus {
 /// The status of this node now.
 pub(crate) fn current(shared: &Shared, node: &str) -> NodeStatus {
     let (sessions_active, max_sessions) = shared.sessions.load();
-    let load = shared.cluster.local_load();
+    let load = shared.locator.local_load();
     NodeStatus {
         node: node.to_string(),
         version: env!("CARGO_PKG_VERSION"),

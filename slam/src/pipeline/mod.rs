@@ -23,6 +23,7 @@
 //! - [`user_config`]: the few settings a user should ever touch, and who may set them.
 
 pub mod config;
+pub mod engine;
 pub mod events;
 mod export;
 mod extend;
@@ -43,6 +44,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
 pub use config::{Config, DepthInit, PipelineConfig};
+pub use engine::{Engine, Start};
 pub use events::{Event, KeyframeEvent, KeyframePose, PoseEvent, TrackingState};
 pub use extend::ExtendConfig;
 pub use user_config::{Scope, USER_SETTINGS, UserConfig, UserConfigError};
