@@ -101,11 +101,31 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let seq = TumSequence::open(&args.dataset, None)
         .with_context(|| format!("opening {}", args.dataset.display()))?;
-    let n = args.frames.unwrap_or(seq.len()).min(seq.len());
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
+    let logs = Logs::open(&args.logs, &seq.camera)?;
+    let started = start_engine(&args, &config, &seq, prior)?;
+    match localize {
+        true => localize_sequence(&args, &seq, started, logs),
+        false => map_sequence(&args, &seq, started, logs),
+    }
+}
 
-    let mut logs = Logs::open(&args.logs, &seq.camera)?;
+/// A run's engine, started from `--map` if given.
+struct Started {
+    engine: Engine,
+    /// Keyframes of the map it started from.
+    map_keyframes: Option<usize>,
+    /// Seconds loading that map took.
+    map_load_s: Option<f64>,
+}
+
+fn start_engine(
+    args: &Args,
+    config: &Config,
+    seq: &TumSequence,
+    prior: Option<Box<dyn DepthPrior>>,
+) -> anyhow::Result<Started> {
     let t_map_load = Instant::now();
     let map = match &args.map {
         Some(dir) => Some(
@@ -119,46 +139,81 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         (Some(map), MapMode::Extend) => Start::Extend(map),
         (Some(map), MapMode::Localize) => Start::Localize(map),
     };
-    let engine = Engine::start(&config, &seq.camera, prior, None, start)?;
-    let map_keyframes = map.as_ref().map(|m| m.keyframes.len());
-    drop(map);
-    let map_load_s = args
-        .map
-        .is_some()
-        .then(|| t_map_load.elapsed().as_secs_f64());
+    let engine = Engine::start(config, &seq.camera, prior, None, start)?;
     if let Some(dir) = &args.spill {
         let store = relfusion_slam::spill::FolderStore::new(dir)?;
         engine.attach_spill(std::sync::Arc::new(store))?;
     }
-    if localize {
-        let mut log = super::localize::Log::create(&args.out)?;
-        let outcome = run_sequence(&seq, n, engine, !args.quiet, &mut |i, events, engine| {
+    Ok(Started {
+        engine,
+        map_keyframes: map.as_ref().map(|m| m.keyframes.len()),
+        map_load_s: map.is_some().then(|| t_map_load.elapsed().as_secs_f64()),
+    })
+}
+
+/// The frames (at most `--frames`) of a sequence.
+fn frame_count(args: &Args, seq: &TumSequence) -> usize {
+    args.frames.unwrap_or(seq.len()).min(seq.len())
+}
+
+/// `--mode localize`: every frame localised in the map (what it writes: [`super::localize`]).
+fn localize_sequence(
+    args: &Args,
+    seq: &TumSequence,
+    started: Started,
+    mut logs: Logs,
+) -> anyhow::Result<()> {
+    let mut log = super::localize::Log::create(&args.out)?;
+    let n = frame_count(args, seq);
+    let outcome = run_sequence(
+        seq,
+        n,
+        started.engine,
+        !args.quiet,
+        &mut |i, events, engine| {
             if let Some(i) = i {
                 log.frame(engine)?;
-                logs.on_run_frame(&seq, i, events)?;
+                logs.on_run_frame(seq, i, events)?;
             }
             Ok(())
-        })?;
-        let recorded = logs.finish()?;
-        let (trajectory, mut summary) = log.finish(outcome.frames, outcome.wall_s)?;
-        write_trajectory(&args.out.join("trajectory.txt"), &trajectory)?;
-        if let serde_json::Value::Object(fields) = &mut summary {
-            fields.insert("map".into(), json!(args.map));
-            fields.insert("map_keyframes".into(), json!(map_keyframes));
-            fields.insert("map_load_s".into(), json!(map_load_s));
-            fields.insert("out".into(), json!(args.out));
-            fields.extend(recorded);
-        }
-        println!("{summary}");
-        return Ok(());
+        },
+    )?;
+    let recorded = logs.finish()?;
+    let (trajectory, mut summary) = log.finish(outcome.frames, outcome.wall_s)?;
+    write_trajectory(&args.out.join("trajectory.txt"), &trajectory)?;
+    if let serde_json::Value::Object(fields) = &mut summary {
+        fields.insert("map".into(), json!(args.map));
+        fields.insert("map_keyframes".into(), json!(started.map_keyframes));
+        fields.insert("map_load_s".into(), json!(started.map_load_s));
+        fields.insert("out".into(), json!(args.out));
+        fields.extend(recorded);
     }
-    let mut outcome = run_sequence(&seq, n, engine, !args.quiet, &mut |i, events, _| match i {
-        Some(i) => logs.on_run_frame(&seq, i, events),
-        None => {
-            logs.on_run_events(events);
-            Ok(())
-        }
-    })?;
+    println!("{summary}");
+    Ok(())
+}
+
+/// A new map, or `--map` extended: the pipeline's results written, the summary printed.
+fn map_sequence(
+    args: &Args,
+    seq: &TumSequence,
+    started: Started,
+    mut logs: Logs,
+) -> anyhow::Result<()> {
+    let n = frame_count(args, seq);
+    let map_load_s = started.map_load_s;
+    let mut outcome = run_sequence(
+        seq,
+        n,
+        started.engine,
+        !args.quiet,
+        &mut |i, events, _| match i {
+            Some(i) => logs.on_run_frame(seq, i, events),
+            None => {
+                logs.on_run_events(events);
+                Ok(())
+            }
+        },
+    )?;
     let recorded = logs.finish()?;
     let (wall_s, load_s) = (outcome.wall_s, outcome.load_s);
     let Some(pipeline) = outcome.engine.pipeline_mut() else {
