@@ -5,7 +5,6 @@
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use relfusion_proto::http::CameraJson;
 use relfusion_proto::v1;
-use relfusion_slam::dataset::trajectory::{format_tum_trajectory, stamped_se3};
 use relfusion_slam::export::ColoredPoint;
 use relfusion_slam::geometry::{Distortion, PinholeCamera, SO3, Sim3};
 use relfusion_slam::pipeline::TrackingState;
@@ -162,12 +161,6 @@ pub fn tracking_state_to_proto(state: TrackingState) -> v1::TrackingState {
         TrackingState::Tracking | TrackingState::Relocalized => v1::TrackingState::Tracking,
         TrackingState::Lost => v1::TrackingState::Lost,
     }
-}
-
-/// A TUM trajectory text of Sim(3) poses, exactly as `relfusion run` writes it: the scale is
-/// dropped (it acts on the map, not on the camera centre), values at full precision.
-pub fn tum_text(poses: &[(f64, Sim3)]) -> String {
-    format_tum_trajectory(&stamped_se3(poses))
 }
 
 /// The bytes of a binary little-endian PLY point cloud, the layout of

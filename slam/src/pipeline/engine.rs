@@ -202,8 +202,9 @@ impl Engine {
         }
     }
 
-    /// A mapping run's trajectory and keyframe poses as TUM text (`None` for a localiser,
-    /// whose trajectory is the poses it reported).
+    /// A mapping run's trajectory and keyframe poses as TUM text, exactly as `relfusion run`
+    /// writes them: the scale dropped (it acts on the map, not on the camera centre), values at
+    /// full precision (`None` for a localiser, whose trajectory is the poses it reported).
     pub fn trajectories_tum(&self) -> Result<Option<(String, String)>> {
         let Some(pipeline) = self.pipeline() else {
             return Ok(None);
