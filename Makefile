@@ -15,10 +15,11 @@ export NODEVICE_SELECT ?= 1
 FUZZ_SECONDS ?= 60
 FUZZ_TARGETS := frame_decode proto_messages archive_extract tum_text tum_list ros2_messages
 
-.PHONY: help setup test demo fuzz
+.PHONY: help setup test test-rerun demo fuzz
 help:
 	@echo "make demo   # set up, build, stream a sequence through relfusiond, fetch the results into $(DEMO_OUT)"
 	@echo "make test   # set up and run the whole test suite"
+	@echo "make test-rerun  # the optional rerun recordings (--rerun FILE.rrd) and their test"
 	@echo "make fuzz   # fuzz the parsers of untrusted input, FUZZ_SECONDS (default 60) per target"
 
 setup:
@@ -27,6 +28,12 @@ setup:
 test:
 	@env_lines=$$(bash scripts/setup.sh --test); eval "$$env_lines"; \
 	 cargo test --workspace --no-fail-fast
+
+# The client's optional `--rerun` (cargo feature `rerun`) and its test: the rerun SDK and arrow
+# would be a third of `make test`'s cold build, so they are built only here.
+test-rerun:
+	@env_lines=$$(bash scripts/setup.sh --test); eval "$$env_lines"; \
+	 cargo test -p relfusion-tests --features rerun --test rerun_recordings
 
 demo:
 	@env_lines=$$(bash scripts/setup.sh); eval "$$env_lines"; \

@@ -70,9 +70,9 @@ pub fn bin_path(name: &str) -> PathBuf {
             "--target-dir",
         ])
         .arg(target_dir)
-        // The `relfusion` the tests run writes rerun recordings too (`--rerun`). Only it:
-        // relfusiond keeps the feature set it ships with.
-        .args(if name == "relfusion" {
+        // With this crate's feature `rerun` (`make test-rerun`), the `relfusion` the tests run
+        // writes rerun recordings too (`--rerun`). Only it: relfusiond keeps its feature set.
+        .args(if cfg!(feature = "rerun") && name == "relfusion" {
             &["--features", "relfusion-client/rerun"][..]
         } else {
             &[]

@@ -1,0 +1,114 @@
+//! What the viewer-recording tests share: the Python readers of MCAP and ROS 2 bags
+//! (`tests/py/`), the checks of an MCAP against a session's own files, and small readers.
+//! Two test binaries use it (`recordings`, and `rerun_recordings` with the feature `rerun`),
+//! each only part of it.
+#![allow(dead_code)]
+
+use std::path::Path;
+use std::process::Command;
+
+use relfusion_tests::{bin_path, ply_faces};
+use serde_json::Value;
+
+pub fn mesh_ply_faces(path: &Path) -> usize {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    ply_faces(&bytes) as usize
+}
+
+pub fn tum_lines(path: &Path) -> usize {
+    std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .lines()
+        .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
+        .count()
+}
+
+/// Runs `tests/py/foxglove_check.py ARGS`.
+pub fn foxglove_check(args: &[&str]) -> Value {
+    python_check("foxglove_check.py", args)
+}
+
+/// Runs `tests/py/SCRIPT ARGS` with the Python packages `scripts/setup.sh --test` installed,
+/// and parses its JSON summary.
+pub fn python_check(script: &str, args: &[&str]) -> Value {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("py")
+        .join(script);
+    let mut command = Command::new("python3");
+    command.arg(&script).args(args);
+    if let Some(deps) = std::env::var_os("RELFUSION_CLIENT_PYDEPS") {
+        command.env("PYTHONPATH", deps);
+    }
+    let out = command.output().expect("python3");
+    assert!(
+        out.status.success(),
+        "{} {args:?}: {}",
+        script.display(),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("a JSON summary")
+}
+
+/// The schema of every channel, as Foxglove names them.
+pub const FOXGLOVE_SCHEMAS: [(&str, &str); 7] = [
+    ("/camera/image", "foxglove.CompressedImage"),
+    ("/camera/calibration", "foxglove.CameraCalibration"),
+    ("/camera/pose", "foxglove.PoseInFrame"),
+    ("/tf", "foxglove.FrameTransforms"),
+    ("/trajectory", "foxglove.PosesInFrame"),
+    ("/keyframes/points", "foxglove.PointCloud"),
+    ("/mesh", "foxglove.SceneUpdate"),
+];
+
+/// The topics of the camera's images: a recording without images has neither.
+pub const IMAGE_TOPICS: [&str; 2] = ["/camera/image", "/camera/calibration"];
+
+/// An MCAP read back: one image and calibration per frame, one pose and camera transform per
+/// tracked frame, one keyframe frame per keyframe, and SceneUpdates that add up to the mesh.
+/// `frames` 0: a recording without images (the service's).
+pub fn check_mcap(mcap: &Value, frames: usize, poses: usize, keyframes: usize, triangles: usize) {
+    let count = |topic: &str| mcap["counts"][topic].as_u64().unwrap_or(0) as usize;
+    let with_images = frames > 0;
+    for (topic, schema) in FOXGLOVE_SCHEMAS {
+        if !with_images && IMAGE_TOPICS.contains(&topic) {
+            continue;
+        }
+        assert_eq!(mcap["schemas"][topic], schema, "{topic}: {mcap}");
+        assert_eq!(mcap["encodings"][topic], "protobuf", "{topic}: {mcap}");
+    }
+    assert_eq!(
+        mcap["indexed_channels"],
+        if with_images { 7 } else { 5 },
+        "{mcap}"
+    );
+    assert_eq!(mcap["times_ordered_per_topic"], true, "{mcap}");
+    assert_eq!(count("/camera/image"), frames, "{mcap}");
+    assert_eq!(count("/camera/calibration"), frames, "{mcap}");
+    assert_eq!(count("/camera/pose"), poses, "{mcap}");
+    assert_eq!(mcap["camera_transforms"], poses, "{mcap}");
+    assert_eq!(mcap["keyframe_frames"], keyframes, "{mcap}");
+    assert!(count("/trajectory") >= 1, "{mcap}");
+    assert!(count("/keyframes/points") >= 1, "{mcap}");
+    assert!(
+        mcap["cloud_points_max"].as_u64().unwrap_or(0) > 100,
+        "{mcap}"
+    );
+    assert!(mcap["mesh_blocks"].as_u64().unwrap_or(0) > 10, "{mcap}");
+    assert_eq!(mcap["mesh_triangles"], triangles, "mesh triangles: {mcap}");
+}
+
+pub fn relfusion(args: &[&str]) -> Vec<Value> {
+    let out = Command::new(bin_path("relfusion"))
+        .args(args)
+        .output()
+        .expect("relfusion");
+    assert!(
+        out.status.success(),
+        "relfusion {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect()
+}
