@@ -16,8 +16,8 @@ use std::process::Command;
 use relfusion_tests::{Relfusiond, bin_path, data_dir, synth_sequence, temp_dir};
 use serde_json::{Value, json};
 use viewers::{
-    FOXGLOVE_SCHEMAS, check_mcap, foxglove_check, mesh_ply_faces, python_check, relfusion,
-    tum_lines,
+    FOXGLOVE_SCHEMAS, check_mcap, check_service_recording, foxglove_check, python_check,
+    stream_and_fetch, tum_lines,
 };
 
 /// A synthetic sequence streamed to a real service with `--mcap`: the client's MCAP holds
@@ -29,39 +29,17 @@ fn stream_writes_an_mcap_of_the_session_and_the_service_records_it() {
     let seq = sequence.to_str().expect("utf-8 path");
     let work = temp_dir("mcap");
     let server = Relfusiond::spawn(&work.join("data"), Vec::<PathBuf>::new(), &[]);
-    let streamed_mcap = work.join("stream.mcap");
-    let lines = relfusion(&[
-        "stream",
-        seq,
-        "--server",
-        &server.url(),
-        "--wait",
-        "--fast",
-        "--mcap",
-        streamed_mcap.to_str().expect("path"),
-    ]);
-    let id = lines[0]["session"].as_str().expect("session").to_string();
-    let summary = &lines.last().expect("summary")["summary"];
-    let fetched = work.join("fetched");
-    relfusion(&[
-        "fetch",
-        &id,
-        "--server",
-        &server.url(),
-        "--out",
-        fetched.to_str().expect("path"),
-    ]);
-    let poses = tum_lines(&fetched.join("trajectory.txt"));
-    let keyframes = summary["keyframes"].as_u64().expect("keyframes") as usize;
-    let triangles = mesh_ply_faces(&fetched.join("mesh.ply"));
-    let mcap = foxglove_check(&["mcap", streamed_mcap.to_str().expect("path")]);
-    check_mcap(&mcap, FRAMES, poses, keyframes, triangles);
-    assert_eq!(mcap["counts"]["/mesh"], summary["foxglove"]["mesh_updates"]);
-    let recorded = foxglove_check(&[
-        "mcap",
-        fetched.join("recording.mcap").to_str().expect("path"),
-    ]);
-    check_mcap(&recorded, 0, poses, keyframes, triangles);
+    let mcap_path = work.join("stream.mcap");
+    let mcap_arg = mcap_path.to_str().expect("path");
+    let streamed = stream_and_fetch(seq, &server, &work, &["--mcap", mcap_arg]);
+    let mcap = foxglove_check(&["mcap", mcap_arg]);
+    let s = &streamed;
+    check_mcap(&mcap, FRAMES, s.poses, s.keyframes, s.triangles);
+    assert_eq!(
+        mcap["counts"]["/mesh"],
+        streamed.summary["foxglove"]["mesh_updates"]
+    );
+    check_service_recording(&streamed);
 }
 
 /// A real sequence run locally, written to MCAP (Foxglove's schemas, and a ROS 2 bag) and

@@ -6,12 +6,15 @@
 mod viewers;
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
 use relfusion_tests::{Relfusiond, synth_sequence, temp_dir};
 use rerun::external::re_log_encoding::Decoder;
 use rerun::log::{Chunk, LogMsg, RowId};
-use viewers::{check_mcap, foxglove_check, mesh_ply_faces, relfusion, tum_lines};
+use viewers::{
+    check_mcap, check_service_recording, foxglove_check, relfusion, stream_and_fetch, tum_lines,
+};
 
 /// What a recording holds, by entity path.
 #[derive(Debug, Default)]
@@ -171,35 +174,22 @@ fn stream_and_run_write_rerun_recordings_that_read_back() {
 
     // Streamed to a real service.
     let server = Relfusiond::spawn(&work.join("data"), Vec::<PathBuf>::new(), &[]);
-    let streamed = work.join("stream.rrd");
-    let streamed_mcap = work.join("stream.mcap");
-    let lines = relfusion(&[
-        "stream",
+    let rrd = work.join("stream.rrd");
+    let mcap_path = work.join("stream.mcap");
+    let mcap_arg = mcap_path.to_str().expect("path");
+    let streamed = stream_and_fetch(
         seq,
-        "--server",
-        &server.url(),
-        "--wait",
-        "--fast",
-        "--rerun",
-        streamed.to_str().expect("path"),
-        "--mcap",
-        streamed_mcap.to_str().expect("path"),
-    ]);
-    let id = lines[0]["session"].as_str().expect("session").to_string();
-    let summary = &lines.last().expect("summary")["summary"];
-    let fetched = work.join("fetched");
-    relfusion(&[
-        "fetch",
-        &id,
-        "--server",
-        &server.url(),
-        "--out",
-        fetched.to_str().expect("path"),
-    ]);
-    let contents = read_rrd(&streamed);
-    let poses = tum_lines(&fetched.join("trajectory.txt"));
-    let keyframes = summary["keyframes"].as_u64().expect("keyframes") as usize;
-    let triangles = mesh_ply_faces(&fetched.join("mesh.ply"));
+        &server,
+        &work,
+        &["--rerun", rrd.to_str().expect("path"), "--mcap", mcap_arg],
+    );
+    let (summary, poses, keyframes, triangles) = (
+        &streamed.summary,
+        streamed.poses,
+        streamed.keyframes,
+        streamed.triangles,
+    );
+    let contents = read_rrd(&rrd);
     check(&contents, FRAMES, poses, keyframes, triangles);
     assert_eq!(
         contents.clears() as u64,
@@ -208,7 +198,7 @@ fn stream_and_run_write_rerun_recordings_that_read_back() {
             .expect("counts"),
     );
     // The MCAP of the same stream holds the same updates.
-    let mcap = foxglove_check(&["mcap", streamed_mcap.to_str().expect("path")]);
+    let mcap = foxglove_check(&["mcap", mcap_arg]);
     check_mcap(&mcap, FRAMES, poses, keyframes, triangles);
     assert_eq!(mcap["mesh_deletions_total"], contents.clears(), "{mcap}");
     assert_eq!(
@@ -222,12 +212,7 @@ fn stream_and_run_write_rerun_recordings_that_read_back() {
         "{mcap}"
     );
     assert_eq!(mcap["counts"]["/mesh"], summary["foxglove"]["mesh_updates"]);
-    // The service's own recording of the session: the same poses, keyframes and mesh.
-    let recorded = foxglove_check(&[
-        "mcap",
-        fetched.join("recording.mcap").to_str().expect("path"),
-    ]);
-    check_mcap(&recorded, 0, poses, keyframes, triangles);
+    check_service_recording(&streamed);
 
     // A local run.
     let out = work.join("run");

@@ -7,8 +7,54 @@
 use std::path::Path;
 use std::process::Command;
 
-use relfusion_tests::{bin_path, ply_faces};
+use relfusion_tests::{Relfusiond, bin_path, ply_faces};
 use serde_json::Value;
+
+/// A sequence streamed to a real service with `relfusion stream --wait --fast EXTRA…`, and
+/// the session's results fetched back: what the recordings are checked against.
+pub struct Streamed {
+    /// The stream's last line: `{"summary": …}`.
+    pub summary: Value,
+    /// Tracked frames in the fetched `trajectory.txt`.
+    pub poses: usize,
+    pub keyframes: usize,
+    /// Faces of the fetched `mesh.ply`.
+    pub triangles: usize,
+    /// The service's own MCAP of the session (`recording.mcap`).
+    pub recording: std::path::PathBuf,
+}
+
+pub fn stream_and_fetch(seq: &str, server: &Relfusiond, work: &Path, extra: &[&str]) -> Streamed {
+    let url = server.url();
+    let mut args = vec!["stream", seq, "--server", &url, "--wait", "--fast"];
+    args.extend_from_slice(extra);
+    let lines = relfusion(&args);
+    let id = lines[0]["session"].as_str().expect("session").to_string();
+    let summary = lines.last().expect("summary")["summary"].clone();
+    let fetched = work.join("fetched");
+    let out = fetched.to_str().expect("path");
+    relfusion(&["fetch", &id, "--server", &url, "--out", out]);
+    Streamed {
+        poses: tum_lines(&fetched.join("trajectory.txt")),
+        keyframes: summary["keyframes"].as_u64().expect("keyframes") as usize,
+        triangles: mesh_ply_faces(&fetched.join("mesh.ply")),
+        recording: fetched.join("recording.mcap"),
+        summary,
+    }
+}
+
+/// The service's recording of a streamed session: no images, the same poses, keyframes and
+/// mesh as its fetched results.
+pub fn check_service_recording(streamed: &Streamed) {
+    let recorded = foxglove_check(&["mcap", streamed.recording.to_str().expect("path")]);
+    check_mcap(
+        &recorded,
+        0,
+        streamed.poses,
+        streamed.keyframes,
+        streamed.triangles,
+    );
+}
 
 pub fn mesh_ply_faces(path: &Path) -> usize {
     let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
