@@ -14,9 +14,9 @@ pub use server::{Relfusiond, synth_sequence};
 ///
 /// `cargo test` builds binaries only for packages that have integration tests of their own, and
 /// a binary left over from an older build would test stale code. So the first call for each
-/// binary runs `cargo build --bin NAME` with this test's profile and target directory (cargo
-/// releases its build lock before running tests, so this nested build is allowed); later calls
-/// reuse the result.
+/// binary runs `cargo build --workspace --all-targets` with this test's profile and target
+/// directory (cargo releases its build lock before running tests, so this nested build is
+/// allowed); later calls reuse the result.
 pub fn bin_path(name: &str) -> PathBuf {
     static BUILT: OnceLock<Mutex<HashMap<String, PathBuf>>> = OnceLock::new();
     let mut built = BUILT
@@ -58,29 +58,34 @@ pub fn bin_path(name: &str) -> PathBuf {
             command.env_remove(key);
         }
     }
+    command.args([
+        "build",
+        "--quiet",
+        "--workspace",
+        "--profile",
+        profile,
+        "--target-dir",
+    ]);
+    command.arg(target_dir);
+    if cfg!(feature = "rerun") {
+        // `make test-rerun` (one test): the `relfusion` it runs writes rerun recordings too
+        // (`--rerun`); relfusiond keeps its feature set.
+        command.args(["--bin", name]);
+        if name == "relfusion" {
+            command.args(["--features", "relfusion-client/rerun"]);
+        }
+    } else {
+        // Every target, as `cargo test --workspace` selects them: dev-dependencies then enable
+        // the same features, every library is already built, and only the binaries compile.
+        // `--bin NAME` resolved other features and rebuilt much of the dependency tree (about
+        // 4 minutes of a cold `make test`, docs/build-time.md).
+        command.arg("--all-targets");
+    }
     let status = command
-        .args([
-            "build",
-            "--quiet",
-            "--workspace",
-            "--bin",
-            name,
-            "--profile",
-            profile,
-            "--target-dir",
-        ])
-        .arg(target_dir)
-        // With this crate's feature `rerun` (`make test-rerun`), the `relfusion` the tests run
-        // writes rerun recordings too (`--rerun`). Only it: relfusiond keeps its feature set.
-        .args(if cfg!(feature = "rerun") && name == "relfusion" {
-            &["--features", "relfusion-client/rerun"][..]
-        } else {
-            &[]
-        })
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .status()
         .expect("run cargo build");
-    assert!(status.success(), "cargo build --bin {name} failed");
+    assert!(status.success(), "cargo build for {name} failed");
     let path = profile_dir.join(format!("{name}{}", std::env::consts::EXE_SUFFIX));
     assert!(
         path.exists(),
