@@ -184,6 +184,14 @@ pub struct MapInfo {
     pub bytes: u64,
     /// Its on-disk format version (docs/map-format.md).
     pub format_version: u32,
+    /// `"metric"` when a metric depth prior anchored it (its unit is the metre; sessions that
+    /// extend or localise in it report the same), else `"arbitrary"`.
+    #[serde(default = "arbitrary_scale")]
+    pub scale: String,
+}
+
+fn arbitrary_scale() -> String {
+    "arbitrary".into()
 }
 
 /// `GET /v1/maps`: the caller's maps, oldest first.

@@ -39,6 +39,9 @@ struct MapMeta {
     camera: PinholeCamera,
     bytes: u64,
     format_version: u32,
+    /// The map's unit is the metre (absent in metadata written before map format 2).
+    #[serde(default)]
+    metric: bool,
 }
 
 impl MapMeta {
@@ -52,6 +55,7 @@ impl MapMeta {
             camera: camera_json(&self.camera),
             bytes: self.bytes,
             format_version: self.format_version,
+            scale: relfusion_slam::pipeline::scale_name(self.metric).into(),
         }
     }
 }
@@ -241,6 +245,7 @@ impl MapStore {
             camera: map.camera,
             bytes,
             format_version: relfusion_slam::map::FORMAT_VERSION,
+            metric: map.metric,
         };
         let bytes = serde_json::to_vec_pretty(&meta).unwrap_or_default();
         if let Err(e) = self.store.put(&meta_key(&id), &bytes) {

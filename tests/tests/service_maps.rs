@@ -187,6 +187,9 @@ fn a_saved_map_outlives_its_session_and_a_restart_and_new_sessions_localise_in_i
     );
     assert_eq!(saved["session"], session.as_str());
     assert_eq!(saved["camera"]["width"], 320);
+    // Made without a metric depth prior: no unit.
+    assert_eq!(saved["scale"], "arbitrary", "{saved}");
+    assert_eq!(saved["format_version"], 2, "{saved}");
     let fetched = fetch(&server, &session, work.join("a"));
     let keyframes = tum(&fetched, "keyframes.txt");
     let matched = associate_poses(&groundtruth(&map_seq), &keyframes, DEFAULT_MAX_DT).expect("kf");

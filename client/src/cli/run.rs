@@ -165,6 +165,8 @@ fn localize_sequence(
 ) -> anyhow::Result<()> {
     let mut log = super::localize::Log::create(&args.out)?;
     let n = frame_count(args, seq);
+    // The localised poses are in the map's unit: metres when the map is metric.
+    let scale = started.engine.stats().scale;
     let outcome = run_sequence(
         seq,
         n,
@@ -185,6 +187,7 @@ fn localize_sequence(
         fields.insert("map".into(), json!(args.map));
         fields.insert("map_keyframes".into(), json!(started.map_keyframes));
         fields.insert("map_load_s".into(), json!(started.map_load_s));
+        fields.insert("scale".into(), json!(scale));
         fields.insert("out".into(), json!(args.out));
         fields.extend(recorded);
     }

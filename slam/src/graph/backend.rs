@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 
 use super::KeyframeId;
 use super::config::BackendConfig;
-use super::pose_graph::{Constraint, OptimizeReport, PoseGraph};
+use super::pose_graph::{Constraint, OptimizeReport, PoseGraph, ScalePrior};
 use super::resident::Resident;
 use super::search::{CompactKeyframe, Keyframe, KeyframeData, KeyframeMaps};
 use super::sim3_tracker::Sim3Tracker;
@@ -332,6 +332,14 @@ impl Backend {
     pub fn add_map_edge(&mut self, edge: Constraint) -> Result<()> {
         self.link(edge.from, edge.to);
         self.graph.add_edge(edge)
+    }
+
+    /// Puts a saved map's scale factor on its keyframe `id` (already inserted) back into the
+    /// graph; the next [`Backend::process`] optimises.
+    pub fn add_map_scale_prior(&mut self, id: KeyframeId, prior: ScalePrior) -> Result<()> {
+        self.graph.set_scale_prior(id, Some(prior))?;
+        self.scale_observed = true;
+        Ok(())
     }
 
     /// Replaces the depth map of keyframe `id` — e.g. DeepRelativeFusion's two-view consistent

@@ -5,7 +5,9 @@
 //! depth and variance that tracking uses, the dense depth and variance the fusion integrates,
 //! the optimised pose and the appearance descriptor place recognition compares), the pose
 //! graph's Sim(3) edges with their information, the camera, and the fusion's voxel size: the
-//! mesh is rebuilt from the dense keyframes, so no TSDF is stored. The format on disk is
+//! mesh is rebuilt from the dense keyframes, so no TSDF is stored. A map made with a metric
+//! depth prior says so ([`SavedMap::metric`]) and keeps each keyframe's scale factor, so that
+//! extending it stays in metres (issue 39). The format on disk is
 //! versioned ([`FORMAT_VERSION`]) and documented in `docs/map-format.md`.
 
 pub mod localize;
@@ -17,7 +19,7 @@ use std::sync::Arc;
 
 use crate::frame::CompactFrame;
 use crate::geometry::{PinholeCamera, Sim3};
-use crate::graph::{Constraint, KeyframeId, Thumbnail};
+use crate::graph::{Constraint, KeyframeId, ScalePrior, Thumbnail};
 use crate::image::ImageF32;
 use crate::mapping::CompactDepth;
 use crate::{Error, Result};
@@ -25,9 +27,13 @@ use crate::{Error, Result};
 pub use localize::{Localization, LocalizationState, LocalizeConfig, Localizer};
 pub use store::{disk_bytes_by_file, read_keyframe_poses, read_map, write_map, write_map_streamed};
 
-/// Version of the on-disk layout; a reader refuses any other (the layout says what each
-/// version holds, `docs/map-format.md`).
-pub const FORMAT_VERSION: u32 = 1;
+/// Version of the on-disk layout written; a reader refuses any other than
+/// [`OLDEST_READABLE_VERSION`]`..=FORMAT_VERSION` (the layout says what each version holds,
+/// `docs/map-format.md`). Version 2 added the metric scale.
+pub const FORMAT_VERSION: u32 = 2;
+
+/// Maps of version 1 read as maps of arbitrary scale without scale factors.
+pub const OLDEST_READABLE_VERSION: u32 = 1;
 
 /// The dense depth of a keyframe at the dense layer's working resolution.
 #[derive(Clone, Debug, PartialEq)]
@@ -55,6 +61,9 @@ pub struct MapKeyframe {
     pub dense: Option<DenseDepth>,
     /// Appearance descriptor for place recognition.
     pub thumbnail: Thumbnail,
+    /// The metric prior's unary factor on the keyframe's scale (`graph::ScalePrior`), when one
+    /// observed it: an extension that may move the keyframe keeps it anchored.
+    pub scale_prior: Option<ScalePrior>,
 }
 
 /// A whole map.
@@ -68,6 +77,9 @@ pub struct SavedMap {
     pub edges: Vec<Constraint>,
     /// Voxel size of the fusion (map units), when there was one.
     pub voxel_size: Option<f32>,
+    /// The map's unit is the metre: a metric depth prior anchored its scale (the run reported
+    /// `"scale": "metric"`). False for a monocular map of arbitrary scale.
+    pub metric: bool,
 }
 
 impl SavedMap {
@@ -109,6 +121,15 @@ impl SavedMap {
             }
             if !valid_sim3(&kf.world_from_keyframe) {
                 return bad("its pose is not a finite similarity".into());
+            }
+            if let Some(p) = &kf.scale_prior {
+                let positive = |v: f64| v.is_finite() && v > 0.0;
+                if !(p.log_scale.is_finite() && positive(p.sigma) && positive(p.huber)) {
+                    return bad("its scale factor is not finite with σ, Huber width > 0".into());
+                }
+                if !self.metric {
+                    return bad("it has a scale factor in a map of arbitrary scale".into());
+                }
             }
         }
         Ok(())

@@ -1,4 +1,4 @@
-//! The map on disk (format version 1, `docs/map-format.md`):
+//! The map on disk (format version 2, `docs/map-format.md`):
 //!
 //! ```text
 //! MAP/manifest.json                      format, version, camera, voxel size, keyframes, edges
@@ -17,10 +17,10 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use super::{DenseDepth, FORMAT_VERSION, MapKeyframe, SavedMap};
+use super::{DenseDepth, FORMAT_VERSION, MapKeyframe, OLDEST_READABLE_VERSION, SavedMap};
 use crate::frame::Frame;
 use crate::geometry::{Matrix7, PinholeCamera, Sim3};
-use crate::graph::{Constraint, Thumbnail};
+use crate::graph::{Constraint, ScalePrior, Thumbnail};
 use crate::image::ImageF32;
 use crate::mapping::{CompactDepth, DepthMap, InverseDepth};
 use crate::{Error, Result, npy};
@@ -46,6 +46,9 @@ struct Manifest {
     version: u32,
     camera: PinholeCamera,
     voxel_size: Option<f32>,
+    /// Since version 2; absent (false) in version 1.
+    #[serde(default)]
+    metric: bool,
     keyframes: Vec<ManifestKeyframe>,
     edges: Vec<ManifestEdge>,
 }
@@ -59,6 +62,9 @@ struct ManifestKeyframe {
     /// The dense maps' camera, when the keyframe was densified.
     dense_camera: Option<PinholeCamera>,
     thumbnail: Vec<f32>,
+    /// Since version 2, in metric maps only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    scale_prior: Option<ScalePrior>,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -175,6 +181,7 @@ fn write_contents(
             world_from_keyframe: kf.world_from_keyframe,
             dense_camera: kf.dense.as_ref().map(|d| d.camera),
             thumbnail: kf.thumbnail.values().to_vec(),
+            scale_prior: kf.scale_prior,
         });
     }
     sync_dir(&root.join("keyframes"))?;
@@ -183,6 +190,7 @@ fn write_contents(
         version: FORMAT_VERSION,
         camera: map.camera,
         voxel_size: map.voxel_size,
+        metric: map.metric,
         keyframes,
         edges: map
             .edges
@@ -227,9 +235,10 @@ fn read_manifest(dir: &Path) -> Result<Manifest> {
             probe.format
         )));
     }
-    if probe.version != FORMAT_VERSION {
+    if !(OLDEST_READABLE_VERSION..=FORMAT_VERSION).contains(&probe.version) {
         return Err(Error::Map(format!(
-            "{} is map format version {}; this relfusion reads version {FORMAT_VERSION} only",
+            "{} is map format version {}; this relfusion reads versions \
+             {OLDEST_READABLE_VERSION} to {FORMAT_VERSION}",
             dir.display(),
             probe.version
         )));
@@ -279,6 +288,7 @@ pub fn read_map(dir: &Path, camera: Option<&PinholeCamera>) -> Result<SavedMap> 
         keyframes,
         edges,
         voxel_size: manifest.voxel_size,
+        metric: manifest.metric,
     };
     map.validate()?;
     Ok(map)
@@ -365,6 +375,7 @@ fn read_keyframe(
         depth: Arc::new(CompactDepth::of(&depth)),
         dense,
         thumbnail,
+        scale_prior: kf.scale_prior,
     })
 }
 

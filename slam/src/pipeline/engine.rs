@@ -74,7 +74,7 @@ impl Engine {
                     localizer,
                     stats: Stats {
                         dense_mode: "off",
-                        scale: "arbitrary",
+                        scale: super::scale_name(map.metric),
                         ..Stats::default()
                     },
                     last: None,

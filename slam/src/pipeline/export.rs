@@ -15,7 +15,7 @@ use super::Pipeline;
 use crate::export::ColoredPoint;
 use crate::frame::CompactFrame;
 use crate::geometry::{PinholeCamera, Sim3};
-use crate::graph::{Constraint, KeyframeId};
+use crate::graph::{Constraint, KeyframeId, ScalePrior};
 use crate::map::{DenseDepth, MapKeyframe, SavedMap};
 use crate::mapping::{CompactDepth, DepthMap};
 use crate::{Error, Result};
@@ -182,6 +182,7 @@ impl Pipeline {
             keyframes: Vec::new(),
             edges,
             voxel_size: self.fusion_stats().map(|f| f.voxel_size as f32),
+            metric: self.metres,
         };
         Ok((header, ids))
     }
@@ -219,7 +220,21 @@ impl Pipeline {
             depth,
             dense,
             thumbnail: kf.thumbnail.clone(),
+            scale_prior: self.scale_prior(id),
         })
+    }
+
+    /// Keyframe `id`'s scale factor in a map of metres: the pose graph's, or the one a loaded
+    /// map came with (its fixed keyframes keep theirs outside the graph, `extend`).
+    fn scale_prior(&self, id: KeyframeId) -> Option<ScalePrior> {
+        if !self.metres {
+            return None;
+        }
+        let graph = self
+            .backend
+            .backend()
+            .and_then(|b| b.graph().scale_priors().get(&id).copied());
+        graph.or_else(|| self.map.as_ref().and_then(|m| m.scale_prior(id)))
     }
 
     /// Every densified keyframe back-projected at its current pose, coloured from its image:

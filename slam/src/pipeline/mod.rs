@@ -160,8 +160,11 @@ pub struct Pipeline {
     camera: PinholeCamera,
     undistort: Option<UndistortMap>,
     prior: Option<SharedPrior>,
-    /// The prior is metric and anchors the scale (`Stats::scale`).
+    /// The prior is metric and anchors the scale: keyframes observe their scale in it.
     metric: bool,
+    /// The world's unit is the metre (`Stats::scale`): `metric`, or the extended map was
+    /// made in metres.
+    metres: bool,
     tracker: SE3Tracker,
     backend: BackendLink,
     dense: Option<Link<DenseLayer>>,
@@ -199,6 +202,11 @@ pub struct Pipeline {
     map: Option<MapOrigin>,
     /// Where old keyframes' compact data goes (`crate::spill`).
     spill: Spill,
+}
+
+/// `Stats::scale` of a world in metres or not.
+pub fn scale_name(metres: bool) -> &'static str {
+    if metres { "metric" } else { "arbitrary" }
 }
 
 impl Pipeline {
@@ -282,6 +290,7 @@ impl Pipeline {
             undistort,
             prior,
             metric,
+            metres: metric,
             tracker,
             backend,
             dense,
@@ -301,7 +310,7 @@ impl Pipeline {
             next_frame_id: 0,
             stats: Stats {
                 dense_mode,
-                scale: if metric { "metric" } else { "arbitrary" },
+                scale: scale_name(metric),
                 ..Stats::default()
             },
             reported_poses: HashMap::new(),
