@@ -335,8 +335,12 @@ impl Backend {
     }
 
     /// Puts a saved map's scale factor on its keyframe `id` (already inserted) back into the
-    /// graph; the next [`Backend::process`] optimises.
+    /// graph (ignored when `metric_scale.enabled` is off, as [`Backend::observe_scale`]); the
+    /// next [`Backend::process`] optimises.
     pub fn add_map_scale_prior(&mut self, id: KeyframeId, prior: ScalePrior) -> Result<()> {
+        if !self.config.metric_scale.enabled {
+            return Ok(());
+        }
         self.graph.set_scale_prior(id, Some(prior))?;
         self.scale_observed = true;
         Ok(())

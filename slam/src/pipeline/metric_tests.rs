@@ -192,6 +192,20 @@ fn a_metric_map_keeps_its_metres_through_the_disk_and_an_extension() {
     let p =
         Pipeline::extending(config.clone(), *camera, Some(relative), None, &map).expect("extend");
     assert_eq!((p.stats().scale, p.metric), ("metric", false));
+    // The map's factors enter the pose graph only where its keyframes may move.
+    let in_graph = |p: &Pipeline| {
+        p.backend
+            .backend()
+            .expect("in step")
+            .graph()
+            .scale_priors()
+            .len()
+    };
+    assert_eq!(in_graph(&p), 0, "fixed map keyframes keep their scale");
+    let mut free = config.clone();
+    free.extend.fix_map = false;
+    let p = Pipeline::extending(free, *camera, None, None, &map).expect("extend");
+    assert_eq!(in_graph(&p), priors);
     let metric = Box::new(NoisyTruth::new(true));
     let p = Pipeline::extending(config.clone(), *camera, Some(metric), None, &old).expect("extend");
     assert_eq!((p.stats().scale, p.metric), ("arbitrary", false));
