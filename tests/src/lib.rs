@@ -180,9 +180,8 @@ pub fn free_port() -> u16 {
         .port()
 }
 
-/// Runs `relfusion ARGS`, asserts it succeeded and parses its JSON output (the last line, or
-/// the whole of stdout for pretty-printed reports).
-pub fn relfusion_json(args: &[&str]) -> serde_json::Value {
+/// Runs `relfusion ARGS`, asserts it succeeded and returns its stdout.
+pub fn relfusion_stdout(args: &[&str]) -> String {
     let out = Command::new(bin_path("relfusion"))
         .args(args)
         .output()
@@ -192,7 +191,13 @@ pub fn relfusion_json(args: &[&str]) -> serde_json::Value {
         "relfusion {args:?} failed: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Runs `relfusion ARGS`, asserts it succeeded and parses its JSON output (the last line, or
+/// the whole of stdout for pretty-printed reports).
+pub fn relfusion_json(args: &[&str]) -> serde_json::Value {
+    let stdout = relfusion_stdout(args);
     let last = stdout.lines().last().unwrap_or_default().to_string();
     serde_json::from_str(&last)
         .or_else(|_| serde_json::from_str(&stdout))

@@ -7,7 +7,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use relfusion_tests::{Relfusiond, bin_path, ply_faces};
+use relfusion_tests::{Relfusiond, ply_faces};
 use serde_json::Value;
 
 /// A sequence streamed to a real service with `relfusion stream --wait --fast EXTRA…`, and
@@ -143,17 +143,9 @@ pub fn check_mcap(mcap: &Value, frames: usize, poses: usize, keyframes: usize, t
     assert_eq!(mcap["mesh_triangles"], triangles, "mesh triangles: {mcap}");
 }
 
+/// Every JSON line `relfusion ARGS` printed (it must succeed).
 pub fn relfusion(args: &[&str]) -> Vec<Value> {
-    let out = Command::new(bin_path("relfusion"))
-        .args(args)
-        .output()
-        .expect("relfusion");
-    assert!(
-        out.status.success(),
-        "relfusion {args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout)
+    relfusion_tests::relfusion_stdout(args)
         .lines()
         .filter_map(|l| serde_json::from_str(l).ok())
         .collect()
