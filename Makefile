@@ -27,7 +27,7 @@ setup:
 
 test:
 	@env_lines=$$(bash scripts/setup.sh --test); eval "$$env_lines"; \
-	 cargo test --workspace --no-fail-fast
+	 bash scripts/test.sh
 
 # The client's optional `--rerun` (cargo feature `rerun`) and its test: the rerun SDK and arrow
 # would be a third of `make test`'s cold build, so they are built only here.
