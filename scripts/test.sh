@@ -19,12 +19,14 @@ cargo test --workspace --no-run
 cargo build --workspace --all-targets
 
 # The integration test targets of every workspace package (those whose required features are on).
-mapfile -t targets < <(cargo metadata --format-version 1 --no-deps | python3 -c '
+# Read into a variable first: a failure inside `< <(...)` would go unnoticed and skip binaries.
+metadata=$(cargo metadata --format-version 1 --no-deps)
+mapfile -t targets < <(python3 -c '
 import json, sys
 for p in json.load(sys.stdin)["packages"]:
     for t in p["targets"]:
         if "test" in t["kind"] and not t.get("required-features"):
-            print(t["name"])')
+            print(t["name"])' <<< "$metadata")
 
 # Longest first (measured 2026-12-03, docs/build-time.md); the rest in metadata order.
 heavy=(--lib map_localize bench_accuracy_cli service_hardening client_stream service_soak
@@ -49,19 +51,19 @@ finish_one() {   # waits for any running job and prints its log
   cat "$logs/${job#--}.log"
   [ "$rc" -eq 0 ] || failed+=("$job")
 }
-start=$(date +%s)
-for job in "${queue[@]}"; do
-  while [ "${#running[@]}" -ge "$jobs_max" ]; do finish_one; done
+launch() {   # starts one job in the background: a test target's name, or a cargo flag
+  local job="$1" args
   if [[ "$job" == --* ]]; then args=("$job"); else args=(--test "$job"); fi
   cargo test --workspace "${args[@]}" > "$logs/${job#--}.log" 2>&1 &
   running[$!]="$job"
+}
+start=$(date +%s)
+for job in "${queue[@]}"; do
+  while [ "${#running[@]}" -ge "$jobs_max" ]; do finish_one; done
+  launch "$job"
 done
 while [ "${#running[@]}" -gt 0 ]; do finish_one; done
-for job in "${alone[@]}"; do
-  cargo test --workspace --test "$job" > "$logs/$job.log" 2>&1 &
-  running[$!]="$job"
-  finish_one
-done
+for job in "${alone[@]}"; do launch "$job"; finish_one; done
 
 echo "===== $(( ${#queue[@]} + ${#alone[@]} )) test jobs in $(( $(date +%s) - start )) s"
 if [ "${#failed[@]}" -gt 0 ]; then
