@@ -85,11 +85,27 @@ enum ZenohSide {
 /// shuts the sessions down gracefully (live sessions finish their queued frames and persist
 /// their results, uploads stop and re-run on restart) and gives open requests (event streams
 /// end with their sessions) `limits.shutdown_grace_s` to complete.
-pub async fn run(
+///
+/// Boxed in and out so that the caller compiles none of it: a generic or `async fn` here would be
+/// compiled again, with the HTTP and Zenoh stack below it, in every crate that calls it
+/// (`relfusiond`'s binary, issue 36).
+pub fn run(
     listener: tokio::net::TcpListener,
     tls: Option<tokio_rustls::TlsAcceptor>,
     state: Arc<AppState>,
-    shutdown: impl Future<Output = ()> + Send + 'static,
+    shutdown: BoxFuture<()>,
+) -> BoxFuture<Result<(), ServerError>> {
+    Box::pin(serve_until(listener, tls, state, shutdown))
+}
+
+/// A future that a binary awaits without compiling its body (see [`run`]).
+pub type BoxFuture<T> = std::pin::Pin<Box<dyn Future<Output = T> + Send + 'static>>;
+
+async fn serve_until(
+    listener: tokio::net::TcpListener,
+    tls: Option<tokio_rustls::TlsAcceptor>,
+    state: Arc<AppState>,
+    shutdown: BoxFuture<()>,
 ) -> Result<(), ServerError> {
     // Zenoh (when enabled) serves the same sessions; it closes after them so that their last
     // updates still go out. A client of a router joins in the background (the router may come

@@ -112,7 +112,12 @@ async fn main() -> anyhow::Result<()> {
         return Ok(());
     }
     if let Some(listen) = &args.zenoh_router {
-        relfusion_server::zenoh_api::setup::run_router(&config, listen, shutdown_signal()).await?;
+        relfusion_server::zenoh_api::setup::run_router(
+            &config,
+            listen,
+            Box::pin(shutdown_signal()),
+        )
+        .await?;
         return Ok(());
     }
     // A bad certificate or key stops the start, before anything listens.
@@ -128,7 +133,7 @@ async fn main() -> anyhow::Result<()> {
     // The one stdout line: scripts and tests read the bound address from it (port 0).
     println!("listening on {addr}");
     tracing::info!(%addr, data_dir = %state.config.data_dir.display(), "relfusiond ready");
-    relfusion_server::run(listener, tls, Arc::new(state), shutdown_signal()).await?;
+    relfusion_server::run(listener, tls, Arc::new(state), Box::pin(shutdown_signal())).await?;
     tracing::info!("stopped");
     Ok(())
 }

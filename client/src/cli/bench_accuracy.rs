@@ -6,7 +6,7 @@
 //! and of the keyframes (median and worst of the threaded runs, and the deterministic run),
 //! the ATE as a share of the ground-truth path, the scale drift (largest over smallest scale of
 //! 60-frame windows, [`relfusion_slam::eval::scale_drift`]), the wall time per frame and the
-//! probes of the keyframes' semi-dense depth against the sensor's ([`super::depth_probe`]:
+//! probes of the keyframes' semi-dense depth against the sensor's ([`relfusion_client::depth_probe`]:
 //! depth-shape slope 1 s after the start, its range, the depth scale's drift), so that the
 //! cause of a bad trajectory stays visible (issue 35); with a metric prior (issue 39) also the
 //! ATE after a rigid SE(3) alignment (no scale) and the Sim(3) alignment's scale (1 = metres);
@@ -32,8 +32,8 @@ use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::{Config, FrameInput, Pipeline};
 use serde::Serialize;
 
-use super::depth_probe::{DepthProbe, ShapeSummary, map_pairs};
 use super::run::{load_prior, write_results};
+use relfusion_client::depth_probe::{DepthProbe, ShapeSummary, map_pairs};
 
 /// Poses per window of the scale-drift figure (2 s at 30 Hz: short enough that tracking is
 /// accurate within it, long enough for a well-conditioned Sim(3) fit).

@@ -28,8 +28,10 @@ use anyhow::Context as _;
 use relfusion_sdk::{Client, CreateSession, FramePolicy};
 use serde_json::{Value, json};
 
+use relfusion_client::latency::{percentile, step_json};
+
 use super::bench_serve::{
-    self, BenchSequence, Frames, live_session, live_session_via, load_frames, percentile, step_json,
+    self, BenchSequence, Frames, live_session, live_session_via, load_frames,
 };
 use super::connect::runtime;
 

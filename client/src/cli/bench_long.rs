@@ -28,8 +28,8 @@ use relfusion_slam::eval::{AlignMode, ate};
 use relfusion_slam::geometry::SE3;
 use serde_json::{Value, json};
 
-use super::bench_serve::percentile;
 use super::connect::{ConnectArgs, print_line, runtime};
+use relfusion_client::latency::percentile;
 
 /// Seconds after which `Motion::Loop` repeats exactly (path and tremor).
 const LOOP_PERIOD_S: f64 = 30.0;

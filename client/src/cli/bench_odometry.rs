@@ -23,7 +23,7 @@ use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::image::ImageF32;
 
 use super::bench_accuracy::{Loaded, load, median};
-use super::depth_probe::{DepthProbe, ShapeSummary};
+use relfusion_client::depth_probe::{DepthProbe, ShapeSummary};
 
 #[derive(Debug, clap::Args)]
 pub struct OdometryArgs {

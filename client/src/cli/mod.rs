@@ -14,7 +14,6 @@ pub mod bench_serve;
 pub mod bench_slam;
 pub mod bench_viewer;
 pub mod connect;
-pub mod depth_probe;
 pub mod eval;
 pub mod fetch;
 pub mod gpu_info;

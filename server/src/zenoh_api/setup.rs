@@ -25,9 +25,9 @@ use std::path::Path;
 use relfusion_proto::zenoh_keys::{ROOT, is_valid_chunk, tenant_prefix};
 use serde_json::{Value, json};
 
-use crate::ServerError;
 use crate::config::Config;
 use crate::ros2_names;
+use crate::{BoxFuture, ServerError};
 
 /// The `zenoh::Config` for the server. `users_file` is where the user/password dictionary is
 /// written when auth is on (a private file the caller keeps for the session's lifetime).
@@ -264,11 +264,22 @@ pub fn router_config(config: &Config, listen: &str, users_file: &str) -> String 
 /// Runs a Zenoh router on `listen` with the protection of [`router_config`] (what `zenohd`
 /// would run with it), until `shutdown`: the meeting point of a cluster's nodes when no
 /// `zenohd` is deployed (`relfusiond --zenoh-router ENDPOINT`). It serves no sessions.
-pub async fn run_router(
+///
+/// Boxed like [`crate::run`], so that `relfusiond` does not compile Zenoh's router again.
+pub fn run_router(
     config: &Config,
     listen: &str,
-    shutdown: impl std::future::Future<Output = ()>,
+    shutdown: BoxFuture<()>,
+) -> BoxFuture<Result<(), ServerError>> {
+    Box::pin(router_until(config.clone(), listen.to_owned(), shutdown))
+}
+
+async fn router_until(
+    config: Config,
+    listen: String,
+    shutdown: BoxFuture<()>,
 ) -> Result<(), ServerError> {
+    let (config, listen) = (&config, listen.as_str());
     let folder = tempfile::tempdir()
         .map_err(|e| ServerError::Startup(format!("a folder for the router's users: {e}")))?;
     let users = folder.path().join("users");
