@@ -363,6 +363,8 @@ def listen(endpoint, domain, namespace):
         summary = {
             "topics": {name: {"count": e["count"], "errors": e["errors"][:5],
                               "sequences_ok": e["sequences"] == list(range(1, len(e["sequences"]) + 1)),
+                              # Where they first break, to tell a missed message from a reordered one.
+                              "sequences_break": next(([i, s] for i, s in enumerate(e["sequences"], 1) if s != i), None),
                               "gids": sorted(e["gids"])}
                        for name, e in got.items()},
             "poses": poses,

@@ -163,7 +163,10 @@ fn live_session_reports_every_frame_over_sse_and_websocket() {
 fn results_arrive_while_the_camera_pauses() {
     const FRAMES: usize = 150;
     const KEYFRAMES_BEFORE_PAUSE: usize = 3;
-    const PAUSE: Duration = Duration::from_secs(3);
+    // The longest the camera waits: the results normally come within a second or two, but the
+    // test must not fail because other test binaries share the cores (`make test` runs three
+    // at a time). It stops waiting as soon as both have come.
+    const PAUSE: Duration = Duration::from_secs(20);
     // Events of the last frame's own processing follow its pose within milliseconds; the
     // worker polls only after a quarter second without frames.
     const SAME_FRAME: Duration = Duration::from_millis(200);
@@ -198,7 +201,7 @@ fn results_arrive_while_the_camera_pauses() {
     let paused = Instant::now();
     let (mut meshes, mut moved_poses) = (0, 0);
     set_ws_read_timeout(&mut socket, Duration::from_millis(100));
-    while paused.elapsed() < PAUSE {
+    while paused.elapsed() < PAUSE && (meshes == 0 || moved_poses == 0) {
         let Some(message) = ws_try_next(&mut socket) else {
             continue;
         };

@@ -127,7 +127,7 @@ fn a_session_on_ros2_publishes_every_output_to_a_ros2_subscriber() {
         assert_eq!(t["errors"], json!([]), "{topic} decodes as its ROS 2 type");
         assert_eq!(
             t["sequences_ok"], true,
-            "{topic}: sequence numbers 1, 2, 3, …"
+            "{topic}: sequence numbers 1, 2, 3, … ({t})"
         );
         assert_eq!(
             t["gids"].as_array().map(Vec::len),
