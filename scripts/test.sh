@@ -16,7 +16,7 @@ rm -rf "$logs" && mkdir -p "$logs"
 # Everything built first, once: the test binaries and the binaries the end-to-end tests spawn
 # (relfusion_tests::bin_path builds with these same flags, so its build is then a no-op).
 cargo test --workspace --no-run
-cargo build --workspace --all-targets
+cargo build --workspace --bins --tests
 
 # The integration test targets of every workspace package (those whose required features are on).
 # Read into a variable first: a failure inside `< <(...)` would go unnoticed and skip binaries.

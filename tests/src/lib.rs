@@ -14,7 +14,7 @@ pub use server::{Relfusiond, synth_sequence};
 ///
 /// `cargo test` builds binaries only for packages that have integration tests of their own, and
 /// a binary left over from an older build would test stale code. So the first call for each
-/// binary runs `cargo build --workspace --all-targets` with this test's profile and target
+/// binary runs `cargo build --workspace --bins --tests` with this test's profile and target
 /// directory (cargo releases its build lock before running tests, so this nested build is
 /// allowed); later calls reuse the result.
 pub fn bin_path(name: &str) -> PathBuf {
@@ -75,11 +75,12 @@ pub fn bin_path(name: &str) -> PathBuf {
             command.args(["--features", "relfusion-client/rerun"]);
         }
     } else {
-        // Every target, as `cargo test --workspace` selects them: dev-dependencies then enable
-        // the same features, every library is already built, and only the binaries compile.
-        // `--bin NAME` resolved other features and rebuilt much of the dependency tree (about
-        // 4 minutes of a cold `make test`, docs/build-time.md).
-        command.arg("--all-targets");
+        // The binaries and the tests, as `cargo test --workspace` selects them: dev-dependencies
+        // then enable the same features, every library is already built, and only the binaries
+        // compile. `--bin NAME` resolved other features and rebuilt much of the dependency tree
+        // (about 4 minutes of a cold `make test`); `--all-targets` also compiled each binary as
+        // a test harness, `test = false` or not (docs/build-time.md).
+        command.args(["--bins", "--tests"]);
     }
     let status = command
         .current_dir(env!("CARGO_MANIFEST_DIR"))
