@@ -48,13 +48,15 @@ finish_one() {   # waits for any running job and prints its log
   local job="${running[$pid]}"
   unset "running[$pid]"
   echo "===== $job: exit $rc, at $(( $(date +%s) - start )) s"
-  cat "$logs/${job#--}.log"
+  cat "$logs/${job#--}.log" "$logs/${job#--}.time"
   [ "$rc" -eq 0 ] || failed+=("$job")
 }
 launch() {   # starts one job in the background: a test target's name, or a cargo flag
   local job="$1" args
   if [[ "$job" == --* ]]; then args=("$job"); else args=(--test "$job"); fi
-  cargo test --workspace "${args[@]}" > "$logs/${job#--}.log" 2>&1 &
+  # bash's `time` adds the job's CPU (cargo, the test binary and what it spawned) to its log.
+  { TIMEFORMAT="cpu of $job: %U s user, %S s sys, %R s wall"
+    time cargo test --workspace "${args[@]}" > "$logs/${job#--}.log" 2>&1; } 2> "$logs/${job#--}.time" &
   running[$!]="$job"
 }
 start=$(date +%s)
