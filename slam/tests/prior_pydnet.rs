@@ -80,8 +80,17 @@ fn pydnet_reproduces_shared_data_readme_accuracy() {
     }
     let seq = TumSequence::open(&seq_dir, None).expect("open TUM sequence");
     assert_eq!(seq.len(), 250, "README: 250 associated RGB-D pairs");
-    let mut prior = OnnxDepthPrior::load(&model, None).expect("load PyDNet++");
-    assert_eq!(prior.recognition(), Recognition::Sha256);
+    let recognised = OnnxDepthPrior::load(&model, None).expect("load PyDNet++");
+    assert_eq!(recognised.recognition(), Recognition::Sha256);
+    // The recognised preprocessing on one intra-op thread: `make test` runs three jobs on two
+    // cores, and ONNX Runtime's parallel sections wait by spinning for a descheduled worker
+    // (issue 36: 173 CPU-s at 2 threads against two busy loops, 72 s on an idle machine).
+    let config = ModelConfig {
+        intra_threads: 1,
+        ..recognised.describe().clone()
+    };
+    drop(recognised);
+    let mut prior = OnnxDepthPrior::load(&model, Some(config)).expect("load PyDNet++");
 
     let (mut shares, mut inference_s) = (Vec::new(), 0.0f64);
     for i in 0..seq.len() {
