@@ -84,7 +84,7 @@ fn pydnet_reproduces_shared_data_readme_accuracy() {
     assert_eq!(recognised.recognition(), Recognition::Sha256);
     // The recognised preprocessing on one intra-op thread: `make test` runs three jobs on two
     // cores, and ONNX Runtime's parallel sections wait by spinning for a descheduled worker
-    // (issue 36: 173 CPU-s at 2 threads against two busy loops, 72 s on an idle machine).
+    // (issue 36, against two busy loops: 173 CPU-s at 2 threads, 63 at 1, the same figure).
     let config = ModelConfig {
         intra_threads: 1,
         ..recognised.describe().clone()
