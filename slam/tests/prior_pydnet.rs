@@ -9,7 +9,9 @@ use std::time::Instant;
 
 use relfusion_slam::dataset::{TumSequence, shared_data_dir};
 use relfusion_slam::dense::model_config::{Layout, ModelConfig, OutputKind, ResizeMode};
-use relfusion_slam::dense::{DepthPrior, OnnxDepthPrior, Recognition, runtime_library_path};
+use relfusion_slam::dense::{
+    DepthPrior, LoadOptions, OnnxDepthPrior, Recognition, runtime_library_path,
+};
 use relfusion_slam::image::ImageF32;
 use relfusion_slam::scale_shift::fit_scale_shift_unconstrained;
 
@@ -80,17 +82,16 @@ fn pydnet_reproduces_shared_data_readme_accuracy() {
     }
     let seq = TumSequence::open(&seq_dir, None).expect("open TUM sequence");
     assert_eq!(seq.len(), 250, "README: 250 associated RGB-D pairs");
-    let recognised = OnnxDepthPrior::load(&model, None).expect("load PyDNet++");
-    assert_eq!(recognised.recognition(), Recognition::Sha256);
-    // The recognised preprocessing on one intra-op thread: `make test` runs three jobs on two
-    // cores, and ONNX Runtime's parallel sections wait by spinning for a descheduled worker
-    // (issue 36, against two busy loops: 173 CPU-s at 2 threads, 63 at 1, the same figure).
-    let config = ModelConfig {
-        intra_threads: 1,
-        ..recognised.describe().clone()
+    // The recognised model on one intra-op thread: `make test` runs three jobs on two cores,
+    // and ONNX Runtime's parallel sections wait by spinning for a descheduled worker (issue
+    // 36, against two busy loops: 173 CPU-s at 2 threads, 63 at 1, the same figure).
+    let one_thread = LoadOptions {
+        intra_threads: Some(1),
+        ..LoadOptions::default()
     };
-    drop(recognised);
-    let mut prior = OnnxDepthPrior::load(&model, Some(config)).expect("load PyDNet++");
+    let mut prior = OnnxDepthPrior::load_with(&model, None, &one_thread).expect("load PyDNet++");
+    assert_eq!(prior.recognition(), Recognition::Sha256);
+    assert_eq!(prior.describe().intra_threads, 1);
 
     let (mut shares, mut inference_s) = (Vec::new(), 0.0f64);
     for i in 0..seq.len() {
@@ -189,12 +190,12 @@ fn missing_runtime_library_is_an_error() {
         );
         return;
     }
-    let err = OnnxDepthPrior::load_with_runtime(
-        &model,
-        None,
-        Some(Path::new("/nonexistent/lib/libonnxruntime.so")),
-    )
-    .expect_err("missing runtime library");
+    let options = LoadOptions {
+        runtime_library: Some(PathBuf::from("/nonexistent/lib/libonnxruntime.so")),
+        ..LoadOptions::default()
+    };
+    let err =
+        OnnxDepthPrior::load_with(&model, None, &options).expect_err("missing runtime library");
     let msg = err.to_string();
     assert!(
         msg.contains("ONNX Runtime library not found at /nonexistent/lib/libonnxruntime.so")

@@ -340,7 +340,7 @@ fn sequence(
 }
 
 fn run_once(loaded: &Loaded, config: &Config, model: Option<&Path>) -> anyhow::Result<RunFigures> {
-    let prior = load_prior(model, None)?;
+    let prior = load_prior(model, None, None)?;
     let mut pipeline = Pipeline::new(config.clone(), loaded.seq.camera, prior)?;
     let t0 = Instant::now();
     for frame in &loaded.frames {

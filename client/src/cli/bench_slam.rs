@@ -66,7 +66,7 @@ pub fn slam(args: &SlamArgs) -> anyhow::Result<()> {
 
     let mut runs = Vec::new();
     for _ in 0..args.runs {
-        let prior = load_prior(args.model.as_deref(), None)?;
+        let prior = load_prior(args.model.as_deref(), None, None)?;
         let mut pipeline = Pipeline::new(config.clone(), seq.camera, prior)?;
         let t0 = Instant::now();
         let mut per_frame = Vec::with_capacity(n);

@@ -24,7 +24,7 @@ use std::time::Instant;
 use anyhow::Context as _;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{stamped_se3, write_tum_trajectory};
-use relfusion_slam::dense::{DepthPrior, ModelConfig, OnnxDepthPrior};
+use relfusion_slam::dense::{DepthPrior, LoadOptions, ModelConfig, OnnxDepthPrior};
 use relfusion_slam::eval::fused_mesh::write_mesh_stats;
 use relfusion_slam::export::write_points_ply;
 use relfusion_slam::geometry::Sim3;
@@ -49,6 +49,10 @@ pub struct Args {
     /// Model description for models relfusion does not recognise.
     #[arg(long, requires = "model")]
     pub model_config: Option<PathBuf>,
+    /// ONNX Runtime intra-op threads for the depth prior (default: the model's, 2). One on a
+    /// machine whose cores are busy: parallel sections spin-wait for descheduled workers.
+    #[arg(long, requires = "model", value_parser = clap::value_parser!(u16).range(1..=256))]
+    pub prior_threads: Option<u16>,
     /// Process only the first N frames.
     #[arg(long)]
     pub frames: Option<usize>,
@@ -97,7 +101,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // A localiser has no dense layer: no model to load.
     let prior = match localize {
         true => None,
-        false => load_prior(args.model.as_deref(), args.model_config.as_deref())?,
+        false => load_prior(
+            args.model.as_deref(),
+            args.model_config.as_deref(),
+            args.prior_threads.map(usize::from),
+        )?,
     };
     let seq = TumSequence::open(&args.dataset, None)
         .with_context(|| format!("opening {}", args.dataset.display()))?;
@@ -398,14 +406,19 @@ pub fn run_sequence(
     })
 }
 
-/// Loads the depth prior of `--model` / `--model-config`, if given.
+/// Loads the depth prior of `--model` / `--model-config` / `--prior-threads`, if given.
 pub fn load_prior(
     model: Option<&Path>,
     model_config: Option<&Path>,
+    intra_threads: Option<usize>,
 ) -> anyhow::Result<Option<Box<dyn DepthPrior>>> {
     let Some(model) = model else { return Ok(None) };
     let model_config = model_config.map(ModelConfig::from_file).transpose()?;
-    let prior = OnnxDepthPrior::load(model, model_config)
+    let options = LoadOptions {
+        intra_threads,
+        ..LoadOptions::default()
+    };
+    let prior = OnnxDepthPrior::load_with(model, model_config, &options)
         .with_context(|| format!("loading {}", model.display()))?;
     Ok(Some(Box::new(prior)))
 }

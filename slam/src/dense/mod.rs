@@ -45,4 +45,6 @@ pub use config::{
 };
 pub use keyframe::{DenseKeyframe, DenseMode, DenseStages, DenseTimings};
 pub use model_config::{Layout, ModelConfig, OutputKind, Recognition, ResizeMode};
-pub use prior::{DepthPrior, InverseDepth, OnnxDepthPrior, init_runtime, runtime_library_path};
+pub use prior::{
+    DepthPrior, InverseDepth, LoadOptions, OnnxDepthPrior, init_runtime, runtime_library_path,
+};

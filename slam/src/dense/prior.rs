@@ -198,19 +198,30 @@ impl std::fmt::Debug for OnnxDepthPrior {
     }
 }
 
+/// How [`OnnxDepthPrior::load_with`] opens a model beyond its [`ModelConfig`].
+#[derive(Clone, Debug, Default)]
+pub struct LoadOptions {
+    /// The ONNX Runtime library (`None`: [`runtime_library_path`]).
+    pub runtime_library: Option<PathBuf>,
+    /// Intra-op threads, replacing the config's (or the recognised model's) own. One thread
+    /// on a machine whose cores are all busy: ONNX Runtime's parallel sections spin-wait for
+    /// a descheduled worker (docs/build-time.md, "ONNX Runtime's waits under load").
+    pub intra_threads: Option<usize>,
+}
+
 impl OnnxDepthPrior {
     /// Loads `model_path` with the runtime found by [`runtime_library_path`]. With `config`,
     /// the config is checked against the model's inputs and outputs; without, the model must
     /// be one [`recognise`] knows.
     pub fn load(model_path: &Path, config: Option<ModelConfig>) -> Result<Self> {
-        Self::load_with_runtime(model_path, config, None)
+        Self::load_with(model_path, config, &LoadOptions::default())
     }
 
-    /// [`Self::load`] with an explicit runtime library (`None`: resolve as usual).
-    pub fn load_with_runtime(
+    /// [`Self::load`] with [`LoadOptions`]: another runtime library, another thread count.
+    pub fn load_with(
         model_path: &Path,
         config: Option<ModelConfig>,
-        runtime_library: Option<&Path>,
+        options: &LoadOptions,
     ) -> Result<Self> {
         // Check the model first: a missing model is the more specific error.
         if !model_path.is_file() {
@@ -219,11 +230,16 @@ impl OnnxDepthPrior {
                 model_path.display()
             )));
         }
+        if options.intra_threads == Some(0) {
+            return Err(Error::Prior("intra_threads must be at least 1".into()));
+        }
         let bytes = std::fs::read(model_path).map_err(|e| Error::io(model_path, e))?;
         let sha256 = hex(&Sha256::digest(&bytes));
-        let env = init_runtime(runtime_library)?;
+        let env = init_runtime(options.runtime_library.as_deref())?;
         // Recognised models use the ModelConfig default of 2 intra-op threads.
-        let threads = config.as_ref().map_or(2, |c| c.intra_threads);
+        let threads = options
+            .intra_threads
+            .unwrap_or_else(|| config.as_ref().map_or(2, |c| c.intra_threads));
         let session = build_session(env, &bytes, threads)
             .map_err(|e| Error::Prior(format!("{}: {e}", model_path.display())))?;
         let signature = signature(&session);
@@ -241,6 +257,10 @@ impl OnnxDepthPrior {
                     model_path.display()
                 ))
             })?,
+        };
+        let config = ModelConfig {
+            intra_threads: threads,
+            ..config
         };
         config.validate(&signature)?;
         let run_options = RunOptions::new()

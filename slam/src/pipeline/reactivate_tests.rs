@@ -4,16 +4,25 @@
 //! the hand-over edges in the pose graph, and with the same results when the old keyframes
 //! come back from the session's store.
 
+use std::sync::{Mutex, MutexGuard, OnceLock};
+
 use super::*;
 use crate::dataset::Motion;
 use crate::dataset::synth::{Scene, SynthConfig, path_length, render_frame};
 use crate::dataset::trajectory::StampedPose;
 use crate::eval::{AlignMode, ate};
 
+type Sequence = (PinholeCamera, Vec<FrameInput>, Vec<StampedPose>);
+
 /// The middle of the `forward` motion at 320×240 with ground truth: frames 150-449, the
 /// second half of the dolly towards the far wall and the first half of the way back over the
-/// same poses.
-fn forward_and_back() -> (PinholeCamera, Vec<FrameInput>, Vec<StampedPose>) {
+/// same poses. Rendered once per test binary.
+fn forward_and_back() -> &'static Sequence {
+    static SEQUENCE: OnceLock<Sequence> = OnceLock::new();
+    SEQUENCE.get_or_init(render_forward_and_back)
+}
+
+fn render_forward_and_back() -> Sequence {
     let synth = SynthConfig {
         frames: 450,
         seed: 3,
@@ -44,11 +53,7 @@ fn forward_and_back() -> (PinholeCamera, Vec<FrameInput>, Vec<StampedPose>) {
 
 /// Runs the sequence in step with `candidates` re-activation candidates, spilling every
 /// keyframe but the current one into `spill` when given.
-fn run(
-    sequence: &(PinholeCamera, Vec<FrameInput>, Vec<StampedPose>),
-    candidates: usize,
-    spill: Option<&std::path::Path>,
-) -> Pipeline {
+fn run(sequence: &Sequence, candidates: usize, spill: Option<&std::path::Path>) -> Pipeline {
     let (camera, frames, _) = sequence;
     let mut config = Config::default();
     config.pipeline.deterministic = true;
@@ -72,13 +77,22 @@ fn run(
     pipeline
 }
 
+/// The run with three candidates, every keyframe held: both tests read it, and it is
+/// deterministic, so it runs once per test binary (issue 36).
+fn reactivating() -> MutexGuard<'static, Pipeline> {
+    static RUN: OnceLock<Mutex<Pipeline>> = OnceLock::new();
+    RUN.get_or_init(|| Mutex::new(run(forward_and_back(), 3, None)))
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 #[test]
 fn a_camera_that_comes_back_reactivates_old_keyframes_instead_of_making_new_ones() {
     let sequence = forward_and_back();
     let gt = &sequence.2;
     let path = path_length(&gt.iter().map(|p| p.world_from_camera).collect::<Vec<_>>());
-    let on = run(&sequence, 3, None);
-    let off = run(&sequence, 0, None);
+    let on = reactivating();
+    let off = run(sequence, 0, None);
     let ate_of = |p: &Pipeline| {
         ate(
             gt,
@@ -135,8 +149,8 @@ fn reactivated_keyframes_read_back_from_the_store_give_the_same_results() {
     let sequence = forward_and_back();
     let dir = std::env::temp_dir().join(format!("relfusion-reactivate-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let held = run(&sequence, 3, None);
-    let spilled = run(&sequence, 3, Some(&dir));
+    let spilled = run(sequence, 3, Some(&dir));
+    let held = reactivating();
     let _ = std::fs::remove_dir_all(&dir);
     assert!(
         spilled.keyframe_memory().spill.loads > 0,
