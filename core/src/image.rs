@@ -65,13 +65,15 @@ impl ImageF32 {
     }
 
     /// Bilinear interpolation at a sub-pixel position; `None` outside `[0, w-1] × [0, h-1]`.
+    #[inline]
     pub fn bilinear(&self, x: f32, y: f32) -> Option<f32> {
         if !(x >= 0.0 && y >= 0.0 && x <= (self.width - 1) as f32 && y <= (self.height - 1) as f32)
         {
             return None;
         }
-        let x0 = (x.floor() as usize).min(self.width.saturating_sub(2));
-        let y0 = (y.floor() as usize).min(self.height.saturating_sub(2));
+        // x, y ≥ 0 here, so truncation is the floor (and no call into libm's `floorf`).
+        let x0 = (x as usize).min(self.width.saturating_sub(2));
+        let y0 = (y as usize).min(self.height.saturating_sub(2));
         let (fx, fy) = (x - x0 as f32, y - y0 as f32);
         let x1 = (x0 + 1).min(self.width - 1);
         let y1 = (y0 + 1).min(self.height - 1);

@@ -239,11 +239,13 @@ impl PinholeCamera {
 
     /// Ideal pinhole projection of a camera-frame point (no distortion; z must be > 0 for a
     /// meaningful result — callers check depth).
+    #[inline]
     pub fn project(&self, p: &Vector3<f64>) -> Vector2<f64> {
         Vector2::new(self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy)
     }
 
     /// ∂project(p)/∂p = `[[fx/z, 0, −fx·x/z²], [0, fy/z, −fy·y/z²]]`.
+    #[inline]
     pub fn project_jacobian(&self, p: &Vector3<f64>) -> Matrix2x3<f64> {
         let iz = 1.0 / p.z;
         Matrix2x3::new(

@@ -263,6 +263,7 @@ impl Sim3 {
     }
 
     /// Transforms a point: s·R·p + t.
+    #[inline]
     pub fn act(&self, p: &Vector3<f64>) -> Vector3<f64> {
         self.scale * self.rotation.act(p) + self.translation
     }
@@ -336,6 +337,7 @@ impl Sim3 {
     }
 
     /// `d(T·exp(δ)·p)/dδ` at δ = 0: `[sR, −sR·p^, sR·p]`.
+    #[inline]
     pub fn act_jacobian(&self, p: &Vector3<f64>) -> Matrix3x7 {
         let sr = self.scale * self.rotation.matrix();
         let mut j = Matrix3x7::zeros();

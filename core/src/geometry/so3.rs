@@ -142,6 +142,7 @@ impl SO3 {
     }
 
     /// The 3×3 rotation matrix.
+    #[inline]
     pub fn matrix(&self) -> Matrix3<f64> {
         *self.q.to_rotation_matrix().matrix()
     }
@@ -187,6 +188,7 @@ impl SO3 {
     }
 
     /// Rotates a point.
+    #[inline]
     pub fn act(&self, p: &Vector3<f64>) -> Vector3<f64> {
         self.q.transform_vector(p)
     }

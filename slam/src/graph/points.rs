@@ -97,8 +97,9 @@ impl DepthLevel {
         if self.var[yn.min(self.height - 1) * self.width + xn.min(self.width - 1)] <= 0.0 {
             return None;
         }
-        let x0 = (x.floor() as usize).min(self.width.saturating_sub(2));
-        let y0 = (y.floor() as usize).min(self.height.saturating_sub(2));
+        // x, y ≥ 0 here, so truncation is the floor (and no call into libm's `floor`).
+        let x0 = (x as usize).min(self.width.saturating_sub(2));
+        let y0 = (y as usize).min(self.height.saturating_sub(2));
         let (fx, fy) = (x - x0 as f64, y - y0 as f64);
         let (mut wsum, mut dsum, mut vsum) = (0.0, 0.0, 0.0);
         for (dx, dy, w) in [
