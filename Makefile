@@ -26,7 +26,8 @@ setup:
 	@bash scripts/setup.sh >/dev/null
 
 test:
-	@bash scripts/test.sh
+	@env_lines=$$(bash scripts/setup.sh --test); eval "$$env_lines"; \
+	 bash scripts/test.sh
 
 # The client's optional `--rerun` (cargo feature `rerun`) and its test: the rerun SDK and arrow
 # would be a third of `make test`'s cold build, so they are built only here.

@@ -97,7 +97,7 @@ if [ "${1:-}" = "--test" ]; then
   if [ ! -x "$S3S_ROOT/bin/s3s-fs" ]; then
     log "installing s3s-fs $S3S_VERSION into $S3S_ROOT"
     rm -rf "$S3S_ROOT.partial"
-    # Its own target folder (a temporary one): `make test` builds the workspace beside it.
+    # In a temporary target folder: its opt-level-0 release artifacts stay out of the project's.
     env -u CARGO_TARGET_DIR CARGO_PROFILE_RELEASE_OPT_LEVEL=0 CARGO_PROFILE_RELEASE_DEBUG=0 \
       cargo install s3s-fs --version "$S3S_VERSION" --locked --features binary \
       --root "$S3S_ROOT.partial" >&2

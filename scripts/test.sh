@@ -1,7 +1,6 @@
 #!/usr/bin/env bash
-# `make test`: sets up what the tests need (scripts/setup.sh --test) and runs the whole suite, as
-# `cargo test --workspace --no-fail-fast` would run it, but with its test binaries run
-# RELFUSION_TEST_JOBS (default 3) at a time.
+# `make test`: the whole suite, as `cargo test --workspace --no-fail-fast` would run it, but with
+# its test binaries run RELFUSION_TEST_JOBS (default 3) at a time.
 #
 # Why: cargo runs test binaries one after another, and most end-to-end binaries wait on servers,
 # timeouts and child processes: on the 2-core machine they use about one core (map_localize 1.1
@@ -18,19 +17,7 @@ rm -rf "$logs" && mkdir -p "$logs"
 # end-to-end tests spawn (relfusion_tests::bin_path builds with these same flags, so its build is
 # then a no-op). These are the units of `cargo test --workspace --no-run` plus the `relfusion`
 # binary; built after them, that binary compiled alone on one core for 30-97 s (issue 36).
-# The build needs nothing the test setup installs (runtime libraries, a browser, wheels, a test
-# server; no build script reads the variables it exports), so the setup runs beside it: on a
-# fresh machine its downloads and unpacking then overlap compiling.
-cargo build --workspace --bins --tests &
-build=$!
-trap 'kill "$build" 2>/dev/null || true' EXIT
-env_lines=$(bash scripts/setup.sh --test)
-eval "$env_lines"
-# Should the build have needed something after all (a certificate store for the registry, say),
-# it runs again after the setup; a compile error then shows twice.
-wait "$build" || { echo "test.sh: the build beside the setup failed; building again after it" >&2
-                   cargo build --workspace --bins --tests; }
-trap - EXIT
+cargo build --workspace --bins --tests
 
 # The integration test targets of every workspace package (those whose required features are on).
 # Read into a variable first: a failure inside `< <(...)` would go unnoticed and skip binaries.

@@ -120,7 +120,11 @@ pub fn query(
     payload: Option<Vec<u8>>,
     token: Option<&str>,
 ) -> Result<Vec<u8>, Vec<u8>> {
-    let mut get = z.get(key).timeout(Duration::from_secs(20));
+    // 60 s (was 20): the `Timeout` of `ENDPOINTS` came a third time (2026-12-04), with that
+    // lock held, in a cold `make test` on a slowed machine (the slam unit tests at 2.2× their
+    // time alone). Whether the reply was only late is not known; a longer wait costs a
+    // passing run nothing.
+    let mut get = z.get(key).timeout(Duration::from_secs(60));
     if let Some(payload) = payload {
         get = get.payload(payload);
     }
