@@ -90,8 +90,8 @@ if [ "${1:-}" = "--test" ]; then
   echo "export RELFUSION_CLIENT_PYDEPS=$CLIENT_PYDEPS"
   # A real S3-compatible server for the object-store tests: s3s-fs from crates.io (0.14.1, the
   # newest that builds with this toolchain), compiled once into the cache. At opt-level 0: the
-  # tests store a few small objects in it, and it compiles in 66 s instead of 161 s on a fresh 2-core
-  # machine, where it is part of every cold `make test` (docs/build-time.md).
+  # tests store a few small objects in it, and it compiles in 66 s instead of 161 s on a fresh
+  # 2-core machine, where it is part of every cold `make test` (docs/build-time.md).
   S3S_VERSION=0.14.1
   S3S_ROOT="$RELFUSION_HOME/s3s-fs-$S3S_VERSION"
   if [ ! -x "$S3S_ROOT/bin/s3s-fs" ]; then
