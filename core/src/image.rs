@@ -67,6 +67,13 @@ impl ImageF32 {
     /// Bilinear interpolation at a sub-pixel position; `None` outside `[0, w-1] × [0, h-1]`.
     #[inline]
     pub fn bilinear(&self, x: f32, y: f32) -> Option<f32> {
+        self.bilinear_at(x, y).map(|at| self.sample(&at))
+    }
+
+    /// Where [`ImageF32::bilinear`] reads at `(x, y)`, to apply to several images of this size
+    /// (an image and its gradients) with one bounds check; `None` outside `[0, w-1] × [0, h-1]`.
+    #[inline]
+    pub fn bilinear_at(&self, x: f32, y: f32) -> Option<BilinearAt> {
         if !(x >= 0.0 && y >= 0.0 && x <= (self.width - 1) as f32 && y <= (self.height - 1) as f32)
         {
             return None;
@@ -74,12 +81,24 @@ impl ImageF32 {
         // x, y ≥ 0 here, so truncation is the floor (and no call into libm's `floorf`).
         let x0 = (x as usize).min(self.width.saturating_sub(2));
         let y0 = (y as usize).min(self.height.saturating_sub(2));
-        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
         let x1 = (x0 + 1).min(self.width - 1);
         let y1 = (y0 + 1).min(self.height - 1);
-        let top = self.at(x0, y0) * (1.0 - fx) + self.at(x1, y0) * fx;
-        let bottom = self.at(x0, y1) * (1.0 - fx) + self.at(x1, y1) * fx;
-        Some(top * (1.0 - fy) + bottom * fy)
+        Some(BilinearAt {
+            top: (y0 * self.width + x0, y0 * self.width + x1),
+            bottom: (y1 * self.width + x0, y1 * self.width + x1),
+            fx: x - x0 as f32,
+            fy: y - y0 as f32,
+        })
+    }
+
+    /// The bilinear interpolation at `at`, which must come from an image of this size (from
+    /// another, it reads other pixels, or panics past the end like slice indexing).
+    #[inline]
+    pub fn sample(&self, at: &BilinearAt) -> f32 {
+        let (d, fx, fy) = (&self.data, at.fx, at.fy);
+        let top = d[at.top.0] * (1.0 - fx) + d[at.top.1] * fx;
+        let bottom = d[at.bottom.0] * (1.0 - fx) + d[at.bottom.1] * fx;
+        top * (1.0 - fy) + bottom * fy
     }
 
     /// Luma (ITU-R BT.601 weights, as OpenCV's `cvtColor` uses) of an 8-bit RGB image.
@@ -95,4 +114,14 @@ impl ImageF32 {
             data,
         }
     }
+}
+
+/// The four pixels and weights of one bilinear lookup ([`ImageF32::bilinear_at`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BilinearAt {
+    /// Indices of the upper and lower pixel pairs (left, right).
+    top: (usize, usize),
+    bottom: (usize, usize),
+    fx: f32,
+    fy: f32,
 }

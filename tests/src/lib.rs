@@ -41,7 +41,10 @@ pub fn bin_path(name: &str) -> PathBuf {
     let mut command = Command::new(cargo);
     // The variables cargo set for this test (CARGO_PKG_NAME, CARGO_MANIFEST_DIR, ...) must not
     // reach the nested build: build scripts that watch them (ring's) would see them change and
-    // rebuild, here and again in the next `cargo test`.
+    // rebuild, here and again in the next `cargo test`. Nor RUSTC_BOOTSTRAP, which a test binary
+    // run by hand with `-Z unstable-options --report-time` needs: build scripts that probe the
+    // compiler watch it (proc-macro2's), and the nested build rebuilt most of the tree (18 min).
+    command.env_remove("RUSTC_BOOTSTRAP");
     for (key, _) in std::env::vars_os() {
         if key.to_str().is_some_and(|k| {
             [

@@ -339,9 +339,15 @@ impl Sim3 {
     /// `d(T·exp(δ)·p)/dδ` at δ = 0: `[sR, −sR·p^, sR·p]`.
     #[inline]
     pub fn act_jacobian(&self, p: &Vector3<f64>) -> Matrix3x7 {
-        let sr = self.scale * self.rotation.matrix();
+        Self::act_jacobian_with(&self.act_jacobian_wrt_point(), p)
+    }
+
+    /// [`Sim3::act_jacobian`] from `sR` ([`Sim3::act_jacobian_wrt_point`]) computed once for
+    /// many points: the rotation matrix of a quaternion costs more than the rest of it.
+    #[inline]
+    pub fn act_jacobian_with(sr: &Matrix3<f64>, p: &Vector3<f64>) -> Matrix3x7 {
         let mut j = Matrix3x7::zeros();
-        j.fixed_view_mut::<3, 3>(0, 0).copy_from(&sr);
+        j.fixed_view_mut::<3, 3>(0, 0).copy_from(sr);
         j.fixed_view_mut::<3, 3>(0, 3)
             .copy_from(&(-sr * SO3::hat(p)));
         j.fixed_view_mut::<3, 1>(0, 6).copy_from(&(sr * p));
@@ -349,6 +355,7 @@ impl Sim3 {
     }
 
     /// `d(T·p)/dp` = s·R.
+    #[inline]
     pub fn act_jacobian_wrt_point(&self) -> Matrix3<f64> {
         self.scale * self.rotation.matrix()
     }

@@ -29,7 +29,7 @@
 
 use std::cell::Cell;
 
-use nalgebra::{Cholesky, Vector2, Vector3};
+use nalgebra::{Cholesky, Matrix3, Vector2, Vector3};
 
 use super::config::BackendConfig;
 use super::points::{KeyframeLevel, KeyframeLevels, RefPoint};
@@ -347,7 +347,23 @@ pub(crate) struct WarpedPoint {
 impl LevelContext<'_> {
     /// Warps one reference point; `None` when it lands outside the frame (1-pixel margin) or
     /// behind the camera.
+    #[cfg(test)]
     pub(crate) fn warp(&self, frame_from_reference: &Sim3, pt: &RefPoint) -> Option<WarpedPoint> {
+        self.warp_with(
+            frame_from_reference,
+            &frame_from_reference.act_jacobian_wrt_point(),
+            pt,
+        )
+    }
+
+    /// [`LevelContext::warp`] with `sR` of `frame_from_reference` computed once per evaluation.
+    #[inline]
+    fn warp_with(
+        &self,
+        frame_from_reference: &Sim3,
+        sr: &Matrix3<f64>,
+        pt: &RefPoint,
+    ) -> Option<WarpedPoint> {
         let cfg = self.config;
         let cam = &self.frame.camera;
         let (w, h) = (f64::from(cam.width), f64::from(cam.height));
@@ -360,11 +376,12 @@ impl LevelContext<'_> {
         if !(uv.x > 1.0 && uv.y > 1.0 && uv.x < w - 2.0 && uv.y < h - 2.0) {
             return None;
         }
-        let (x, y) = (uv.x as f32, uv.y as f32);
-        let intensity = self.image.image.bilinear(x, y)?;
+        // The image and its gradients have one size: one lookup serves all three.
+        let at = self.image.image.bilinear_at(uv.x as f32, uv.y as f32)?;
+        let intensity = self.image.image.sample(&at);
         let grad = Vector2::new(
-            f64::from(self.image.gx.bilinear(x, y)?),
-            f64::from(self.image.gy.bilinear(x, y)?),
+            f64::from(self.image.gx.sample(&at)),
+            f64::from(self.image.gy.sample(&at)),
         );
         // ∂I/∂p' (3-vector) through the projection.
         let grad_point: Vector3<f64> = cam.project_jacobian(&pw).transpose() * grad;
@@ -376,7 +393,7 @@ impl LevelContext<'_> {
         let var_ref = cfg.photometric.var_weight * pt.var;
         let drp_dd = -grad_point.dot(&dpw_dd);
         let w_p = 1.0 / (cfg.photometric.camera_pixel_noise2 + var_ref * drp_dd * drp_dd);
-        let j_act = frame_from_reference.act_jacobian(&pt.point);
+        let j_act = Sim3::act_jacobian_with(sr, &pt.point);
         // ∂r_p/∂δ = −∇I·∂π/∂p'·∂p'/∂δ.
         let j_p: Vector7 = -(j_act.transpose() * grad_point);
         let inv_z = 1.0 / pw.z;
@@ -418,8 +435,9 @@ impl LevelContext<'_> {
             moments: [0.0; 5],
         };
         let (a, b) = self.affine.get();
+        let sr = frame_from_reference.act_jacobian_wrt_point();
         for pt in &self.reference.points {
-            let Some(wp) = self.warp(frame_from_reference, pt) else {
+            let Some(wp) = self.warp_with(frame_from_reference, &sr, pt) else {
                 continue;
             };
             e.warped += 1;
@@ -432,13 +450,13 @@ impl LevelContext<'_> {
                 cfg.photometric.huber_d / norm_abs
             };
             let weight_p = huber * wp.w_p;
-            e.hessian += wp.j_p * wp.j_p.transpose() * weight_p;
+            add_outer_upper(&mut e.hessian, &wp.j_p, weight_p);
             e.gradient += wp.j_p * (weight_p * wp.r_p);
             e.sum_p += weight_p * wp.r_p * wp.r_p;
             e.num_p += 1;
             if let Some((r_d, j_d, w_d)) = wp.depth {
                 let weight_d = huber * w_d;
-                e.hessian += j_d * j_d.transpose() * weight_d;
+                add_outer_upper(&mut e.hessian, &j_d, weight_d);
                 e.gradient += j_d * (weight_d * r_d);
                 e.sum_d += weight_d * r_d * r_d;
                 e.num_d += 1;
@@ -459,8 +477,59 @@ impl LevelContext<'_> {
             m[3] += huber * c1 * c1;
             m[4] += huber * c2 * c2;
         }
+        mirror_upper(&mut e.hessian);
         let (w, h) = (f64::from(cam.width), f64::from(cam.height));
         let min_warped = (0.5 * cfg.min_warped_share * w * h).max(10.0);
         (e.warped as f64 >= min_warped).then_some(e)
+    }
+}
+
+/// `h += j·jᵀ·w` on and above the diagonal only (the normal equations' hot loop; the lower
+/// triangle comes from [`mirror_upper`]). Each element is `(jᵢ·jₖ)·w`, as the full product
+/// computes it, so the sums are bit for bit those of `h += j * j.transpose() * w`.
+#[inline]
+fn add_outer_upper(h: &mut Matrix7, j: &Vector7, w: f64) {
+    for k in 0..7 {
+        for i in 0..=k {
+            h[(i, k)] += j[i] * j[k] * w;
+        }
+    }
+}
+
+/// Copies the upper triangle onto the lower one.
+fn mirror_upper(h: &mut Matrix7) {
+    for k in 0..7 {
+        for i in k + 1..7 {
+            h[(i, k)] = h[(k, i)];
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The normal equations are bit for bit those of the full outer products, so that
+    /// deterministic runs give the same trajectories and meshes as before the change.
+    #[test]
+    fn upper_triangle_accumulation_equals_the_full_outer_products_bit_for_bit() {
+        let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 10f64.powi((state % 7) as i32 - 3)
+        };
+        let (mut full, mut upper) = (Matrix7::zeros(), Matrix7::zeros());
+        for _ in 0..1000 {
+            let j = Vector7::from_fn(|_, _| next());
+            let w = next().abs();
+            full += j * j.transpose() * w;
+            add_outer_upper(&mut upper, &j, w);
+        }
+        mirror_upper(&mut upper);
+        for (a, b) in full.iter().zip(upper.iter()) {
+            assert_eq!(a.to_bits(), b.to_bits());
+        }
     }
 }
