@@ -477,7 +477,7 @@ impl LevelContext<'_> {
             m[3] += huber * c1 * c1;
             m[4] += huber * c2 * c2;
         }
-        mirror_upper(&mut e.hessian);
+        e.hessian.fill_lower_triangle_with_upper_triangle();
         let (w, h) = (f64::from(cam.width), f64::from(cam.height));
         let min_warped = (0.5 * cfg.min_warped_share * w * h).max(10.0);
         (e.warped as f64 >= min_warped).then_some(e)
@@ -485,22 +485,13 @@ impl LevelContext<'_> {
 }
 
 /// `h += j·jᵀ·w` on and above the diagonal only (the normal equations' hot loop; the lower
-/// triangle comes from [`mirror_upper`]). Each element is `(jᵢ·jₖ)·w`, as the full product
+/// triangle is copied from the upper one at the end). Each element is `(jᵢ·jₖ)·w`, as the full product
 /// computes it, so the sums are bit for bit those of `h += j * j.transpose() * w`.
 #[inline]
 fn add_outer_upper(h: &mut Matrix7, j: &Vector7, w: f64) {
     for k in 0..7 {
         for i in 0..=k {
             h[(i, k)] += j[i] * j[k] * w;
-        }
-    }
-}
-
-/// Copies the upper triangle onto the lower one.
-fn mirror_upper(h: &mut Matrix7) {
-    for k in 0..7 {
-        for i in k + 1..7 {
-            h[(i, k)] = h[(k, i)];
         }
     }
 }
@@ -527,7 +518,7 @@ mod tests {
             full += j * j.transpose() * w;
             add_outer_upper(&mut upper, &j, w);
         }
-        mirror_upper(&mut upper);
+        upper.fill_lower_triangle_with_upper_triangle();
         for (a, b) in full.iter().zip(upper.iter()) {
             assert_eq!(a.to_bits(), b.to_bits());
         }
