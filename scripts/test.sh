@@ -56,8 +56,9 @@ launch() {   # starts one job in the background: a test target's name, or a carg
   local job="$1" args
   if [[ "$job" == --* ]]; then args=("$job"); else args=(--test "$job"); fi
   # bash's `time` adds the job's CPU (cargo, the test binary and what it spawned) to its log.
+  # --no-fail-fast: `--lib` runs every crate's unit tests; without it one failure skipped the rest.
   { TIMEFORMAT="cpu of $job: %U s user, %S s sys, %R s wall"
-    time cargo test --workspace "${args[@]}" > "$logs/${job#--}.log" 2>&1; } 2> "$logs/${job#--}.time" &
+    time cargo test --workspace --no-fail-fast "${args[@]}" > "$logs/${job#--}.log" 2>&1; } 2> "$logs/${job#--}.time" &
   running[$!]="$job"
 }
 start=$(date +%s)
