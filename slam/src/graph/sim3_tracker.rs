@@ -485,8 +485,8 @@ impl LevelContext<'_> {
 }
 
 /// `h += j·jᵀ·w` on and above the diagonal only (the normal equations' hot loop; the lower
-/// triangle is copied from the upper one at the end). Each element is `(jᵢ·jₖ)·w`, as the full product
-/// computes it, so the sums are bit for bit those of `h += j * j.transpose() * w`.
+/// triangle is copied from the upper one at the end). Each element is `(jᵢ·jₖ)·w`, as the full
+/// product computes it, so the sums are bit for bit those of `h += j * j.transpose() * w`.
 #[inline]
 fn add_outer_upper(h: &mut Matrix7, j: &Vector7, w: f64) {
     for k in 0..7 {
