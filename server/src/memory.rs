@@ -38,17 +38,16 @@ const BASE_DENSE: u64 = 160 * MIB;
 const RESIDENT_PER_PIXEL: u64 = 160;
 /// Bytes per camera pixel of a keyframe held in compact form.
 const COMPACT_PER_PIXEL: u64 = 24;
-/// Bytes per camera pixel of every older keyframe, spilled to the store: its descriptor,
-/// graph bookkeeping and the records of the frames tracked against it (measured: a few kB).
+/// Bytes of every older keyframe, spilled to the store, and per camera pixel of it: its
+/// descriptor, graph vertex and edges, the fusion's record of it, the records of the frames
+/// tracked against it, and the heap the allocator keeps around them. Measured in a 40-minute
+/// `bench long` at 640×480 (docs/tuning.md, "The checkpoint's point cloud off the frame path"):
+/// once the fusion inputs had reached their cap, RSS rose 0.09 MB a keyframe from minute 10
+/// to 40; heaptrack found 17 kB a keyframe of live heap. 64 KiB + 1 B a pixel is 0.37 MB at
+/// 640×480, four times the rise. (0.92 MB was charged before: the rise measured then was the
+/// fusion inputs filling up, which `FUSION_INPUT_PER_DENSE_PIXEL` charges up to their cap.)
+const KEYFRAME_FIXED: u64 = 64 * 1024;
 const KEYFRAME_PER_PIXEL: u64 = 1;
-/// Bytes per dense-resolution pixel of one densified, spilled keyframe: the fusion's record
-/// of the blocks it went into, its share of the mesh and of the heap the allocator keeps
-/// between checkpoints. Measured on a 20-minute 640×480 session once the back end no longer
-/// fell behind (its queued commands had held frames and depth maps: 36 B was charged then):
-/// RSS rose 0.26 MB per keyframe from minute 5 to 14 and peaked at 1.74 GB with 741
-/// keyframes; 8 B (0.92 MB per keyframe with the per-pixel term) is over three times that
-/// (docs/tuning.md, "Long sessions, issue 37 — fourth stage").
-const KEYFRAME_PER_DENSE_PIXEL: u64 = 8;
 /// Bytes per dense pixel of a fusion input held for re-integration (depth, weight, colour),
 /// up to `fusion.keyframe_memory_mb`.
 const FUSION_INPUT_PER_DENSE_PIXEL: u64 = 12;
@@ -115,7 +114,7 @@ impl SessionCost {
                 } else {
                     0
                 },
-            per_keyframe: KEYFRAME_PER_PIXEL * shape.pixels + KEYFRAME_PER_DENSE_PIXEL * dense,
+            per_keyframe: KEYFRAME_FIXED + KEYFRAME_PER_PIXEL * shape.pixels,
             input: POINTCLOUD_PER_PIXEL * shape.pixels
                 + if fused {
                     FUSION_INPUT_PER_DENSE_PIXEL * dense

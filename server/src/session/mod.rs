@@ -31,6 +31,7 @@ mod mesh_state;
 pub mod outputs;
 pub mod overrides;
 pub mod persist;
+mod pointcloud;
 pub mod prior;
 pub mod queue;
 pub mod recording;

@@ -13,7 +13,7 @@
 //! Results that cannot be stored (a full disk) are retried until they can be, or until the
 //! server shuts down (an upload then re-runs on restart): acknowledged work is not lost.
 
-use std::cell::{Cell, RefCell};
+use std::cell::RefCell;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
@@ -29,6 +29,7 @@ use serde_json::json;
 use super::events::SessionEvent;
 use super::handle::Session;
 use super::persist::Results;
+use super::pointcloud::PointcloudWriter;
 use super::prior::SharedModel;
 use super::queue::Pop;
 use super::recording::{Recorder, RecordingSummary};
@@ -127,7 +128,7 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         last_stats: Stats::default(),
         since_checkpoint: 0,
         tracked_keyframe: None,
-        pointcloud: Cell::new((0, 0)),
+        pointcloud: RefCell::default(),
         mapping_ended: false,
     };
     let fed = match session.kind() {
@@ -163,10 +164,9 @@ struct Runner<'a> {
     /// re-activated, which adds none) counts towards the next checkpoint and refreshes the
     /// memory figures.
     tracked_keyframe: Option<u64>,
-    /// Keyframes and bytes of the point cloud last written: checkpoints rebuild it only when
-    /// the keyframes have doubled since, so a session's checkpoints read its spilled keyframes
-    /// back O(log n) times, not once per checkpoint (issue 37).
-    pointcloud: Cell<(u64, u64)>,
+    /// The checkpoints' point cloud, rebuilt off this thread when the keyframes have doubled
+    /// (`super::pointcloud`).
+    pointcloud: RefCell<PointcloudWriter>,
     /// Mapping ended early (the map limit, or a store that refused spilled keyframes): no more
     /// frames go in.
     mapping_ended: bool,
@@ -434,11 +434,17 @@ impl Runner<'_> {
         };
         let stats = self.engine.stats();
         let keyframe_count = s.counters.keyframes.load(Ordering::Relaxed);
-        let (written_at, written_bytes) = self.pointcloud.get();
-        let rebuild = final_ || written_at == 0 || keyframe_count >= 2 * written_at;
+        let mut cloud = self.pointcloud.borrow_mut();
+        if final_ {
+            cloud.wait();
+        } else if cloud.due(keyframe_count)
+            && let Some(snapshot) = self.engine.semidense_snapshot()
+        {
+            cloud.start(s, snapshot, keyframe_count);
+        }
         // A localising session's trajectory is the poses it reported, in the map's frame.
         let (trajectory, keyframes, pointcloud) =
-            match super::engine::result_files(&self.engine, rebuild)? {
+            match super::engine::result_files(&self.engine, final_)? {
                 Some(files) => files,
                 None => (
                     s.trajectory_tum()?,
@@ -448,11 +454,12 @@ impl Runner<'_> {
             };
         let kept_bytes = match &pointcloud {
             Some(ply) => {
-                self.pointcloud.set((keyframe_count, ply.len() as u64));
+                cloud.stored(keyframe_count, ply.len() as u64);
                 0
             }
-            None => written_bytes,
+            None => cloud.bytes(),
         };
+        drop(cloud);
         let results = Results {
             trajectory,
             keyframes,

@@ -36,9 +36,10 @@ pub const THUMBNAIL_MAX_SHIFT: usize = 4;
 /// nearby viewpoints differ by roughly a shift of the thumbnail, so [`Thumbnail::score`] is the
 /// best normalised cross-correlation over shifts up to [`THUMBNAIL_MAX_SHIFT`] cells. It is
 /// neither rotation- nor scale-invariant, which is acceptable because a proposal is verified by
-/// Sim(3) alignment from the identity anyway.
+/// Sim(3) alignment from the identity anyway. Its cells are shared: the pipeline's record and
+/// the back end's keyframe hold one copy (3 kB a keyframe, kept for every keyframe; issue 37).
 #[derive(Clone, Debug, PartialEq)]
-pub struct Thumbnail(Vec<f32>);
+pub struct Thumbnail(Arc<[f32]>);
 
 impl Thumbnail {
     /// The descriptor of `frame`, computed on the coarsest pyramid level that still has at
@@ -88,7 +89,7 @@ impl Thumbnail {
                 }
             }
         }
-        Self(v)
+        Self(v.into())
     }
 
     /// The descriptor's cells, row-major ([`THUMBNAIL_SIZE`]).
@@ -101,7 +102,7 @@ impl Thumbnail {
     pub fn from_values(values: Vec<f32>) -> Option<Self> {
         (values.len() == THUMBNAIL_SIZE.0 * THUMBNAIL_SIZE.1
             && values.iter().all(|v| v.is_finite()))
-        .then_some(Self(values))
+        .then_some(Self(values.into()))
     }
 
     /// Normalised cross-correlation of the overlap of `self` and `other` shifted by (dx, dy)

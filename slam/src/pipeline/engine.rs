@@ -10,7 +10,7 @@
 use std::sync::Arc;
 
 use super::{Config, Event, FrameInput, KeyframeMemory, KeyframePose, Pipeline, PoseEvent};
-use super::{Stats, TrackingState};
+use super::{SemidenseSnapshot, Stats, TrackingState};
 use crate::dense::DepthPrior;
 use crate::error::Result;
 use crate::export::ColoredPoint;
@@ -227,5 +227,11 @@ impl Engine {
             Some(pipeline) => pipeline.semidense_points_at_most(max),
             None => Ok(Vec::new()),
         }
+    }
+
+    /// What a mapping run's semi-dense points are built from, to build them on another
+    /// thread; `None` for a localiser.
+    pub fn semidense_snapshot(&self) -> Option<SemidenseSnapshot> {
+        self.pipeline().map(Pipeline::semidense_snapshot)
     }
 }

@@ -15,13 +15,71 @@ use super::Pipeline;
 use crate::export::ColoredPoint;
 use crate::frame::CompactFrame;
 use crate::geometry::{PinholeCamera, Sim3};
-use crate::graph::{Constraint, KeyframeId, ScalePrior};
+use crate::graph::{Constraint, KeyframeData, KeyframeId, ScalePrior};
 use crate::map::{DenseDepth, MapKeyframe, SavedMap};
 use crate::mapping::{CompactDepth, DepthMap};
 use crate::{Error, Result};
 
 /// Grey for points of keyframes without a colour image.
 const NO_COLOUR: [u8; 3] = [200, 200, 200];
+
+/// The semi-dense cloud's inputs at one moment ([`Pipeline::semidense_snapshot`]). Building
+/// the points reads every spilled keyframe back, so a live session does it off its frame path:
+/// a 1280-keyframe session stalled 19 s doing it in line, lost tracking and began a new map
+/// fragment (issue 37).
+#[derive(Debug)]
+pub struct SemidenseSnapshot {
+    keyframes: Vec<SnapshotKeyframe>,
+}
+
+#[derive(Debug)]
+struct SnapshotKeyframe {
+    camera: PinholeCamera,
+    world_from_kf: Sim3,
+    /// Its depth when in memory (the current keyframe's as last published, or a resident
+    /// one's); else `data`'s compact depth is expanded.
+    depth: Option<Arc<DepthMap>>,
+    data: KeyframeData,
+}
+
+impl SemidenseSnapshot {
+    /// The points, at most `max_points`: each keyframe gives an equal share, every k-th of its
+    /// points. A session of an hour has billions of semi-dense points; its checkpoints and
+    /// downloads stay bounded this way (issue 37).
+    pub fn points(&self, max_points: usize) -> Result<Vec<ColoredPoint>> {
+        let share = max_points / self.keyframes.len().max(1);
+        let mut points = Vec::new();
+        for kf in &self.keyframes {
+            let depth = match &kf.depth {
+                Some(depth) => depth.clone(),
+                None => Arc::new(kf.data.depth_map()?),
+            };
+            let image = kf.data.image.get()?;
+            let rgb = image.rgb.as_deref();
+            let start = points.len();
+            back_project(
+                &kf.camera,
+                &kf.world_from_kf,
+                depth.width,
+                depth.height,
+                |x, y| depth.at(x, y).estimate().map(|(idepth, _)| idepth),
+                |x, y| rgb.map_or(NO_COLOUR, |rgb| rgb.get_pixel(x as u32, y as u32).0),
+                &mut points,
+            );
+            let added = points.len() - start;
+            if added > share {
+                let step = added.div_ceil(share.max(1));
+                let mut kept = start;
+                for i in (start..points.len()).step_by(step) {
+                    points[kept] = points[i];
+                    kept += 1;
+                }
+                points.truncate(kept);
+            }
+        }
+        Ok(points)
+    }
+}
 
 impl Pipeline {
     /// Whether each keyframe belongs to the main fragment (see the module docs). All do while
@@ -78,47 +136,36 @@ impl Pipeline {
         self.semidense_points_at_most(usize::MAX)
     }
 
-    /// [`Pipeline::semidense_points`] thinned to at most `max_points`: each keyframe gives an
-    /// equal share, every k-th of its points. A session of an hour has billions of semi-dense
-    /// points; its checkpoints and downloads stay bounded this way (issue 37).
+    /// [`Pipeline::semidense_points`] thinned to at most `max_points` (see
+    /// [`SemidenseSnapshot::points`]).
     pub fn semidense_points_at_most(&self, max_points: usize) -> Result<Vec<ColoredPoint>> {
+        self.semidense_snapshot().points(max_points)
+    }
+
+    /// What the semi-dense cloud is built from, taken without reading a spilled keyframe back:
+    /// each exported keyframe's camera and pose, its depth when in memory, and handles to its
+    /// compact image and depth.
+    pub fn semidense_snapshot(&self) -> SemidenseSnapshot {
         let poses = self.keyframe_poses();
         let exported = self.exported();
-        let share = max_points / exported.iter().filter(|e| **e).count().max(1);
-        let mut points = Vec::new();
         let current_depth = self.current.zip(self.mapper.latest_depth());
-        for (id, (kf, (_, world_from_kf))) in self.keyframes.iter().zip(poses).enumerate() {
-            if !exported[id] {
-                continue;
-            }
-            let depth = match &current_depth {
-                Some((current, depth)) if *current == id => depth.clone(),
-                _ => self.keyframe_depth(id)?,
-            };
-            let image = kf.data.image.get()?;
-            let rgb = image.rgb.as_deref();
-            let start = points.len();
-            back_project(
-                &kf.camera,
-                &world_from_kf,
-                depth.width,
-                depth.height,
-                |x, y| depth.at(x, y).estimate().map(|(idepth, _)| idepth),
-                |x, y| rgb.map_or(NO_COLOUR, |rgb| rgb.get_pixel(x as u32, y as u32).0),
-                &mut points,
-            );
-            let added = points.len() - start;
-            if added > share {
-                let step = added.div_ceil(share.max(1));
-                let mut kept = start;
-                for i in (start..points.len()).step_by(step) {
-                    points[kept] = points[i];
-                    kept += 1;
-                }
-                points.truncate(kept);
-            }
-        }
-        Ok(points)
+        let keyframes = self
+            .keyframes
+            .iter()
+            .zip(poses)
+            .enumerate()
+            .filter(|(id, _)| exported[*id])
+            .map(|(id, (kf, (_, world_from_kf)))| SnapshotKeyframe {
+                camera: kf.camera,
+                world_from_kf,
+                depth: match &current_depth {
+                    Some((current, depth)) if *current == id => Some(depth.clone()),
+                    _ => kf.depth.clone(),
+                },
+                data: kf.data.clone(),
+            })
+            .collect();
+        SemidenseSnapshot { keyframes }
     }
 
     /// The map as it stands, to save (`map::write_map`): every keyframe of the main fragment

@@ -46,6 +46,7 @@ use std::sync::Arc;
 pub use config::{Config, DepthInit, PipelineConfig};
 pub use engine::{Engine, Start};
 pub use events::{Event, KeyframeEvent, KeyframePose, PoseEvent, TrackingState};
+pub use export::SemidenseSnapshot;
 pub use extend::ExtendConfig;
 pub use user_config::{Scope, USER_SETTINGS, UserConfig, UserConfigError};
 
