@@ -103,3 +103,27 @@ impl Drop for PointcloudWriter {
         self.wait();
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_cloud_is_rebuilt_when_the_keyframes_have_doubled_and_none_is_building() {
+        let mut writer = PointcloudWriter::default();
+        assert!(writer.due(1), "the first checkpoint builds one");
+        writer.stored(10, 1234);
+        assert_eq!(writer.bytes(), 1234);
+        assert!(!writer.due(19));
+        assert!(writer.due(20));
+        // A build in flight holds the next one back until it has finished.
+        let (tx, rx) = std::sync::mpsc::channel::<()>();
+        writer.job = Some(std::thread::spawn(move || {
+            let _ = rx.recv();
+        }));
+        assert!(!writer.due(40));
+        tx.send(()).expect("the build waits");
+        writer.wait();
+        assert!(writer.due(40));
+    }
+}
