@@ -82,13 +82,14 @@ pub fn result_files(engine: &Engine, pointcloud: bool) -> Result<Option<ResultFi
     else {
         return Ok(None);
     };
-    let pointcloud = if pointcloud {
-        let points = engine
-            .semidense_points(POINTCLOUD_MAX_POINTS)
-            .map_err(|e| format!("the point cloud: {e}"))?;
-        Some(points_ply(&points))
-    } else {
-        None
+    let pointcloud = match pointcloud.then(|| engine.semidense_snapshot()).flatten() {
+        Some(snapshot) => {
+            let points = snapshot
+                .points(POINTCLOUD_MAX_POINTS)
+                .map_err(|e| format!("the point cloud: {e}"))?;
+            Some(points_ply(&points))
+        }
+        None => None,
     };
     Ok(Some((trajectory, keyframes, pointcloud)))
 }

@@ -13,7 +13,6 @@ use super::{Config, Event, FrameInput, KeyframeMemory, KeyframePose, Pipeline, P
 use super::{SemidenseSnapshot, Stats, TrackingState};
 use crate::dense::DepthPrior;
 use crate::error::Result;
-use crate::export::ColoredPoint;
 use crate::geometry::{PinholeCamera, Sim3};
 use crate::gpu::GpuContext;
 use crate::map::{Localization, LocalizationState, Localizer, SavedMap};
@@ -220,17 +219,8 @@ impl Engine {
         )))
     }
 
-    /// A mapping run's semi-dense points, at most `max` (an equal share of every keyframe's);
-    /// none for a localiser.
-    pub fn semidense_points(&self, max: usize) -> Result<Vec<ColoredPoint>> {
-        match self.pipeline() {
-            Some(pipeline) => pipeline.semidense_points_at_most(max),
-            None => Ok(Vec::new()),
-        }
-    }
-
-    /// What a mapping run's semi-dense points are built from, to build them on another
-    /// thread; `None` for a localiser.
+    /// What a mapping run's semi-dense points are built from ([`SemidenseSnapshot::points`],
+    /// on this thread or another); `None` for a localiser.
     pub fn semidense_snapshot(&self) -> Option<SemidenseSnapshot> {
         self.pipeline().map(Pipeline::semidense_snapshot)
     }

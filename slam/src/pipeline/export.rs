@@ -133,13 +133,7 @@ impl Pipeline {
     /// The semi-dense points of every keyframe at its current pose, coloured from its image.
     /// Spilled keyframes are read back.
     pub fn semidense_points(&self) -> Result<Vec<ColoredPoint>> {
-        self.semidense_points_at_most(usize::MAX)
-    }
-
-    /// [`Pipeline::semidense_points`] thinned to at most `max_points` (see
-    /// [`SemidenseSnapshot::points`]).
-    pub fn semidense_points_at_most(&self, max_points: usize) -> Result<Vec<ColoredPoint>> {
-        self.semidense_snapshot().points(max_points)
+        self.semidense_snapshot().points(usize::MAX)
     }
 
     /// What the semi-dense cloud is built from, taken without reading a spilled keyframe back:
