@@ -3,7 +3,8 @@
 //! Counters: `frames_received_total`, `frames_dropped_total`, `frames_processed_total`,
 //! `gpu_jobs_total`. Gauges: `sessions_active`, `frame_queue_depth` (frames waiting in all
 //! sessions' queues), `gpu_queue_depth` (jobs waiting in the GPU pool), `resident_memory_bytes`
-//! (the process's RSS when scraped). Histogram:
+//! (the process's RSS when scraped), `heap_in_use_bytes` (what the program holds of the heap when
+//! scraped; RSS beyond it is the allocator's and the libraries' own). Histogram:
 //! `stage_latency_seconds{stage="decode|tracking|mapping|frame_to_pose|prior"}`.
 //! Names carry no prefix so that they read the same in the API docs and in dashboards.
 
@@ -64,6 +65,8 @@ pub struct Metrics {
     pub gpu_queue_depth: Gauge,
     /// The process's resident memory, read when the metrics are rendered.
     resident_memory: Gauge,
+    /// Heap bytes in use, read when the metrics are rendered.
+    heap_in_use: Gauge,
     stage_latency: Family<StageLabels, Histogram, fn() -> Histogram>,
 }
 
@@ -95,6 +98,7 @@ impl Metrics {
         let frame_queue_depth = Gauge::default();
         let gpu_queue_depth = Gauge::default();
         let resident_memory = Gauge::default();
+        let heap_in_use = Gauge::default();
         let stage_latency =
             Family::<StageLabels, Histogram, fn() -> Histogram>::new_with_constructor(
                 latency_histogram,
@@ -140,6 +144,11 @@ impl Metrics {
             resident_memory.clone(),
         );
         registry.register(
+            "heap_in_use_bytes",
+            "Heap memory the program holds (glibc only); resident memory beyond it is the allocator's",
+            heap_in_use.clone(),
+        );
+        registry.register(
             "stage_latency_seconds",
             "Latency of pipeline stages",
             stage_latency.clone(),
@@ -154,6 +163,7 @@ impl Metrics {
             frame_queue_depth,
             gpu_queue_depth,
             resident_memory,
+            heap_in_use,
             stage_latency,
         }
     }
@@ -171,6 +181,10 @@ impl Metrics {
     pub fn render(&self) -> String {
         if let Some(bytes) = crate::memory::resident_bytes() {
             self.resident_memory
+                .set(i64::try_from(bytes).unwrap_or(i64::MAX));
+        }
+        if let Some(bytes) = crate::memory::heap_in_use_bytes() {
+            self.heap_in_use
                 .set(i64::try_from(bytes).unwrap_or(i64::MAX));
         }
         let mut out = String::new();
@@ -210,5 +224,14 @@ mod tests {
             .and_then(|v| v.trim().parse().ok())
             .expect("resident_memory_bytes");
         assert!(rss > 1 << 20, "{rss}");
+        #[cfg(all(target_os = "linux", target_env = "gnu"))]
+        {
+            let heap: u64 = text
+                .lines()
+                .find_map(|l| l.strip_prefix("heap_in_use_bytes "))
+                .and_then(|v| v.trim().parse().ok())
+                .expect("heap_in_use_bytes");
+            assert!(heap > 0, "heap {heap}");
+        }
     }
 }

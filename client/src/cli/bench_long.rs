@@ -7,9 +7,9 @@
 //! would). The loop and its hand tremor repeat exactly every 30 s, so one lap is rendered once
 //! and sent again; no file is read or written.
 //!
-//! stdout is JSON lines: one per `--report-s` interval (server RSS from `/metrics`, per session
-//! keyframes resident/spilled, bytes held and spilled, TSDF blocks, fusion inputs spilled, far
-//! pose-graph edges, frames dropped, frame→pose p50/p99 in the interval), then a summary with
+//! stdout is JSON lines: one per `--report-s` interval (server RSS and heap in use from
+//! `/metrics`, per session keyframes resident/spilled, bytes held and spilled, TSDF blocks,
+//! fusion inputs spilled, far pose-graph edges, frames dropped, frame→pose p50/p99 in the interval), then a summary with
 //! each session's ATE (Sim(3)-aligned) against the rendered truth, as a percentage of the path,
 //! and its mesh size.
 
@@ -300,13 +300,18 @@ async fn start(
     })
 }
 
-/// The server's resident memory (`resident_memory_bytes` of `/metrics`), MiB.
-async fn server_rss_mb(client: &Client) -> Option<f64> {
+/// A gauge of the server's `/metrics` in MiB: `resident_memory_bytes` (RSS) or
+/// `heap_in_use_bytes` (what the program holds of the heap; RSS beyond it is the allocator's).
+async fn server_gauge_mb(client: &Client, name: &str) -> Option<f64> {
     let text = client.metrics().await.ok()?;
     text.lines()
-        .find_map(|l| l.strip_prefix("resident_memory_bytes "))
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' '))
         .and_then(|v| v.trim().parse::<f64>().ok())
         .map(|b| b / (1024.0 * 1024.0))
+}
+
+async fn server_rss_mb(client: &Client) -> Option<f64> {
+    server_gauge_mb(client, "resident_memory_bytes").await
 }
 
 /// One interval's line: server RSS and each session's figures.
@@ -334,6 +339,7 @@ async fn report_line(client: &Client, sessions: &[Running], at_s: f64) -> Value 
     json!({
         "minute": at_s / 60.0,
         "rss_mb": server_rss_mb(client).await,
+        "heap_mb": server_gauge_mb(client, "heap_in_use_bytes").await,
         "sessions": per,
     })
 }
