@@ -18,9 +18,8 @@ use crate::storage::ObjectStore;
 /// file and the memory to build it stay bounded however long the session runs (issue 37).
 pub const POINTCLOUD_MAX_POINTS: usize = 4_000_000;
 
-/// A mapping session's trajectory and keyframes (TUM text) and point cloud (PLY; `None` when
-/// not rebuilt).
-pub type ResultFiles = (String, String, Option<Vec<u8>>);
+/// A mapping session's trajectory and keyframes (TUM text) and point cloud (PLY).
+pub type ResultFiles = (String, String, Vec<u8>);
 
 /// The session's engine: a pipeline, a pipeline extending the saved map `map` (its folder in
 /// `store`), or a localiser over it; the map must serve `camera`.
@@ -72,26 +71,22 @@ pub fn memory(engine: &Engine) -> Option<relfusion_proto::http::SessionMemory> {
     })
 }
 
-/// The trajectory, keyframes and semi-dense cloud as result files; `None` for a localiser
-/// (whose trajectory is the poses it reported).
-/// The point cloud (`pointcloud`: else `None`) holds at most [`POINTCLOUD_MAX_POINTS`].
-pub fn result_files(engine: &Engine, pointcloud: bool) -> Result<Option<ResultFiles>, String> {
+/// The final trajectory, keyframes and semi-dense cloud (at most [`POINTCLOUD_MAX_POINTS`]) as
+/// result files; `None` for a localiser (whose trajectory is the poses it reported).
+pub fn result_files(engine: &Engine) -> Result<Option<ResultFiles>, String> {
     let Some((trajectory, keyframes)) = engine
         .trajectories_tum()
         .map_err(|e| format!("the trajectory: {e}"))?
     else {
         return Ok(None);
     };
-    let pointcloud = match pointcloud.then(|| engine.semidense_snapshot()).flatten() {
-        Some(snapshot) => {
-            let points = snapshot
-                .points(POINTCLOUD_MAX_POINTS)
-                .map_err(|e| format!("the point cloud: {e}"))?;
-            Some(points_ply(&points))
-        }
-        None => None,
+    let points = match engine.semidense_snapshot() {
+        Some(snapshot) => snapshot
+            .points(POINTCLOUD_MAX_POINTS)
+            .map_err(|e| format!("the point cloud: {e}"))?,
+        None => Vec::new(),
     };
-    Ok(Some((trajectory, keyframes, pointcloud)))
+    Ok(Some((trajectory, keyframes, points_ply(&points))))
 }
 
 /// Writes the session's map under `key` of `store` (after [`Engine::finish`]); returns its

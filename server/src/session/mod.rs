@@ -20,6 +20,7 @@
 //! - [`decode`]: JPEG/PNG frame decoding and checks.
 
 pub mod admission;
+mod checkpoint;
 pub mod decode;
 mod engine;
 pub mod events;

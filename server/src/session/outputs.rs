@@ -186,16 +186,21 @@ impl Session {
     /// The current mesh as PLY and GLB (`None` before the first mesh update), encoded a slab
     /// of blocks at a time: the welded mesh is never built.
     pub(crate) fn mesh_files(&self) -> Option<(Vec<u8>, Vec<u8>)> {
-        let snapshot = self.mesh_snapshot()?;
+        self.mesh_files_of(&self.mesh_snapshot()?)
+    }
+
+    /// [`Session::mesh_files`] of a snapshot taken before (a checkpoint's, encoded on its
+    /// writer's thread).
+    pub(super) fn mesh_files_of(&self, snapshot: &MeshSnapshot) -> Option<(Vec<u8>, Vec<u8>)> {
         Some((
-            self.encode_mesh(&snapshot, mesh_ply_bytes_from)?,
-            self.encode_mesh(&snapshot, mesh_glb_bytes_from)?,
+            self.encode_mesh(snapshot, mesh_ply_bytes_from)?,
+            self.encode_mesh(snapshot, mesh_glb_bytes_from)?,
         ))
     }
 
     /// The mesh as it stands, to encode outside the session's lock (frames go on being
     /// recorded meanwhile); `None` before the first mesh update.
-    fn mesh_snapshot(&self) -> Option<MeshSnapshot> {
+    pub(super) fn mesh_snapshot(&self) -> Option<MeshSnapshot> {
         let track = lock(&self.track);
         (!track.mesh.is_empty()).then(|| track.mesh.snapshot())
     }

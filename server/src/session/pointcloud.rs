@@ -11,11 +11,11 @@
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::thread::JoinHandle;
 
 use relfusion_slam::background::{Priority, lower_current_thread_priority};
 use relfusion_slam::pipeline::SemidenseSnapshot;
 
+use super::checkpoint::Job;
 use super::engine::POINTCLOUD_MAX_POINTS;
 use super::handle::Session;
 use super::persist::result_key;
@@ -27,15 +27,14 @@ pub(super) struct PointcloudWriter {
     taken_at: u64,
     /// Bytes of the stored cloud, set by the build that stored it.
     bytes: Arc<AtomicU64>,
-    job: Option<JoinHandle<()>>,
+    job: Job,
 }
 
 impl PointcloudWriter {
     /// Whether a checkpoint of a map of `keyframes` rebuilds the cloud: none was taken yet, or
     /// the keyframes have doubled since, and no build is in flight.
     pub fn due(&self, keyframes: u64) -> bool {
-        let idle = self.job.as_ref().is_none_or(JoinHandle::is_finished);
-        idle && (self.taken_at == 0 || keyframes >= 2 * self.taken_at)
+        self.job.idle() && (self.taken_at == 0 || keyframes >= 2 * self.taken_at)
     }
 
     /// Bytes of the stored cloud.
@@ -52,7 +51,6 @@ impl PointcloudWriter {
     /// Builds the cloud of `snapshot` (a map of `keyframes`) and stores it for `session`, on a
     /// thread of its own. A failed build leaves the stored cloud as it was, with a warning.
     pub fn start(&mut self, session: &Arc<Session>, snapshot: SemidenseSnapshot, keyframes: u64) {
-        self.wait();
         let session = Arc::clone(session);
         let bytes = Arc::clone(&self.bytes);
         let build = move || {
@@ -75,32 +73,14 @@ impl PointcloudWriter {
                 Err(e) => tracing::warn!(session = %session.id(), "checkpoint point cloud: {e}"),
             }
         };
-        match std::thread::Builder::new()
-            .name("pointcloud".into())
-            .spawn(build)
-        {
-            Ok(job) => {
-                self.taken_at = keyframes;
-                self.job = Some(job);
-            }
-            Err(e) => tracing::warn!("checkpoint point cloud: no thread: {e}"),
+        if self.job.spawn("pointcloud", build) {
+            self.taken_at = keyframes;
         }
     }
 
     /// Waits for the build in flight, if any.
     pub fn wait(&mut self) {
-        if let Some(job) = self.job.take()
-            && job.join().is_err()
-        {
-            tracing::error!("checkpoint point cloud: the build panicked");
-        }
-    }
-}
-
-impl Drop for PointcloudWriter {
-    /// The session's store is not written once its worker is gone.
-    fn drop(&mut self) {
-        self.wait();
+        self.job.wait();
     }
 }
 
@@ -118,9 +98,9 @@ mod tests {
         assert!(writer.due(20));
         // A build in flight holds the next one back until it has finished.
         let (tx, rx) = std::sync::mpsc::channel::<()>();
-        writer.job = Some(std::thread::spawn(move || {
+        writer.job.spawn("test", move || {
             let _ = rx.recv();
-        }));
+        });
         assert!(!writer.due(40));
         tx.send(()).expect("the build waits");
         writer.wait();

@@ -26,6 +26,7 @@ use relfusion_slam::pipeline::{
 };
 use serde_json::json;
 
+use super::checkpoint::{Checkpoint, CheckpointWriter};
 use super::events::SessionEvent;
 use super::handle::Session;
 use super::persist::Results;
@@ -129,6 +130,7 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         since_checkpoint: 0,
         tracked_keyframe: None,
         pointcloud: RefCell::default(),
+        checkpoints: RefCell::default(),
         mapping_ended: false,
     };
     let fed = match session.kind() {
@@ -145,10 +147,11 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
 /// Marks the session failed, saving what results there are.
 fn fail(session: &Session, runner: Option<&Runner<'_>>, message: String) -> Outcome {
     tracing::warn!(session = %session.id(), "session failed: {message}");
-    if let Some(runner) = runner
-        && let Err(e) = runner.save_results(false)
-    {
-        tracing::error!(session = %session.id(), "saving results: {e}");
+    if let Some(runner) = runner {
+        if let Err(e) = runner.checkpoint() {
+            tracing::error!(session = %session.id(), "saving results: {e}");
+        }
+        runner.checkpoints.borrow_mut().wait();
     }
     session.conclude(SessionState::Failed, Some(message));
     Outcome::Failed
@@ -167,6 +170,8 @@ struct Runner<'a> {
     /// The checkpoints' point cloud, rebuilt off this thread when the keyframes have doubled
     /// (`super::pointcloud`).
     pointcloud: RefCell<PointcloudWriter>,
+    /// The checkpoint being written off this thread (`super::checkpoint`).
+    checkpoints: RefCell<CheckpointWriter>,
     /// Mapping ended early (the map limit, or a store that refused spilled keyframes): no more
     /// frames go in.
     mapping_ended: bool,
@@ -337,13 +342,18 @@ impl Runner<'_> {
             }
         }
         self.end_mapping_when_bounded(frame_id);
-        if self.since_checkpoint >= self.env.checkpoint_keyframes {
+        // Due, and the last one written: one checkpoint at a time, the next at a later keyframe.
+        if self.since_checkpoint >= self.env.checkpoint_keyframes
+            && self.checkpoints.borrow().idle()
+        {
             self.since_checkpoint = 0;
-            if let Err(e) = self.save_results(false) {
+            // Timed: this is the part that stays on the frame path.
+            let started = Instant::now();
+            if let Err(e) = self.checkpoint() {
                 tracing::error!(session = %self.session.id(), "checkpoint: {e}");
             }
-            self.session.persist_meta();
-            crate::memory::release_free_memory();
+            tracing::debug!(session = %self.session.id(), frames = self.engine.stats().frames,
+                ms = started.elapsed().as_secs_f64() * 1e3, "checkpoint taken");
         }
         Ok(())
     }
@@ -421,84 +431,98 @@ impl Runner<'_> {
         s.set_notice(Some(notice));
     }
 
-    /// Writes the current results.
-    fn save_results(&self, final_: bool) -> Result<(), String> {
+    /// Starts a checkpoint: what its files are made of is taken here, and they are made and
+    /// stored off this thread (`super::checkpoint`); the point cloud too when it is due.
+    fn checkpoint(&self) -> Result<(), String> {
         let s = self.session;
         if s.lifecycle.is_deleted() {
             return Err("the session was deleted".into());
         }
-        let recording = if final_ {
-            self.store_recording()?
-        } else {
-            None
-        };
-        let stats = self.engine.stats();
         let keyframe_count = s.counters.keyframes.load(Ordering::Relaxed);
         let mut cloud = self.pointcloud.borrow_mut();
-        if final_ {
-            cloud.wait();
-        } else if cloud.due(keyframe_count)
+        if cloud.due(keyframe_count)
             && let Some(snapshot) = self.engine.semidense_snapshot()
         {
             cloud.start(s, snapshot, keyframe_count);
         }
-        // A localising session's trajectory is the poses it reported, in the map's frame.
-        let (trajectory, keyframes, pointcloud) =
-            match super::engine::result_files(&self.engine, final_)? {
-                Some(files) => files,
-                None => (
-                    s.trajectory_tum()?,
-                    String::new(),
-                    Some(crate::convert::points_ply(&[])),
-                ),
-            };
-        let kept_bytes = match &pointcloud {
-            Some(ply) => {
-                cloud.stored(keyframe_count, ply.len() as u64);
-                0
-            }
-            None => cloud.bytes(),
+        let checkpoint = Checkpoint {
+            poses: self
+                .engine
+                .trajectories()
+                .map_err(|e| format!("the trajectory: {e}"))?,
+            mesh: s.mesh_snapshot(),
+            summary: self.summary(false, None),
+            cloud_bytes: cloud.bytes(),
         };
-        drop(cloud);
+        self.checkpoints.borrow_mut().start(s, checkpoint);
+        Ok(())
+    }
+
+    /// Writes the final results and the map, in line, once the checkpoint and the point
+    /// cloud in flight are stored.
+    fn save_results(&self) -> Result<(), String> {
+        let s = self.session;
+        self.checkpoints.borrow_mut().wait();
+        self.pointcloud.borrow_mut().wait();
+        if s.lifecycle.is_deleted() {
+            return Err("the session was deleted".into());
+        }
+        let recording = self.store_recording()?;
+        // A localising session's trajectory is the poses it reported, in the map's frame.
+        let (trajectory, keyframes, pointcloud) = match super::engine::result_files(&self.engine)? {
+            Some(files) => files,
+            None => (
+                s.trajectory_tum()?,
+                String::new(),
+                crate::convert::points_ply(&[]),
+            ),
+        };
+        let keyframe_count = s.counters.keyframes.load(Ordering::Relaxed);
+        self.pointcloud
+            .borrow_mut()
+            .stored(keyframe_count, pointcloud.len() as u64);
         let results = Results {
             trajectory,
             keyframes,
-            pointcloud,
+            pointcloud: Some(pointcloud),
             mesh: s.mesh_files(),
-            summary: json!({
-                "final": final_,
-                "info": s.info(),
-                "frames": stats.frames,
-                "keyframes": stats.keyframes,
-                "keyframes_reactivated": stats.keyframes_reactivated,
-                "frames_lost": stats.frames_lost,
-                "tracking_s": stats.tracking_s,
-                "mapping_s": stats.mapping_s,
-                "frames_batched": stats.frames_batched,
-                "keyframes_densified": stats.keyframes_densified,
-                "keyframes_not_densified": stats.keyframes_not_densified,
-                "dense_mode": stats.dense_mode,
-                "scale": stats.scale,
-                "keyframes_fused": stats.keyframes_fused,
-                "mesh_revision": stats.mesh_revision,
-                // Keyframes held in full, compact and spilled, and their bytes (issue 37).
-                "keyframe_memory": self.engine.keyframe_memory(),
-                "recording": recording,
-            }),
+            summary: self.summary(true, recording.as_ref()),
         };
         let mut bytes = recording.as_ref().map_or(0, |r| r.bytes)
-            + kept_bytes
             + results
                 .save(s.store.as_ref(), s.id())
                 .map_err(|e| e.to_string())?;
-        if final_ {
-            // The map, to keep with `POST /v1/maps` (docs/map-format.md).
-            let key = super::persist::result_key(s.id(), "map");
-            bytes += super::engine::write_map(&self.engine, s.store.as_ref(), &key)
-                .map_err(|e| format!("saving the map: {e}"))?;
-        }
+        // The map, to keep with `POST /v1/maps` (docs/map-format.md).
+        let key = super::persist::result_key(s.id(), "map");
+        bytes += super::engine::write_map(&self.engine, s.store.as_ref(), &key)
+            .map_err(|e| format!("saving the map: {e}"))?;
         s.set_results_bytes(bytes);
         Ok(())
+    }
+
+    /// `summary.json`: the session's info and the pipeline's figures.
+    fn summary(&self, final_: bool, recording: Option<&RecordingSummary>) -> serde_json::Value {
+        let stats = self.engine.stats();
+        json!({
+            "final": final_,
+            "info": self.session.info(),
+            "frames": stats.frames,
+            "keyframes": stats.keyframes,
+            "keyframes_reactivated": stats.keyframes_reactivated,
+            "frames_lost": stats.frames_lost,
+            "tracking_s": stats.tracking_s,
+            "mapping_s": stats.mapping_s,
+            "frames_batched": stats.frames_batched,
+            "keyframes_densified": stats.keyframes_densified,
+            "keyframes_not_densified": stats.keyframes_not_densified,
+            "dense_mode": stats.dense_mode,
+            "scale": stats.scale,
+            "keyframes_fused": stats.keyframes_fused,
+            "mesh_revision": stats.mesh_revision,
+            // Keyframes held in full, compact and spilled, and their bytes (issue 37).
+            "keyframe_memory": self.engine.keyframe_memory(),
+            "recording": recording,
+        })
     }
 
     /// Closes the recording and stores it with the results (`None` without one). Kept until
@@ -521,7 +545,7 @@ impl Runner<'_> {
         let mut delay = Duration::from_secs(1);
         let mut waited = false;
         loop {
-            let error = match self.save_results(true) {
+            let error = match self.save_results() {
                 Ok(()) => return Ok(waited),
                 Err(e) => e,
             };

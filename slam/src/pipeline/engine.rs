@@ -205,17 +205,25 @@ impl Engine {
     /// writes them: the scale dropped (it acts on the map, not on the camera centre), values at
     /// full precision (`None` for a localiser, whose trajectory is the poses it reported).
     pub fn trajectories_tum(&self) -> Result<Option<(String, String)>> {
-        let Some(pipeline) = self.pipeline() else {
-            return Ok(None);
-        };
         let tum = |poses: &[(f64, Sim3)]| {
             crate::dataset::trajectory::format_tum_trajectory(
                 &crate::dataset::trajectory::stamped_se3(poses),
             )
         };
+        Ok(self
+            .trajectories()?
+            .map(|(frames, keyframes)| (tum(&frames), tum(&keyframes))))
+    }
+
+    /// Every exported frame's pose and every exported keyframe's pose of a mapping run, as
+    /// [`Engine::trajectories_tum`] writes them (to format elsewhere); `None` for a localiser.
+    pub fn trajectories(&self) -> Result<Option<(Vec<(f64, Sim3)>, Vec<(f64, Sim3)>)>> {
+        let Some(pipeline) = self.pipeline() else {
+            return Ok(None);
+        };
         Ok(Some((
-            tum(&pipeline.trajectory()?),
-            tum(&pipeline.keyframe_trajectory()),
+            pipeline.trajectory()?,
+            pipeline.keyframe_trajectory(),
         )))
     }
 
