@@ -237,9 +237,10 @@ pub fn release_free_memory() {
 }
 
 /// Bytes the program holds from the heap (glibc's `mallinfo2`: in use in the arenas plus chunks
-/// mapped on their own), for metrics. Beside the resident memory it shows what the allocator
-/// keeps but the program freed: the part of a long session's growth that is fragmentation.
-/// `None` elsewhere than glibc. Walks the arenas' free lists: for scrapes, not per frame.
+/// mapped on their own, touched or not), for metrics. Beside the resident memory it tells the
+/// program's own growth from the rest: code, thread stacks, the libraries' mappings and what
+/// the allocator keeps of freed memory (docs/tuning.md, issue 37). `None` elsewhere than
+/// glibc. Walks the arenas' free lists: for scrapes, not per frame.
 pub fn heap_in_use_bytes() -> Option<u64> {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {

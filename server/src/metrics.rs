@@ -3,9 +3,9 @@
 //! Counters: `frames_received_total`, `frames_dropped_total`, `frames_processed_total`,
 //! `gpu_jobs_total`. Gauges: `sessions_active`, `frame_queue_depth` (frames waiting in all
 //! sessions' queues), `gpu_queue_depth` (jobs waiting in the GPU pool), `resident_memory_bytes`
-//! (the process's RSS when scraped), `heap_in_use_bytes` (what the program holds of the heap when
-//! scraped; RSS beyond it is the allocator's and the libraries' own). Histogram:
-//! `stage_latency_seconds{stage="decode|tracking|mapping|frame_to_pose|prior"}`.
+//! (the process's RSS when scraped), `heap_in_use_bytes` (what the program holds of the heap
+//! when scraped; RSS beyond it is code, stacks, libraries' mappings, the allocator's slack).
+//! Histogram: `stage_latency_seconds{stage="decode|tracking|mapping|frame_to_pose|prior"}`.
 //! Names carry no prefix so that they read the same in the API docs and in dashboards.
 
 use prometheus_client::encoding::EncodeLabelSet;
@@ -145,7 +145,7 @@ impl Metrics {
         );
         registry.register(
             "heap_in_use_bytes",
-            "Heap memory the program holds (glibc only); resident memory beyond it is the allocator's",
+            "Heap memory the program holds (glibc only)",
             heap_in_use.clone(),
         );
         registry.register(

@@ -9,9 +9,9 @@
 //!
 //! stdout is JSON lines: one per `--report-s` interval (server RSS and heap in use from
 //! `/metrics`, per session keyframes resident/spilled, bytes held and spilled, TSDF blocks,
-//! fusion inputs spilled, far pose-graph edges, frames dropped, frame→pose p50/p99 in the interval), then a summary with
-//! each session's ATE (Sim(3)-aligned) against the rendered truth, as a percentage of the path,
-//! and its mesh size.
+//! fusion inputs spilled, far pose-graph edges, frames dropped, frame→pose p50/p99 in the
+//! interval), then a summary with each session's ATE (Sim(3)-aligned) against the rendered
+//! truth, as a percentage of the path, and its mesh size.
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -301,7 +301,7 @@ async fn start(
 }
 
 /// A gauge of the server's `/metrics` in MiB: `resident_memory_bytes` (RSS) or
-/// `heap_in_use_bytes` (what the program holds of the heap; RSS beyond it is the allocator's).
+/// `heap_in_use_bytes` (what the program holds of the heap).
 async fn server_gauge_mb(client: &Client, name: &str) -> Option<f64> {
     let text = client.metrics().await.ok()?;
     text.lines()
@@ -310,6 +310,7 @@ async fn server_gauge_mb(client: &Client, name: &str) -> Option<f64> {
         .map(|b| b / (1024.0 * 1024.0))
 }
 
+/// The server's resident memory, MiB.
 async fn server_rss_mb(client: &Client) -> Option<f64> {
     server_gauge_mb(client, "resident_memory_bytes").await
 }

@@ -32,6 +32,14 @@ pub enum Start<'a> {
 /// The optimised keyframe poses and the events finishing produced.
 pub type Finished = (Vec<KeyframePose>, Vec<Event>);
 
+/// A mapping run's exported poses (timestamp, `world_from_camera`): every tracked frame's and
+/// every keyframe's.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Trajectories {
+    pub frames: Vec<(f64, Sim3)>,
+    pub keyframes: Vec<(f64, Sim3)>,
+}
+
 /// A run of the pipeline or of a localiser.
 #[derive(Debug)]
 pub enum Engine {
@@ -212,19 +220,19 @@ impl Engine {
         };
         Ok(self
             .trajectories()?
-            .map(|(frames, keyframes)| (tum(&frames), tum(&keyframes))))
+            .map(|t| (tum(&t.frames), tum(&t.keyframes))))
     }
 
-    /// Every exported frame's pose and every exported keyframe's pose of a mapping run, as
-    /// [`Engine::trajectories_tum`] writes them (to format elsewhere); `None` for a localiser.
-    pub fn trajectories(&self) -> Result<Option<(Vec<(f64, Sim3)>, Vec<(f64, Sim3)>)>> {
+    /// The poses [`Engine::trajectories_tum`] writes, to format elsewhere; `None` for a
+    /// localiser.
+    pub fn trajectories(&self) -> Result<Option<Trajectories>> {
         let Some(pipeline) = self.pipeline() else {
             return Ok(None);
         };
-        Ok(Some((
-            pipeline.trajectory()?,
-            pipeline.keyframe_trajectory(),
-        )))
+        Ok(Some(Trajectories {
+            frames: pipeline.trajectory()?,
+            keyframes: pipeline.keyframe_trajectory(),
+        }))
     }
 
     /// What a mapping run's semi-dense points are built from ([`SemidenseSnapshot::points`],

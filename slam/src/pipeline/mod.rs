@@ -44,7 +44,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
 pub use config::{Config, DepthInit, PipelineConfig};
-pub use engine::{Engine, Start};
+pub use engine::{Engine, Start, Trajectories};
 pub use events::{Event, KeyframeEvent, KeyframePose, PoseEvent, TrackingState};
 pub use export::SemidenseSnapshot;
 pub use extend::ExtendConfig;
