@@ -15,8 +15,6 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 
 use relfusion_slam::background::{Priority, lower_current_thread_priority};
-use relfusion_slam::dataset::trajectory::{format_tum_trajectory, stamped_se3};
-use relfusion_slam::geometry::Sim3;
 use relfusion_slam::pipeline::Trajectories;
 
 use super::handle::Session;
@@ -39,9 +37,8 @@ impl Checkpoint {
     /// Makes the files and stores them for `session`, with its metadata and the bytes its
     /// results take. Writes nothing for a deleted session.
     fn write(self, session: &Session) -> Result<(), String> {
-        let tum = |poses: &[(f64, Sim3)]| format_tum_trajectory(&stamped_se3(poses));
         let (trajectory, keyframes) = match &self.poses {
-            Some(t) => (tum(&t.frames), tum(&t.keyframes)),
+            Some(t) => t.tum(),
             None => (session.trajectory_tum()?, String::new()),
         };
         let mesh = self.mesh.as_ref().and_then(|m| session.mesh_files_of(m));

@@ -40,6 +40,19 @@ pub struct Trajectories {
     pub keyframes: Vec<(f64, Sim3)>,
 }
 
+impl Trajectories {
+    /// Both as TUM text, exactly as `relfusion run` writes them: the scale dropped (it acts on
+    /// the map, not on the camera centre), values at full precision.
+    pub fn tum(&self) -> (String, String) {
+        let tum = |poses: &[(f64, Sim3)]| {
+            crate::dataset::trajectory::format_tum_trajectory(
+                &crate::dataset::trajectory::stamped_se3(poses),
+            )
+        };
+        (tum(&self.frames), tum(&self.keyframes))
+    }
+}
+
 /// A run of the pipeline or of a localiser.
 #[derive(Debug)]
 pub enum Engine {
@@ -209,18 +222,10 @@ impl Engine {
         }
     }
 
-    /// A mapping run's trajectory and keyframe poses as TUM text, exactly as `relfusion run`
-    /// writes them: the scale dropped (it acts on the map, not on the camera centre), values at
-    /// full precision (`None` for a localiser, whose trajectory is the poses it reported).
+    /// A mapping run's trajectory and keyframe poses as TUM text ([`Trajectories::tum`]);
+    /// `None` for a localiser, whose trajectory is the poses it reported.
     pub fn trajectories_tum(&self) -> Result<Option<(String, String)>> {
-        let tum = |poses: &[(f64, Sim3)]| {
-            crate::dataset::trajectory::format_tum_trajectory(
-                &crate::dataset::trajectory::stamped_se3(poses),
-            )
-        };
-        Ok(self
-            .trajectories()?
-            .map(|t| (tum(&t.frames), tum(&t.keyframes))))
+        Ok(self.trajectories()?.as_ref().map(Trajectories::tum))
     }
 
     /// The poses [`Engine::trajectories_tum`] writes, to format elsewhere; `None` for a
