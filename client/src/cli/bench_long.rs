@@ -33,8 +33,13 @@ use relfusion_client::latency::percentile;
 
 /// Seconds after which `Motion::Loop` repeats exactly (path and tremor).
 const LOOP_PERIOD_S: f64 = 30.0;
-/// How long a session may take to finish after its last frame (final optimisation, meshing).
-const FINISH_TIMEOUT: Duration = Duration::from_secs(600);
+/// How long a session may take to finish after its last frame (final optimisation, meshing):
+/// 10 minutes, and 20 s more per minute streamed past 30, since at the defaults the final
+/// pass grows with the keyframes (an hour's took 15 minutes; docs/tuning.md "An hour at the
+/// defaults").
+fn finish_timeout(minutes: f64) -> Duration {
+    Duration::from_secs_f64(600.0 + 20.0 * (minutes - 30.0).max(0.0))
+}
 
 #[derive(Debug, clap::Args)]
 pub struct LongArgs {
@@ -211,7 +216,7 @@ pub fn long(args: &LongArgs) -> anyhow::Result<()> {
         }
         let mut summaries = Vec::new();
         for s in sessions {
-            summaries.push(finish(&client, s, &lap, args.fps).await);
+            summaries.push(finish(&client, s, &lap, args.fps, finish_timeout(args.minutes)).await);
         }
         print_line(&json!({ "summary": {
             "minutes": args.minutes,
@@ -346,13 +351,13 @@ async fn report_line(client: &Client, sessions: &[Running], at_s: f64) -> Value 
 }
 
 /// Waits for a session to finish; its ATE against the rendered truth and its mesh.
-async fn finish(client: &Client, s: Running, lap: &Lap, fps: f64) -> Value {
+async fn finish(client: &Client, s: Running, lap: &Lap, fps: f64, wait: Duration) -> Value {
     let (sent, sender_error) = match s.sender.await {
         Ok(sent) => (sent, None),
         Err(e) => (0, Some(e.to_string())),
     };
     let info = match tokio::time::timeout(
-        FINISH_TIMEOUT,
+        wait,
         client.wait_finished(&s.id, Duration::from_secs(2), |_| {}),
     )
     .await
