@@ -36,6 +36,7 @@ use foxglove::websocket::{ChannelView, Client, ServerListener};
 use foxglove::{Channel, Context, McapWriteOptions, McapWriterHandle, WebSocketServerHandle};
 use relfusion_core::geometry::PinholeCamera;
 
+use crate::clouds::KeyframeClouds;
 use crate::foxglove_front::FoxgloveFront;
 use crate::session_log::{
     DepthRef, LogCounts, LogError, MeshBlockRef, POINTS_PER_KEYFRAME, Pose, RESCALE_TOLERANCE,
@@ -149,11 +150,11 @@ impl Channels {
     }
 }
 
-/// What is kept per keyframe: its newest pose and the points last sent.
+/// What is kept per keyframe: its newest pose and the scale its points were last sent at
+/// (the points themselves are in [`KeyframeClouds`]).
 #[derive(Debug)]
 struct KeyframeView {
     pose: Pose,
-    points: Vec<[f32; 3]>,
     sent_scale: f64,
 }
 
@@ -169,6 +170,7 @@ pub struct FoxgloveLog {
     /// The newest frame's (id, capture time in ns): what is not about a frame is logged then.
     now: (u64, u64),
     keyframes: BTreeMap<u64, KeyframeView>,
+    clouds: KeyframeClouds,
     trajectory_stale: bool,
     counts: LogCounts,
     mesh_updates: u64,
@@ -291,6 +293,7 @@ impl FoxgloveLog {
             camera: *camera,
             now: (0, 0),
             keyframes: BTreeMap::new(),
+            clouds: KeyframeClouds::new(),
             trajectory_stale: false,
             counts: LogCounts::default(),
             mesh_updates: 0,
@@ -340,17 +343,18 @@ impl FoxgloveLog {
             .log_with_time(&FrameTransforms { transforms }, ns);
     }
 
-    fn log_points(&mut self, keyframe_id: u64) {
+    fn log_points(&mut self, keyframe_id: u64) -> Result<(), LogError> {
         let ns = self.now.1;
-        let Some(k) = self.keyframes.get_mut(&keyframe_id) else {
-            return;
-        };
-        if k.points.is_empty() {
-            return;
+        if !self.clouds.has_points(keyframe_id) {
+            return Ok(());
         }
+        let points = self.clouds.get(keyframe_id)?;
+        let Some(k) = self.keyframes.get_mut(&keyframe_id) else {
+            return Ok(());
+        };
         let s = k.pose.s as f32;
-        let mut data = Vec::with_capacity(k.points.len() * 12);
-        for p in &k.points {
+        let mut data = Vec::with_capacity(points.len() * 12);
+        for p in &points {
             for v in p {
                 data.extend_from_slice(&(v * s).to_le_bytes());
             }
@@ -372,6 +376,7 @@ impl FoxgloveLog {
             ns,
         );
         k.sent_scale = k.pose.s;
+        Ok(())
     }
 
     fn log_trajectory(&mut self) {
@@ -481,7 +486,6 @@ impl SessionLog for FoxgloveLog {
                     keyframe_id,
                     KeyframeView {
                         pose: *pose,
-                        points: Vec::new(),
                         sent_scale: pose.s,
                     },
                 );
@@ -489,23 +493,20 @@ impl SessionLog for FoxgloveLog {
             }
         };
         if rescaled {
-            self.log_points(keyframe_id);
+            self.log_points(keyframe_id)?;
         }
         Ok(())
     }
 
     fn keyframe_depth(&mut self, keyframe_id: u64, depth: &DepthRef<'_>) -> Result<(), LogError> {
         // Depth before the keyframe's pose (never from our callers) hangs at the origin.
-        self.keyframes
-            .entry(keyframe_id)
-            .or_insert(KeyframeView {
-                pose: Pose::IDENTITY,
-                points: Vec::new(),
-                sent_scale: 1.0,
-            })
-            .points = depth.points(POINTS_PER_KEYFRAME);
-        self.log_points(keyframe_id);
-        Ok(())
+        self.keyframes.entry(keyframe_id).or_insert(KeyframeView {
+            pose: Pose::IDENTITY,
+            sent_scale: 1.0,
+        });
+        self.clouds
+            .put(keyframe_id, depth.points(POINTS_PER_KEYFRAME))?;
+        self.log_points(keyframe_id)
     }
 
     fn mesh_update(

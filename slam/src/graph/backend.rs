@@ -358,7 +358,10 @@ impl Backend {
             .get_mut(&id)
             .ok_or_else(|| Error::Backend(format!("depth update for unknown keyframe {id}")))?;
         let frame = Arc::clone(&self.resident.get(&entry.kept)?.frame);
-        let keyframe = Keyframe::from_level(id, frame, depth, self.config.finest_level())?;
+        let mut keyframe = Keyframe::from_level(id, frame, depth, self.config.finest_level())?;
+        // The same image: its descriptor stays the one copy the pipeline's record shares
+        // (a second one per keyframe was 3 kB of a long session's growth; issue 37).
+        keyframe.thumbnail = entry.kept.thumbnail.clone();
         let data = entry
             .kept
             .data

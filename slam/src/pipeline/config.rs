@@ -99,7 +99,8 @@ pub struct PipelineConfig {
     /// place then stops adding keyframes for it, so memory, the back end's searches and the
     /// final optimisation stop growing with the session's length (issue 37). 0 = never.
     /// Default 0: with 3 it saved 30 % of a looping path's keyframes, but the aggregate ATE
-    /// was 1.7 % worse and the loop's 5-14 % (docs/tuning.md, "Keyframe re-activation").
+    /// was 1.7 % worse and the loop's 5-14 % (docs/tuning.md, "Keyframe re-activation");
+    /// LSD-SLAM's own acceptance tests did not help (docs/tuning.md, "thirtieth stop").
     pub reactivation_candidates: usize,
 }
 

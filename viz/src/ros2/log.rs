@@ -23,6 +23,7 @@ use super::types::{
     CAMERA_INFO, COMPRESSED_IMAGE, MARKER_ARRAY, PATH, POINT_CLOUD2, POSE_STAMPED, RosType,
     TF_MESSAGE,
 };
+use crate::clouds::KeyframeClouds;
 use crate::session_log::{
     DepthRef, LogCounts, LogError, MeshBlockRef, POINTS_PER_KEYFRAME, Pose, RESCALE_TOLERANCE,
     SessionLog, nanos,
@@ -84,11 +85,11 @@ pub trait Ros2Sink: std::fmt::Debug + Send {
     fn publish(&mut self, topic: Topic, stamp_ns: u64, cdr: Vec<u8>) -> Result<(), LogError>;
 }
 
+/// A keyframe's newest pose and the scale its points were last sent at (the points, in the
+/// keyframe's frame and unscaled, are in [`KeyframeClouds`]).
 #[derive(Debug)]
 struct KeyframeView {
     pose: Pose,
-    /// Dense points in the keyframe's frame, unscaled.
-    points: Vec<[f32; 3]>,
     sent_scale: f64,
 }
 
@@ -99,6 +100,7 @@ pub struct Ros2Log<S: Ros2Sink> {
     /// The newest frame's id and stamp.
     now: (u64, u64),
     keyframes: BTreeMap<u64, KeyframeView>,
+    clouds: KeyframeClouds,
     path_stale: bool,
     counts: LogCounts,
     mesh_updates: u64,
@@ -136,6 +138,7 @@ impl<S: Ros2Sink> Ros2Log<S> {
             sink,
             now: (0, 0),
             keyframes: BTreeMap::new(),
+            clouds: KeyframeClouds::new(),
             path_stale: false,
             counts: LogCounts::default(),
             mesh_updates: 0,
@@ -198,15 +201,16 @@ impl<S: Ros2Sink> Ros2Log<S> {
     }
 
     fn send_points(&mut self, keyframe_id: u64) -> Result<(), LogError> {
+        if !self.clouds.has_points(keyframe_id) {
+            return Ok(());
+        }
+        let points = self.clouds.get(keyframe_id)?;
         let Some(k) = self.keyframes.get_mut(&keyframe_id) else {
             return Ok(());
         };
-        if k.points.is_empty() {
-            return Ok(());
-        }
         k.sent_scale = k.pose.s;
         let s = k.pose.s as f32;
-        let scaled: Vec<[f32; 3]> = k.points.iter().map(|p| p.map(|v| v * s)).collect();
+        let scaled: Vec<[f32; 3]> = points.iter().map(|p| p.map(|v| v * s)).collect();
         let cdr = msgs::point_cloud2(self.now.1, &format!("keyframe_{keyframe_id}"), &scaled);
         self.send(Topic::Points, cdr)
     }
@@ -259,7 +263,6 @@ impl<S: Ros2Sink> SessionLog for Ros2Log<S> {
         self.path_stale = true;
         let k = self.keyframes.entry(keyframe_id).or_insert(KeyframeView {
             pose: *pose,
-            points: Vec::new(),
             sent_scale: pose.s,
         });
         k.pose = *pose;
@@ -270,14 +273,12 @@ impl<S: Ros2Sink> SessionLog for Ros2Log<S> {
     }
 
     fn keyframe_depth(&mut self, keyframe_id: u64, depth: &DepthRef<'_>) -> Result<(), LogError> {
-        self.keyframes
-            .entry(keyframe_id)
-            .or_insert(KeyframeView {
-                pose: Pose::IDENTITY,
-                points: Vec::new(),
-                sent_scale: 1.0,
-            })
-            .points = depth.points(POINTS_PER_KEYFRAME);
+        self.keyframes.entry(keyframe_id).or_insert(KeyframeView {
+            pose: Pose::IDENTITY,
+            sent_scale: 1.0,
+        });
+        self.clouds
+            .put(keyframe_id, depth.points(POINTS_PER_KEYFRAME))?;
         self.send_points(keyframe_id)
     }
 
