@@ -20,7 +20,7 @@ use super::KeyframeId;
 use super::config::BackendConfig;
 use super::pose_graph::{Constraint, OptimizeReport, PoseGraph, ScalePrior};
 use super::resident::Resident;
-use super::search::{CompactKeyframe, Keyframe, KeyframeData, KeyframeMaps};
+use super::search::{CompactKeyframe, Keyframe, KeyframeData, KeyframeMaps, Thumbnail};
 use super::sim3_tracker::Sim3Tracker;
 use crate::frame::Frame;
 use nalgebra::Matrix6;
@@ -92,6 +92,9 @@ pub struct NewKeyframe {
     /// was tracked against both. Tested and used like the parent edge; without it the chain of
     /// new keyframes would join the old one only through a constraint search.
     pub handover: Option<ParentEdge>,
+    /// The descriptor of the same image when the caller has it: shared, so a keyframe keeps
+    /// one copy (3 kB; issue 37). `None` computes it.
+    pub thumbnail: Option<Thumbnail>,
 }
 
 /// What one [`Backend::process`] call did.
@@ -234,7 +237,10 @@ impl Backend {
         }
         let finest = self.config.finest_level();
         let (frame, depth, data) = new.maps.resolve()?;
-        let keyframe = Keyframe::from_level(new.id, frame, depth, finest)?;
+        let mut keyframe = Keyframe::from_level(new.id, frame, depth, finest)?;
+        if let Some(thumbnail) = new.thumbnail {
+            keyframe.thumbnail = thumbnail;
+        }
         let kept = keyframe.compact_sharing(data);
         let parent = new.parent.as_ref().and_then(|p| {
             Some((

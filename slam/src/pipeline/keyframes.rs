@@ -338,6 +338,7 @@ impl Pipeline {
             world_from_keyframe: record.world_from_keyframe,
             parent: record.parent.clone(),
             handover: record.handover.clone(),
+            thumbnail: Some(record.thumbnail.clone()),
         };
         let pose_covariance = record
             .parent

@@ -66,6 +66,7 @@ fn drifting_inputs(keyframes: &[SynthKeyframe]) -> Vec<NewKeyframe> {
                 world_from_keyframe,
                 parent,
                 handover: None,
+                thumbnail: None,
             }
         })
         .collect()
@@ -259,6 +260,7 @@ fn backend_appearance_search_links_a_keyframe_with_a_wrong_pose() {
         world_from_keyframe: wrong,
         parent: None,
         handover: None,
+        thumbnail: None,
     });
     let mut backend = Backend::new(test_config()).expect("config");
     for input in inputs {
