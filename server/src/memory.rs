@@ -242,12 +242,32 @@ pub fn release_free_memory() {
 /// the allocator keeps of freed memory (docs/tuning.md, issue 37). `None` elsewhere than
 /// glibc. Walks the arenas' free lists: for scrapes, not per frame.
 pub fn heap_in_use_bytes() -> Option<u64> {
+    heap().map(|h| h.in_use)
+}
+
+/// Bytes free in the heap's arenas (glibc's `mallinfo2().fordblks`), for metrics: what the
+/// allocator holds beyond [`heap_in_use_bytes`]. An upper bound of that share of RSS, since
+/// [`release_free_memory`] hands whole free pages back while they still count here; its
+/// growth beside a steady heap is fragmentation. `None` elsewhere than glibc.
+pub fn heap_free_bytes() -> Option<u64> {
+    heap().map(|h| h.free)
+}
+
+struct Heap {
+    in_use: u64,
+    free: u64,
+}
+
+fn heap() -> Option<Heap> {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
         #[allow(unsafe_code)]
         // SAFETY: `mallinfo2` takes nothing and returns a plain struct of counters.
         let info = unsafe { libc::mallinfo2() };
-        Some((info.uordblks + info.hblkhd) as u64)
+        Some(Heap {
+            in_use: (info.uordblks + info.hblkhd) as u64,
+            free: info.fordblks as u64,
+        })
     }
     #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
     None
@@ -352,6 +372,7 @@ mod tests {
             let during = heap_in_use_bytes().expect("glibc");
             drop(std::hint::black_box(block));
             assert!(during >= before + 192 * MIB, "{before} → {during}");
+            assert!(heap_free_bytes().is_some());
         }
         let derived = MemoryPlan::new(&limits(0, 4, 0));
         assert!(derived.budget <= available_memory());

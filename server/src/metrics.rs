@@ -4,7 +4,8 @@
 //! `gpu_jobs_total`. Gauges: `sessions_active`, `frame_queue_depth` (frames waiting in all
 //! sessions' queues), `gpu_queue_depth` (jobs waiting in the GPU pool), `resident_memory_bytes`
 //! (the process's RSS when scraped), `heap_in_use_bytes` (what the program holds of the heap
-//! when scraped; RSS beyond it is code, stacks, libraries' mappings, the allocator's slack).
+//! when scraped; RSS beyond it is code, stacks, libraries' mappings, the allocator's slack),
+//! `heap_free_bytes` (free in the heap's arenas: the slack's upper bound).
 //! Histogram: `stage_latency_seconds{stage="decode|tracking|mapping|frame_to_pose|prior"}`.
 //! Names carry no prefix so that they read the same in the API docs and in dashboards.
 
@@ -67,6 +68,7 @@ pub struct Metrics {
     resident_memory: Gauge,
     /// Heap bytes in use, read when the metrics are rendered.
     heap_in_use: Gauge,
+    heap_free: Gauge,
     stage_latency: Family<StageLabels, Histogram, fn() -> Histogram>,
 }
 
@@ -99,6 +101,7 @@ impl Metrics {
         let gpu_queue_depth = Gauge::default();
         let resident_memory = Gauge::default();
         let heap_in_use = Gauge::default();
+        let heap_free = Gauge::default();
         let stage_latency =
             Family::<StageLabels, Histogram, fn() -> Histogram>::new_with_constructor(
                 latency_histogram,
@@ -149,6 +152,11 @@ impl Metrics {
             heap_in_use.clone(),
         );
         registry.register(
+            "heap_free_bytes",
+            "Bytes free in the heap's arenas, resident or handed back (glibc only)",
+            heap_free.clone(),
+        );
+        registry.register(
             "stage_latency_seconds",
             "Latency of pipeline stages",
             stage_latency.clone(),
@@ -164,6 +172,7 @@ impl Metrics {
             gpu_queue_depth,
             resident_memory,
             heap_in_use,
+            heap_free,
             stage_latency,
         }
     }
@@ -183,9 +192,13 @@ impl Metrics {
             self.resident_memory
                 .set(i64::try_from(bytes).unwrap_or(i64::MAX));
         }
-        if let Some(bytes) = crate::memory::heap_in_use_bytes() {
-            self.heap_in_use
-                .set(i64::try_from(bytes).unwrap_or(i64::MAX));
+        for (gauge, bytes) in [
+            (&self.heap_in_use, crate::memory::heap_in_use_bytes()),
+            (&self.heap_free, crate::memory::heap_free_bytes()),
+        ] {
+            if let Some(bytes) = bytes {
+                gauge.set(i64::try_from(bytes).unwrap_or(i64::MAX));
+            }
         }
         let mut out = String::new();
         // Writing into a String cannot fail.
@@ -232,6 +245,7 @@ mod tests {
                 .and_then(|v| v.trim().parse().ok())
                 .expect("heap_in_use_bytes");
             assert!(heap > 0, "heap {heap}");
+            assert!(text.contains("heap_free_bytes "), "{text}");
         }
     }
 }

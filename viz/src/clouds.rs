@@ -9,12 +9,15 @@
 //! whatever ends the process) and memory keeps where each keyframe's points are, a few bytes.
 //! A rescale reads them back, bit-identical. Without a temporary file the points stay in
 //! memory, as before.
+//!
+//! [`KeyframeViews`] is what the logs keep of each keyframe (`foxglove_log`, `ros2::log`): its
+//! newest pose, the scale its points were last sent at, and the points here.
 
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom, Write};
 
-use crate::session_log::LogError;
+use crate::session_log::{LogError, Pose, RESCALE_TOLERANCE};
 
 /// Where one keyframe's newest points lie in the file.
 #[derive(Clone, Copy, Debug)]
@@ -143,6 +146,82 @@ impl KeyframeClouds {
     }
 }
 
+/// A keyframe's newest pose and the scale its points were last sent at.
+#[derive(Clone, Copy, Debug)]
+struct View {
+    pose: Pose,
+    sent_scale: f64,
+}
+
+/// What a log keeps of each keyframe: its newest pose (for the path) and its newest points,
+/// to send them again, scaled, when the pose graph rescales it (a point cloud hangs in its
+/// keyframe's frame, and a frame transform carries no scale).
+#[derive(Debug, Default)]
+pub struct KeyframeViews {
+    views: BTreeMap<u64, View>,
+    clouds: KeyframeClouds,
+}
+
+impl KeyframeViews {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Records keyframe `id`'s newest pose; true when its points were sent at a scale that
+    /// this pose's differs from by more than [`RESCALE_TOLERANCE`] (send them again). A new
+    /// keyframe's points have not been sent: false.
+    pub fn set_pose(&mut self, id: u64, pose: &Pose) -> bool {
+        let view = self.views.entry(id).or_insert(View {
+            pose: *pose,
+            sent_scale: pose.s,
+        });
+        view.pose = *pose;
+        (pose.s / view.sent_scale - 1.0).abs() > RESCALE_TOLERANCE
+    }
+
+    /// Replaces keyframe `id`'s points (in its frame, unscaled). Points before the keyframe's
+    /// pose (never from our callers) hang at the origin.
+    pub fn set_points(&mut self, id: u64, points: Vec<[f32; 3]>) -> Result<(), LogError> {
+        self.views.entry(id).or_insert(View {
+            pose: Pose::IDENTITY,
+            sent_scale: 1.0,
+        });
+        self.clouds.put(id, points)
+    }
+
+    /// Keyframe `id`'s points scaled by its newest pose's scale, to be sent now (they count
+    /// as sent at that scale); `None` when it has none.
+    pub fn points_to_send(&mut self, id: u64) -> Result<Option<Vec<[f32; 3]>>, LogError> {
+        if !self.clouds.has_points(id) {
+            return Ok(None);
+        }
+        let Some(view) = self.views.get_mut(&id) else {
+            return Ok(None);
+        };
+        view.sent_scale = view.pose.s;
+        let s = view.pose.s as f32;
+        let mut points = self.clouds.get(id)?;
+        for p in &mut points {
+            *p = p.map(|v| v * s);
+        }
+        Ok(Some(points))
+    }
+
+    /// Every keyframe's newest pose, by id.
+    pub fn poses(&self) -> impl Iterator<Item = &Pose> {
+        self.views.values().map(|v| &v.pose)
+    }
+
+    /// How many keyframes.
+    pub fn len(&self) -> usize {
+        self.views.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.views.is_empty()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -174,5 +253,29 @@ mod tests {
         for id in [3, 7, 9, 11] {
             assert_eq!(clouds.get(id).expect("get"), memory.get(id).expect("get"));
         }
+    }
+
+    #[test]
+    fn a_rescaled_keyframe_sends_its_points_again_at_its_new_scale() {
+        let mut views = KeyframeViews::new();
+        let mut pose = Pose::IDENTITY;
+        pose.s = 2.0;
+        assert!(!views.set_pose(4, &pose), "a new keyframe is not a rescale");
+        assert!(views.points_to_send(4).expect("send").is_none());
+        views.set_points(4, cloud(1, 30)).expect("points");
+        let sent = views.points_to_send(4).expect("send").expect("points");
+        assert_eq!(sent[7], cloud(1, 30)[7].map(|v| v * 2.0));
+        pose.s = 2.01;
+        assert!(!views.set_pose(4, &pose), "within the tolerance");
+        pose.s = 3.0;
+        assert!(views.set_pose(4, &pose));
+        let again = views.points_to_send(4).expect("send").expect("points");
+        assert_eq!(again[7], cloud(1, 30)[7].map(|v| v * 3.0));
+        assert!(!views.set_pose(4, &pose), "sent at this scale");
+        // Points before a pose hang at the origin, unscaled.
+        views.set_points(9, cloud(2, 3)).expect("points");
+        assert_eq!(views.points_to_send(9).expect("send"), Some(cloud(2, 3)));
+        assert_eq!(views.len(), 2);
+        assert_eq!(views.poses().count(), 2);
     }
 }

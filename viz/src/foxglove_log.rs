@@ -18,7 +18,6 @@
 //! Log times are the frames' capture times. A Foxglove client that connects late sees what is
 //! logged from then on (the protocol keeps no history); the MCAP file holds everything.
 
-use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::net::SocketAddr;
@@ -36,11 +35,11 @@ use foxglove::websocket::{ChannelView, Client, ServerListener};
 use foxglove::{Channel, Context, McapWriteOptions, McapWriterHandle, WebSocketServerHandle};
 use relfusion_core::geometry::PinholeCamera;
 
-use crate::clouds::KeyframeClouds;
+use crate::clouds::KeyframeViews;
 use crate::foxglove_front::FoxgloveFront;
 use crate::session_log::{
-    DepthRef, LogCounts, LogError, MeshBlockRef, POINTS_PER_KEYFRAME, Pose, RESCALE_TOLERANCE,
-    SessionLog, image_format, nanos,
+    DepthRef, LogCounts, LogError, MeshBlockRef, POINTS_PER_KEYFRAME, Pose, SessionLog,
+    image_format, nanos,
 };
 
 /// Topics, as the table above.
@@ -150,14 +149,6 @@ impl Channels {
     }
 }
 
-/// What is kept per keyframe: its newest pose and the scale its points were last sent at
-/// (the points themselves are in [`KeyframeClouds`]).
-#[derive(Debug)]
-struct KeyframeView {
-    pose: Pose,
-    sent_scale: f64,
-}
-
 /// An open Foxglove log (MCAP file and/or live server).
 pub struct FoxgloveLog {
     /// The channels and sinks belong to it: kept for as long as they are used.
@@ -169,8 +160,7 @@ pub struct FoxgloveLog {
     camera: PinholeCamera,
     /// The newest frame's (id, capture time in ns): what is not about a frame is logged then.
     now: (u64, u64),
-    keyframes: BTreeMap<u64, KeyframeView>,
-    clouds: KeyframeClouds,
+    keyframes: KeyframeViews,
     trajectory_stale: bool,
     counts: LogCounts,
     mesh_updates: u64,
@@ -292,8 +282,7 @@ impl FoxgloveLog {
             server,
             camera: *camera,
             now: (0, 0),
-            keyframes: BTreeMap::new(),
-            clouds: KeyframeClouds::new(),
+            keyframes: KeyframeViews::new(),
             trajectory_stale: false,
             counts: LogCounts::default(),
             mesh_updates: 0,
@@ -345,20 +334,13 @@ impl FoxgloveLog {
 
     fn log_points(&mut self, keyframe_id: u64) -> Result<(), LogError> {
         let ns = self.now.1;
-        if !self.clouds.has_points(keyframe_id) {
-            return Ok(());
-        }
-        let points = self.clouds.get(keyframe_id)?;
-        let Some(k) = self.keyframes.get_mut(&keyframe_id) else {
+        let Some(points) = self.keyframes.points_to_send(keyframe_id)? else {
             return Ok(());
         };
-        let s = k.pose.s as f32;
-        let mut data = Vec::with_capacity(points.len() * 12);
-        for p in &points {
-            for v in p {
-                data.extend_from_slice(&(v * s).to_le_bytes());
-            }
-        }
+        let data: Vec<u8> = points
+            .iter()
+            .flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes()))
+            .collect();
         let field = |name: &str, offset: u32| PackedElementField {
             name: name.into(),
             offset,
@@ -375,7 +357,6 @@ impl FoxgloveLog {
             },
             ns,
         );
-        k.sent_scale = k.pose.s;
         Ok(())
     }
 
@@ -389,7 +370,7 @@ impl FoxgloveLog {
             &PosesInFrame {
                 timestamp: timestamp(ns),
                 frame_id: "world".into(),
-                poses: self.keyframes.values().map(|k| fox_pose(&k.pose)).collect(),
+                poses: self.keyframes.poses().map(fox_pose).collect(),
             },
             ns,
         );
@@ -476,36 +457,15 @@ impl SessionLog for FoxgloveLog {
     fn keyframe(&mut self, keyframe_id: u64, pose: &Pose) -> Result<(), LogError> {
         self.log_tf(format!("keyframe_{keyframe_id}"), pose);
         self.trajectory_stale = true;
-        let rescaled = match self.keyframes.get_mut(&keyframe_id) {
-            Some(k) => {
-                k.pose = *pose;
-                (pose.s / k.sent_scale - 1.0).abs() > RESCALE_TOLERANCE
-            }
-            None => {
-                self.keyframes.insert(
-                    keyframe_id,
-                    KeyframeView {
-                        pose: *pose,
-                        sent_scale: pose.s,
-                    },
-                );
-                false
-            }
-        };
-        if rescaled {
+        if self.keyframes.set_pose(keyframe_id, pose) {
             self.log_points(keyframe_id)?;
         }
         Ok(())
     }
 
     fn keyframe_depth(&mut self, keyframe_id: u64, depth: &DepthRef<'_>) -> Result<(), LogError> {
-        // Depth before the keyframe's pose (never from our callers) hangs at the origin.
-        self.keyframes.entry(keyframe_id).or_insert(KeyframeView {
-            pose: Pose::IDENTITY,
-            sent_scale: 1.0,
-        });
-        self.clouds
-            .put(keyframe_id, depth.points(POINTS_PER_KEYFRAME))?;
+        self.keyframes
+            .set_points(keyframe_id, depth.points(POINTS_PER_KEYFRAME))?;
         self.log_points(keyframe_id)
     }
 

@@ -305,8 +305,8 @@ async fn start(
     })
 }
 
-/// A gauge of the server's `/metrics` in MiB: `resident_memory_bytes` (RSS) or
-/// `heap_in_use_bytes` (what the program holds of the heap).
+/// A gauge of the server's `/metrics` in MiB: `resident_memory_bytes` (RSS),
+/// `heap_in_use_bytes` (what the program holds of the heap) or `heap_free_bytes`.
 async fn server_gauge_mb(client: &Client, name: &str) -> Option<f64> {
     let text = client.metrics().await.ok()?;
     text.lines()
@@ -346,6 +346,7 @@ async fn report_line(client: &Client, sessions: &[Running], at_s: f64) -> Value 
         "minute": at_s / 60.0,
         "rss_mb": server_rss_mb(client).await,
         "heap_mb": server_gauge_mb(client, "heap_in_use_bytes").await,
+        "heap_free_mb": server_gauge_mb(client, "heap_free_bytes").await,
         "sessions": per,
     })
 }

@@ -158,9 +158,11 @@ struct Entry {
     kept: CompactKeyframe,
     /// Insertion index (LSD-SLAM's `idxInKeyframes`).
     order: usize,
-    parent: Option<ParentEdge>,
+    /// Boxed, as `handover`: every keyframe keeps its entry for the whole session, and inline
+    /// the two took 2 × 472 B of it, though few keyframes have a hand-over (issue 37).
+    parent: Option<Box<ParentEdge>>,
     /// See [`NewKeyframe::handover`].
-    handover: Option<ParentEdge>,
+    handover: Option<Box<ParentEdge>>,
     /// Keyframes joined to this one by an edge.
     neighbours: BTreeSet<KeyframeId>,
     /// Candidates whose test failed, with the initial relative pose tried.
@@ -174,7 +176,7 @@ struct Entry {
 impl Entry {
     /// The edges the front end measured by tracking: the parent's, then the hand-over's.
     fn tracked(&self) -> impl Iterator<Item = &ParentEdge> {
-        self.parent.iter().chain(self.handover.as_ref())
+        self.parent.iter().chain(&self.handover).map(|p| &**p)
     }
 }
 
@@ -266,8 +268,8 @@ impl Backend {
             Entry {
                 kept,
                 order,
-                parent: new.parent,
-                handover: new.handover,
+                parent: new.parent.map(Box::new),
+                handover: new.handover.map(Box::new),
                 neighbours: BTreeSet::new(),
                 failed: Vec::new(),
                 fragment,

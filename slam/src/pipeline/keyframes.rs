@@ -80,10 +80,11 @@ pub(super) struct KeyframeRecord {
     pub reference: Option<Arc<TrackingReference>>,
     /// The tracking constraint to the keyframe it was created from (sent with it to the back
     /// end once the keyframe is finished).
-    pub parent: Option<ParentEdge>,
+    /// Boxed, as `handover`: the record lives as long as the session (issue 37).
+    pub parent: Option<Box<ParentEdge>>,
     /// The tracking constraint to the old keyframe re-activated when this one was left
     /// (`super::reactivate`), sent with it like `parent`.
-    pub handover: Option<ParentEdge>,
+    pub handover: Option<Box<ParentEdge>>,
     /// Mean inverse depth of its semi-dense depth as last published (keyframe distances are
     /// measured in it); `None` without estimates.
     pub mean_idepth: Option<f64>,
@@ -268,7 +269,7 @@ impl Pipeline {
             depth: Some(mapped.depth),
             world_from_keyframe,
             reference: Some(mapped.reference),
-            parent,
+            parent: parent.map(Box::new),
             handover: None,
             mean_idepth: mapped.mean_idepth,
             prior,
@@ -336,8 +337,8 @@ impl Pipeline {
                 data: record.data.clone(),
             },
             world_from_keyframe: record.world_from_keyframe,
-            parent: record.parent.clone(),
-            handover: record.handover.clone(),
+            parent: record.parent.as_deref().cloned(),
+            handover: record.handover.as_deref().cloned(),
             thumbnail: Some(record.thumbnail.clone()),
         };
         let pose_covariance = record

@@ -117,7 +117,8 @@ impl Pipeline {
                 current,
                 tracked,
                 self.current_pose(current).scale,
-            );
+            )
+            .map(Box::new);
         }
         self.finish_current()?;
         let filter = DepthFilter::from_depth_map(

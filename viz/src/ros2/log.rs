@@ -23,10 +23,9 @@ use super::types::{
     CAMERA_INFO, COMPRESSED_IMAGE, MARKER_ARRAY, PATH, POINT_CLOUD2, POSE_STAMPED, RosType,
     TF_MESSAGE,
 };
-use crate::clouds::KeyframeClouds;
+use crate::clouds::KeyframeViews;
 use crate::session_log::{
-    DepthRef, LogCounts, LogError, MeshBlockRef, POINTS_PER_KEYFRAME, Pose, RESCALE_TOLERANCE,
-    SessionLog, nanos,
+    DepthRef, LogCounts, LogError, MeshBlockRef, POINTS_PER_KEYFRAME, Pose, SessionLog, nanos,
 };
 use relfusion_core::geometry::PinholeCamera;
 
@@ -85,22 +84,13 @@ pub trait Ros2Sink: std::fmt::Debug + Send {
     fn publish(&mut self, topic: Topic, stamp_ns: u64, cdr: Vec<u8>) -> Result<(), LogError>;
 }
 
-/// A keyframe's newest pose and the scale its points were last sent at (the points, in the
-/// keyframe's frame and unscaled, are in [`KeyframeClouds`]).
-#[derive(Debug)]
-struct KeyframeView {
-    pose: Pose,
-    sent_scale: f64,
-}
-
 /// A session's log as ROS 2 messages.
 #[derive(Debug)]
 pub struct Ros2Log<S: Ros2Sink> {
     sink: S,
     /// The newest frame's id and stamp.
     now: (u64, u64),
-    keyframes: BTreeMap<u64, KeyframeView>,
-    clouds: KeyframeClouds,
+    keyframes: KeyframeViews,
     path_stale: bool,
     counts: LogCounts,
     mesh_updates: u64,
@@ -137,8 +127,7 @@ impl<S: Ros2Sink> Ros2Log<S> {
         Ros2Log {
             sink,
             now: (0, 0),
-            keyframes: BTreeMap::new(),
-            clouds: KeyframeClouds::new(),
+            keyframes: KeyframeViews::new(),
             path_stale: false,
             counts: LogCounts::default(),
             mesh_updates: 0,
@@ -192,26 +181,15 @@ impl<S: Ros2Sink> Ros2Log<S> {
         }
         self.path_stale = false;
         let ns = self.now.1;
-        let poses: Vec<(u64, Rigid)> = self
-            .keyframes
-            .values()
-            .map(|k| (ns, rigid(&k.pose)))
-            .collect();
+        let poses: Vec<(u64, Rigid)> = self.keyframes.poses().map(|p| (ns, rigid(p))).collect();
         self.send(Topic::Path, msgs::path(ns, "world", &poses))
     }
 
     fn send_points(&mut self, keyframe_id: u64) -> Result<(), LogError> {
-        if !self.clouds.has_points(keyframe_id) {
-            return Ok(());
-        }
-        let points = self.clouds.get(keyframe_id)?;
-        let Some(k) = self.keyframes.get_mut(&keyframe_id) else {
+        let Some(points) = self.keyframes.points_to_send(keyframe_id)? else {
             return Ok(());
         };
-        k.sent_scale = k.pose.s;
-        let s = k.pose.s as f32;
-        let scaled: Vec<[f32; 3]> = points.iter().map(|p| p.map(|v| v * s)).collect();
-        let cdr = msgs::point_cloud2(self.now.1, &format!("keyframe_{keyframe_id}"), &scaled);
+        let cdr = msgs::point_cloud2(self.now.1, &format!("keyframe_{keyframe_id}"), &points);
         self.send(Topic::Points, cdr)
     }
 
@@ -261,24 +239,15 @@ impl<S: Ros2Sink> SessionLog for Ros2Log<S> {
     fn keyframe(&mut self, keyframe_id: u64, pose: &Pose) -> Result<(), LogError> {
         self.send_tf(format!("keyframe_{keyframe_id}"), pose)?;
         self.path_stale = true;
-        let k = self.keyframes.entry(keyframe_id).or_insert(KeyframeView {
-            pose: *pose,
-            sent_scale: pose.s,
-        });
-        k.pose = *pose;
-        if (pose.s / k.sent_scale - 1.0).abs() > RESCALE_TOLERANCE {
+        if self.keyframes.set_pose(keyframe_id, pose) {
             self.send_points(keyframe_id)?;
         }
         Ok(())
     }
 
     fn keyframe_depth(&mut self, keyframe_id: u64, depth: &DepthRef<'_>) -> Result<(), LogError> {
-        self.keyframes.entry(keyframe_id).or_insert(KeyframeView {
-            pose: Pose::IDENTITY,
-            sent_scale: 1.0,
-        });
-        self.clouds
-            .put(keyframe_id, depth.points(POINTS_PER_KEYFRAME))?;
+        self.keyframes
+            .set_points(keyframe_id, depth.points(POINTS_PER_KEYFRAME))?;
         self.send_points(keyframe_id)
     }
 
