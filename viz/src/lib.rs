@@ -5,7 +5,8 @@
 //! - [`foxglove_log`]: MCAP files and the Foxglove WebSocket protocol, with Foxglove's schemas;
 //!   [`foxglove_front`] lets viewers in with either name of the protocol.
 //! - [`rerun_log`] (feature `rerun`): rerun `.rrd` recordings.
-//! - [`clouds`]: each keyframe's points, kept on disk so that a rescaled keyframe is sent again.
+//! - [`clouds`]: what a log keeps of each keyframe, its points on disk, so that a rescaled
+//!   keyframe is sent again.
 //! - [`ros2`]: the session as ROS 2 messages (CDR, REP-2011 type hashes) for rmw_zenoh.
 //! - [`pipeline_log`] (feature `pipeline`): the pipeline's events given to a [`SessionLog`].
 
