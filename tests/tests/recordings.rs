@@ -86,9 +86,16 @@ fn a_real_sequence_is_recorded_to_mcap_and_served_to_foxglove() {
         }
         log
     });
-    let url = url_rx
-        .recv_timeout(std::time::Duration::from_secs(120))
-        .expect("the Foxglove URL on stderr");
+    let url = match url_rx.recv_timeout(std::time::Duration::from_secs(120)) {
+        Ok(url) => url,
+        Err(e) => {
+            // The run ended (or hung) before serving: its log says why.
+            let _ = child.kill();
+            let status = child.wait();
+            let log = drain.join().unwrap_or_default();
+            panic!("no Foxglove URL on stderr ({e}); relfusion run {status:?}: {log}");
+        }
+    };
     // Offering only the protocol's published name, as Lichtblick and older Foxglove apps do.
     let live = foxglove_check(&["ws", &url, "240", "foxglove.websocket.v1"]);
     let finished = child.wait_with_output().expect("relfusion run");
