@@ -221,6 +221,31 @@ pub fn available_memory() -> u64 {
     cgroup.map_or(physical, |c| c.min(physical))
 }
 
+/// Blocks at least this large that no free span of an arena fits come straight from the
+/// system (`mmap`) and go back to it when freed, instead of growing an arena. glibc starts at
+/// 128 kB and raises the threshold to the size of each mapped block freed, up to 32 MB, so
+/// after the first minutes the session's growing transients (the pose graph's factor, the
+/// checkpoint's trajectory text, re-fusion buffers) grew the arenas, and each larger one left
+/// the last one's span free beside long-lived data: the free memory glibc held grew twice as
+/// fast as the heap (docs/tuning.md, issue 37, thirty-second stop). A fixed threshold ends
+/// that; 4 MB keeps the per-frame images (at most 1.2 MB at 640×480) in the arenas, where a
+/// 128 kB one mapped and faulted their pages in at every frame and cost frames.
+pub const MMAP_THRESHOLD_BYTES: usize = 4 << 20;
+
+/// Sets glibc's allocator for a long-running server: large blocks always mapped on their own
+/// ([`MMAP_THRESHOLD_BYTES`]). Left as it is when `MALLOC_MMAP_THRESHOLD_` is in the
+/// environment (glibc reads it itself), and elsewhere than glibc. Call once, early.
+pub fn configure_allocator() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    if std::env::var_os("MALLOC_MMAP_THRESHOLD_").is_none() {
+        #[allow(unsafe_code)]
+        // SAFETY: `mallopt` takes two integers and only sets the allocator's parameters.
+        unsafe {
+            libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES as libc::c_int);
+        }
+    }
+}
+
 /// Hands the heap's free pages back to the system. glibc keeps what threads free in their
 /// arenas: in a 640×480 session of 255 keyframes half the server's RSS (1.4 of 2.8 GB) was
 /// such free memory (docs/tuning.md, "third stage"), which the budget and `/healthz` count as
@@ -376,5 +401,59 @@ mod tests {
         }
         let derived = MemoryPlan::new(&limits(0, 4, 0));
         assert!(derived.budget <= available_memory());
+    }
+
+    /// glibc raises its mapping threshold to each mapped block freed: without the fixed one, a
+    /// 24 MB block after a 30 MB one was freed grows the arena, which then keeps that span. The
+    /// threshold decides only when no free span of the arena fits, so the probe runs in a
+    /// process of its own (this binary, this one test), whose arena is fresh.
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    #[test]
+    fn large_blocks_stay_mapped_after_larger_ones_are_freed() {
+        const PROBE: &str = "RELFUSION_MAPPING_PROBE";
+        let name = "memory::tests::large_blocks_stay_mapped_after_larger_ones_are_freed";
+        if std::env::var_os(PROBE).is_none() {
+            let run = |configure: &str| {
+                let out = std::process::Command::new(std::env::current_exe().expect("test binary"))
+                    .args(["--exact", name, "--nocapture", "--test-threads", "1"])
+                    .env(PROBE, configure)
+                    .output()
+                    .expect("probe process");
+                let text = String::from_utf8_lossy(&out.stdout).into_owned();
+                assert!(out.status.success(), "{text}");
+                text.lines()
+                    .find_map(|l| l.split("mapped: ").nth(1))
+                    .map(|v| v.trim_start().starts_with("true"))
+                    .unwrap_or_else(|| panic!("no probe line: {text}"))
+            };
+            assert!(
+                run("1"),
+                "with the fixed threshold a 24 MB block came from an arena"
+            );
+            // The probe can tell: with glibc's own threshold the same block grows the arena.
+            assert!(
+                !run("0"),
+                "with glibc's defaults the probe saw a mapped block"
+            );
+            return;
+        }
+        if std::env::var_os(PROBE).is_some_and(|v| v == "1") {
+            configure_allocator();
+        }
+        #[allow(unsafe_code)]
+        // SAFETY: plain malloc/free of blocks this test owns; the word before a block is its
+        // chunk's size field in glibc, whose bit 1 marks a chunk mapped on its own.
+        let mapped = unsafe {
+            // Opaque, or the compiler drops a block that is only freed.
+            let larger = std::hint::black_box(libc::malloc(30 << 20));
+            assert!(!larger.is_null());
+            libc::free(larger);
+            let block = std::hint::black_box(libc::malloc(24 << 20)).cast::<usize>();
+            assert!(!block.is_null());
+            let mapped = block.sub(1).read() & 2 != 0;
+            libc::free(block.cast());
+            mapped
+        };
+        println!("mapped: {mapped}");
     }
 }
