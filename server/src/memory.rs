@@ -417,6 +417,7 @@ mod tests {
                 let out = std::process::Command::new(std::env::current_exe().expect("test binary"))
                     .args(["--exact", name, "--nocapture", "--test-threads", "1"])
                     .env(PROBE, configure)
+                    .env_remove("MALLOC_MMAP_THRESHOLD_")
                     .output()
                     .expect("probe process");
                 let text = String::from_utf8_lossy(&out.stdout).into_owned();
