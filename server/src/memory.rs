@@ -221,15 +221,11 @@ pub fn available_memory() -> u64 {
     cgroup.map_or(physical, |c| c.min(physical))
 }
 
-/// Blocks at least this large that no free span of an arena fits come straight from the
-/// system (`mmap`) and go back to it when freed, instead of growing an arena. glibc starts at
-/// 128 kB and raises the threshold to the size of each mapped block freed, up to 32 MB, so
-/// after the first minutes the session's growing transients (the pose graph's factor, the
-/// checkpoint's trajectory text, re-fusion buffers) grew the arenas, and each larger one left
-/// the last one's span free beside long-lived data: the free memory glibc held grew twice as
-/// fast as the heap (docs/tuning.md, issue 37, thirty-second stop). A fixed threshold ends
-/// that; 4 MB keeps the per-frame images (at most 1.2 MB at 640×480) in the arenas, where a
-/// 128 kB one mapped and faulted their pages in at every frame and cost frames.
+/// Blocks at least this large that no free span of an arena fits are mapped on their own and
+/// unmapped when freed. glibc raises this threshold to each mapped block freed (up to 32 MB),
+/// so the session's growing transients grew the arenas and left free spans behind; 4 MB keeps
+/// the per-frame images in the arenas (128 kB cost frames). docs/tuning.md, issue 37,
+/// thirty-second stop.
 pub const MMAP_THRESHOLD_BYTES: usize = 4 << 20;
 
 /// Sets glibc's allocator for a long-running server: large blocks always mapped on their own
