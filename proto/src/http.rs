@@ -341,6 +341,13 @@ pub struct SessionMemory {
     /// their tracking edge and remain candidates of later searches).
     #[serde(default)]
     pub searches_given_up: u64,
+    /// Pose-graph optimisations of the whole graph so far (the final one, and live passes whose
+    /// new edges close a loop beyond the bounded neighbourhood).
+    #[serde(default)]
+    pub optimizations_full: u64,
+    /// Live pose-graph optimisations bounded to the neighbourhood of what changed.
+    #[serde(default)]
+    pub optimizations_bounded: u64,
     /// Times an old keyframe became the current one again instead of a new keyframe being
     /// made: a camera revisiting a place adds no keyframes for it.
     #[serde(default)]

@@ -67,6 +67,8 @@ pub fn memory(engine: &Engine) -> Option<relfusion_proto::http::SessionMemory> {
         far_edges: m.backend.map_or(0, |b| b.far_edges as u64),
         searches_deferred: m.backend.map_or(0, |b| b.searches_deferred as u64),
         searches_given_up: m.backend.map_or(0, |b| b.searches_given_up as u64),
+        optimizations_full: m.backend.map_or(0, |b| b.optimizations_full as u64),
+        optimizations_bounded: m.backend.map_or(0, |b| b.optimizations_bounded as u64),
         keyframes_reactivated: pipeline.stats().keyframes_reactivated as u64,
     })
 }

@@ -149,6 +149,12 @@ pub struct KeyframeMemory {
     pub searches_deferred: usize,
     /// Deferred searches and refreshes given up so far.
     pub searches_given_up: usize,
+    /// Pose-graph optimisations of the whole graph so far, and of a bounded neighbourhood
+    /// (`BackendConfig::live_optimization_vertices`).
+    #[serde(default)]
+    pub optimizations_full: usize,
+    #[serde(default)]
+    pub optimizations_bounded: usize,
 }
 
 /// Graph bookkeeping of one keyframe.
@@ -197,6 +203,8 @@ pub struct Backend {
     deferred: std::collections::VecDeque<KeyframeId>,
     /// Deferred searches and refreshes given up so far.
     searches_given_up: usize,
+    /// Optimisations run so far: of the whole graph, of a bounded neighbourhood.
+    optimizations: [usize; 2],
     /// The window's edge of each consecutive pair `(newer, older)` it optimised, as in the
     /// graph (replaced by the next window over the same pair).
     window_edges: HashMap<(KeyframeId, KeyframeId), Constraint>,
@@ -221,6 +229,7 @@ impl Backend {
             refresh: Vec::new(),
             deferred: std::collections::VecDeque::new(),
             searches_given_up: 0,
+            optimizations: [0; 2],
             window_edges: HashMap::new(),
             scale_observed: false,
         })
@@ -499,7 +508,10 @@ impl Backend {
         let report = self.process()?;
         match report.optimize {
             Some(r) => Ok(r),
-            None => self.graph.optimize(self.config.max_optimization_iterations),
+            None => {
+                self.optimizations[0] += 1;
+                self.graph.optimize(self.config.max_optimization_iterations)
+            }
         }
     }
 
@@ -552,6 +564,8 @@ impl Backend {
             },
             searches_deferred: self.deferred.len(),
             searches_given_up: self.searches_given_up,
+            optimizations_full: self.optimizations[0],
+            optimizations_bounded: self.optimizations[1],
         }
     }
 

@@ -97,6 +97,12 @@ pub struct BackendConfig {
     /// LM iterations of the pose graph after new constraints. Default 100
     /// (`maxOptimizationIterations`).
     pub max_optimization_iterations: usize,
+    /// A live pass (not the session's final one) moves at most this many keyframes: those
+    /// nearest by edges to what changed, unless a new edge closes a loop beyond them
+    /// (`graph::scope`). Default 500, about 7 minutes of hand-held 640×480 keyframes: every
+    /// shorter session is optimised whole, and an hour-long one no longer holds a factor of its
+    /// whole graph at every pass (docs/tuning.md, issue 37).
+    pub live_optimization_vertices: usize,
     /// Huber width on `sqrt(rᵀΩr)` of a pose-graph edge; `None` disables it. Default
     /// `5·sqrt(6000·1.5)` ≈ 474 (`kernelDelta` of `testConstraint` at LSD-SLAM's strictness).
     pub pose_graph_huber: Option<f64>,
@@ -162,6 +168,7 @@ impl Default for BackendConfig {
             stage_thresholds: [3000.0, 4000.0, 6000.0],
             retry_min_change: 0.1,
             max_optimization_iterations: 100,
+            live_optimization_vertices: 500,
             pose_graph_huber: Some(5.0 * (6000.0f64 * 1.5).sqrt()),
             channel_capacity: 256,
             catch_up_searches: 2,

@@ -8,7 +8,7 @@
 //! - [`search`]: candidate keyframes (pose proximity, appearance thumbnail) and the staged
 //!   reciprocal consistency test;
 //! - [`pose_graph`]: the graph and its sparse Levenberg–Marquardt ([`PoseGraph`]), solved by the
-//!   block Cholesky of [`cholesky`];
+//!   block Cholesky of [`cholesky`]; `scope`: which vertices a live (bounded) optimisation moves;
 //! - [`backend`]: [`Backend`], the keyframe store, constraint search and optimisation;
 //! - [`resident`]: which keyframes the back end holds in full (the others compact);
 //! - [`link`]: [`BackendLink`], the back end in step or on its own thread.
@@ -24,6 +24,7 @@ pub mod link;
 pub mod points;
 pub mod pose_graph;
 pub mod resident;
+mod scope;
 pub mod search;
 pub mod sim3_tracker;
 

@@ -29,12 +29,13 @@
 //! to ~3·10⁻⁴ (information ~10⁷ on real video) while a monocular front end's scale drifts by
 //! percents per keyframe; without the floor the factors (information 4–100) could not move it.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use serde::{Deserialize, Serialize};
 
 use super::KeyframeId;
 use super::cholesky::BlockSparseSymmetric;
+use super::scope::{Changes, bounded_scope};
 use crate::geometry::{Matrix7, Sim3, Vector7};
 use crate::{Error, Result};
 
@@ -77,11 +78,19 @@ pub struct Vertex {
 /// What [`PoseGraph::optimize`] did.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct OptimizeReport {
-    /// Robust cost `½ Σ ρ(rᵀΩr)` before and after.
+    /// Robust cost `½ Σ ρ(rᵀΩr)` before and after (of the edges and factors that touch a moved
+    /// vertex when the optimisation was bounded).
     pub initial_cost: f64,
     pub final_cost: f64,
     /// LM iterations run (accepted or not).
     pub iterations: usize,
+    /// Vertices the optimisation could move: every free one, or a neighbourhood of what
+    /// changed ([`PoseGraph::optimize_bounded`]).
+    #[serde(default)]
+    pub vertices: usize,
+    /// Whether it was bounded to such a neighbourhood.
+    #[serde(default)]
+    pub bounded: bool,
 }
 
 /// The residual `log(T_ij⁻¹ · T_wi⁻¹ · T_wj)` of a measurement `to_from_from = T_ij`
@@ -120,6 +129,8 @@ pub struct PoseGraph {
     /// Floor `q` of every edge's relative-scale standard deviation while scale factors are
     /// present (module docs).
     edge_scale_sigma: Option<f64>,
+    /// What changed since the last optimisation (where a bounded one starts).
+    changes: Changes,
 }
 
 /// `ρ(e)` and `ρ'(e)` of g2o's Huber kernel on a squared error e.
@@ -143,6 +154,7 @@ impl PoseGraph {
             scale_priors: BTreeMap::new(),
             huber,
             edge_scale_sigma: None,
+            changes: Changes::default(),
         }
     }
 
@@ -177,6 +189,10 @@ impl PoseGraph {
     /// Adds (or re-poses) a vertex. The first vertex ever added is fixed.
     pub fn add_vertex(&mut self, id: KeyframeId, world_from_keyframe: Sim3) {
         let fixed = self.vertices.is_empty();
+        if !self.vertices.contains_key(&id) {
+            self.changes.added.insert(id);
+        }
+        self.changes.touched.insert(id);
         self.vertices
             .entry(id)
             .and_modify(|v| v.world_from_keyframe = world_from_keyframe)
@@ -212,6 +228,10 @@ impl PoseGraph {
             // vector is up to half slack (15 MB of 31 at 2242 keyframes; issue 37).
             self.edges.reserve_exact((self.edges.len() / 4).max(64));
         }
+        self.changes
+            .touched
+            .extend([constraint.from, constraint.to]);
+        self.changes.edges.push((constraint.from, constraint.to));
         self.edges.push(constraint);
         Ok(())
     }
@@ -222,6 +242,7 @@ impl PoseGraph {
         if !self.vertices.contains_key(&id) {
             return Err(unknown(id));
         }
+        self.changes.touched.insert(id);
         match prior {
             Some(p) => {
                 let positive = |v: f64| v.is_finite() && v > 0.0;
@@ -248,6 +269,7 @@ impl PoseGraph {
     pub fn remove_edge(&mut self, edge: &Constraint) -> bool {
         match self.edges.iter().position(|e| e == edge) {
             Some(i) => {
+                self.changes.touched.extend([edge.from, edge.to]);
                 self.edges.remove(i);
                 true
             }
@@ -260,7 +282,11 @@ impl PoseGraph {
         let before = self.edges.len();
         self.edges
             .retain(|e| !((e.from == a && e.to == b) || (e.from == b && e.to == a)));
-        before - self.edges.len()
+        let removed = before - self.edges.len();
+        if removed > 0 {
+            self.changes.touched.extend([a, b]);
+        }
+        removed
     }
 
     /// The vertex of `id`.
@@ -303,13 +329,29 @@ impl PoseGraph {
 
     /// The robust cost `½ Σ ρ(rᵀΩr)` at the current poses.
     pub fn cost(&self) -> f64 {
-        self.cost_with(&|id| self.pose(id))
+        self.cost_with(&|id| self.pose(id), None)
     }
 
-    fn cost_with(&self, pose: &dyn Fn(KeyframeId) -> Option<Sim3>) -> f64 {
+    /// Every edge, or those at `scope` (indices into the edges, in order).
+    fn edges_in<'a>(
+        &'a self,
+        scope: Option<&'a [usize]>,
+    ) -> Box<dyn Iterator<Item = &'a Constraint> + 'a> {
+        match scope {
+            None => Box::new(self.edges.iter()),
+            Some(at) => Box::new(at.iter().map(|&i| &self.edges[i])),
+        }
+    }
+
+    /// The cost of every edge and factor (`scope` `None`), or of the edges at `scope` and the
+    /// factors of `moved` vertices.
+    fn cost_with(
+        &self,
+        pose: &dyn Fn(KeyframeId) -> Option<Sim3>,
+        scope: Option<(&[usize], &HashMap<KeyframeId, usize>)>,
+    ) -> f64 {
         let edges: f64 = self
-            .edges
-            .iter()
+            .edges_in(scope.map(|s| s.0))
             .filter_map(|e| {
                 let (wi, wj) = (pose(e.to)?, pose(e.from)?);
                 let r = relative_residual(&e.to_from_from, &wi, &wj);
@@ -319,6 +361,7 @@ impl PoseGraph {
         let scales: f64 = self
             .scale_priors
             .iter()
+            .filter(|(id, _)| scope.is_none_or(|(_, moved)| moved.contains_key(id)))
             .filter_map(|(&id, p)| {
                 let r = p.residual(&pose(id)?);
                 Some(0.5 * huber(r * r, Some(p.huber)).0)
@@ -332,26 +375,69 @@ impl PoseGraph {
     /// than 1e-12 relative. Fails only when the graph has no free vertex to move (returns the
     /// unchanged cost then) — it never leaves the poses worse than they were.
     pub fn optimize(&mut self, max_iterations: usize) -> Result<OptimizeReport> {
-        // A fixed vertex with a scale factor still has its scale free: the factors, not the
-        // first keyframe's single observation, set the scale gauge.
-        let scale_only = |k: &KeyframeId, v: &Vertex| v.fixed && self.scale_priors.contains_key(k);
-        let free: Vec<KeyframeId> = self
-            .vertices
-            .iter()
-            .filter(|(k, v)| !v.fixed || scale_only(k, v))
-            .map(|(&k, _)| k)
+        let free = self.free_vertices();
+        self.changes.clear();
+        self.optimize_vertices(free, None, max_iterations)
+    }
+
+    /// [`PoseGraph::optimize`] of at most `max_vertices` vertices, those nearest by edges to
+    /// what changed since the last optimisation, the others held where they are; the whole
+    /// graph when it is no larger or a new edge closes a loop outside that neighbourhood
+    /// ([`super::scope`]). For live passes: memory and time per pass stay bounded as the
+    /// session grows.
+    pub fn optimize_bounded(
+        &mut self,
+        max_vertices: usize,
+        max_iterations: usize,
+    ) -> Result<OptimizeReport> {
+        let free = self.free_vertices();
+        let ids: Vec<KeyframeId> = self.vertices.keys().copied().collect();
+        let free_set: BTreeSet<KeyframeId> = free.iter().copied().collect();
+        let scope = bounded_scope(&ids, &free_set, &self.edges, &self.changes, max_vertices);
+        self.changes.clear();
+        let Some(moved) = scope else {
+            return self.optimize_vertices(free, None, max_iterations);
+        };
+        let inside: BTreeSet<KeyframeId> = moved.iter().copied().collect();
+        let edges: Vec<usize> = (self.edges.iter().enumerate())
+            .filter(|(_, e)| inside.contains(&e.from) || inside.contains(&e.to))
+            .map(|(i, _)| i)
             .collect();
+        self.optimize_vertices(moved, Some(edges), max_iterations)
+    }
+
+    /// The vertices an optimisation may move, in id order. A fixed vertex with a scale factor
+    /// still has its scale free: the factors, not the first keyframe's single observation,
+    /// set the scale gauge.
+    fn free_vertices(&self) -> Vec<KeyframeId> {
+        (self.vertices.iter())
+            .filter(|(k, v)| !v.fixed || self.scale_priors.contains_key(k))
+            .map(|(&k, _)| k)
+            .collect()
+    }
+
+    /// Levenberg–Marquardt over the `free` vertices and the edges at `scope` (every edge when
+    /// `None`).
+    fn optimize_vertices(
+        &mut self,
+        free: Vec<KeyframeId>,
+        scope: Option<Vec<usize>>,
+        max_iterations: usize,
+    ) -> Result<OptimizeReport> {
         let pinned: Vec<bool> = free
             .iter()
-            .map(|k| self.vertices.get(k).is_some_and(|v| scale_only(k, v)))
+            .map(|k| self.vertices.get(k).is_some_and(|v| v.fixed))
             .collect();
         let index: HashMap<KeyframeId, usize> =
             free.iter().enumerate().map(|(i, &k)| (k, i)).collect();
-        let initial_cost = self.cost();
+        let scoped = scope.as_deref().map(|at| (at, &index));
+        let initial_cost = self.cost_with(&|id| self.pose(id), scoped);
         let mut report = OptimizeReport {
             initial_cost,
             final_cost: initial_cost,
             iterations: 0,
+            vertices: free.len(),
+            bounded: scope.is_some(),
         };
         if free.is_empty() || (self.edges.is_empty() && self.scale_priors.is_empty()) {
             return Ok(report);
@@ -362,7 +448,7 @@ impl PoseGraph {
         let mut order: Option<Vec<usize>> = None;
         for _ in 0..max_iterations {
             report.iterations += 1;
-            let (h, g) = self.normal_equations(&index, free.len());
+            let (h, g) = self.normal_equations(&index, free.len(), scope.as_deref());
             let order = order.get_or_insert_with(|| h.minimum_degree_order());
             let mut improved = false;
             while lambda < 1e12 {
@@ -393,8 +479,10 @@ impl PoseGraph {
                     .zip(&step)
                     .filter_map(|(&k, d)| Some((k, self.pose(k)? * Sim3::exp(d))))
                     .collect();
-                let new_cost =
-                    self.cost_with(&|id| candidate.get(&id).copied().or_else(|| self.pose(id)));
+                let new_cost = self.cost_with(
+                    &|id| candidate.get(&id).copied().or_else(|| self.pose(id)),
+                    scoped,
+                );
                 if new_cost.is_finite() && new_cost < cost {
                     for (k, p) in candidate {
                         if let Some(v) = self.vertices.get_mut(&k) {
@@ -418,15 +506,16 @@ impl PoseGraph {
     }
 
     /// `H = Σ Jᵀ ρ' Ω J`, `g = Σ Jᵀ ρ' Ω r` over the free vertices (IRLS form of the Huber cost),
-    /// edges and unary scale factors.
+    /// the edges at `scope` (every one when `None`) and unary scale factors.
     fn normal_equations(
         &self,
         index: &HashMap<KeyframeId, usize>,
         n: usize,
+        scope: Option<&[usize]>,
     ) -> (BlockSparseSymmetric, Vec<Vector7>) {
         let mut h = BlockSparseSymmetric::new(n);
         let mut g = vec![Vector7::zeros(); n];
-        for e in &self.edges {
+        for e in self.edges_in(scope) {
             let (Some(wi), Some(wj)) = (self.pose(e.to), self.pose(e.from)) else {
                 continue;
             };

@@ -66,7 +66,13 @@ impl Backend {
             any = true;
         }
         if let Some(entry) = self.keyframes.get_mut(&id) {
-            entry.failed.extend(failed);
+            if with_candidates {
+                // Only this keyframe's own later search reads its failures, and a full search
+                // is its last: a list kept for the whole session is dead weight (issue 37).
+                entry.failed = Vec::new();
+            } else {
+                entry.failed.extend(failed);
+            }
         }
         Ok(any)
     }

@@ -15,6 +15,7 @@
 use super::super::KeyframeId;
 use super::{Backend, ProcessReport};
 use crate::Result;
+use crate::graph::OptimizeReport;
 
 /// How much a [`Backend::process_within`] pass does.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -102,17 +103,25 @@ impl Backend {
         }
         added |= std::mem::take(&mut self.scale_observed);
         if added {
-            report.optimize = Some(
-                self.graph
-                    .optimize(self.config.max_optimization_iterations)?,
-            );
+            report.optimize = Some(self.optimize_within(budget)?);
         }
         if searched && self.config.window.enabled && self.run_window(&mut report)? {
-            report.optimize = Some(
-                self.graph
-                    .optimize(self.config.max_optimization_iterations)?,
-            );
+            report.optimize = Some(self.optimize_within(budget)?);
         }
+        Ok(report)
+    }
+
+    /// The whole graph in the final pass, a bounded neighbourhood of what changed in a live
+    /// one ([`crate::graph::PoseGraph::optimize_bounded`]).
+    fn optimize_within(&mut self, budget: Budget) -> Result<OptimizeReport> {
+        let iterations = self.config.max_optimization_iterations;
+        let report = match budget {
+            Budget::All => self.graph.optimize(iterations)?,
+            _ => {
+                (self.graph).optimize_bounded(self.config.live_optimization_vertices, iterations)?
+            }
+        };
+        self.optimizations[usize::from(report.bounded)] += 1;
         Ok(report)
     }
 

@@ -338,3 +338,96 @@ fn edge_scale_floor_lets_scale_factors_correct_an_overconfident_chain() {
             .is_err()
     );
 }
+
+/// The 60-keyframe drifting chain of [`circle`]`(61)` optimised, then keyframe 60 added with
+/// its parent edge to 59 and a second edge to `other`, from a perturbed initial pose.
+fn chain_with_a_new_keyframe(other: usize) -> (PoseGraph, Vec<Sim3>) {
+    let truth = circle(61);
+    let mut graph = drifting_chain(&truth[..60], &[], None);
+    graph.optimize(100).expect("optimise");
+    let info = Matrix7::identity() / (0.003f64 * 0.003);
+    let guess = graph.pose(59).expect("59") * truth[59].inverse() * truth[60];
+    let nudge = Vector7::from_fn(|i, _| 0.02 * (i as f64 + 1.0));
+    graph.add_vertex(60, guess * Sim3::exp(&nudge));
+    for to in [59, other] {
+        // Measured from the optimised chain, so that only keyframe 60 is off.
+        let world_from_to = graph.pose(to).expect("vertex");
+        let measured = world_from_to.inverse() * guess;
+        graph
+            .add_edge(Constraint {
+                from: 60,
+                to,
+                to_from_from: measured * Sim3::exp(&(nudge * 0.01)),
+                information: info,
+            })
+            .expect("vertices exist");
+    }
+    (graph, truth)
+}
+
+#[test]
+fn bounded_optimisation_moves_only_the_neighbourhood_of_a_new_keyframe() {
+    // Keyframe 60 closes a small loop (59 … 55) inside its neighbourhood of 10 vertices.
+    let (mut graph, _) = chain_with_a_new_keyframe(55);
+    let before = graph.poses();
+    let report = graph.optimize_bounded(10, 100).expect("optimise");
+    assert!(report.bounded && report.vertices == 10, "{report:?}");
+    assert!(report.final_cost < 0.01 * report.initial_cost, "{report:?}");
+    // Vertices 51-60 may move; everything older stays exactly where it was.
+    let moved: Vec<usize> = (0..=60)
+        .filter(|k| graph.pose(*k) != before.get(k).copied())
+        .collect();
+    assert!(
+        moved.contains(&60) && moved.iter().all(|&k| k > 50),
+        "{moved:?}"
+    );
+    // Nothing changed since: a second bounded call has nothing to start from and runs whole.
+    assert!(!graph.optimize_bounded(10, 100).expect("again").bounded);
+}
+
+#[test]
+fn a_loop_beyond_the_neighbourhood_moves_the_whole_graph() {
+    // Keyframe 60 is joined to keyframe 0: the loop runs through all 60 keyframes, and a
+    // bounded optimisation could not spread its correction.
+    let (mut graph, _) = chain_with_a_new_keyframe(0);
+    let report = graph.optimize_bounded(10, 100).expect("optimise");
+    assert!(!report.bounded && report.vertices == 60, "{report:?}");
+    // Two fragments joined by a new edge: also whole.
+    let truth = circle(30);
+    let mut graph = drifting_chain(&truth[..20], &[], None);
+    graph.optimize(100).expect("optimise");
+    graph.add_vertex(20, truth[20]);
+    for k in 21..30 {
+        graph.add_vertex(k, truth[k]);
+        let measured = truth[k - 1].inverse() * truth[k];
+        let information = Matrix7::identity();
+        let edge = Constraint {
+            from: k,
+            to: k - 1,
+            to_from_from: measured,
+            information,
+        };
+        graph.add_edge(edge).expect("vertices exist");
+    }
+    graph.optimize(100).expect("optimise");
+    let measured = truth[19].inverse() * truth[29];
+    let edge = Constraint {
+        from: 29,
+        to: 19,
+        to_from_from: measured,
+        information: Matrix7::identity(),
+    };
+    graph.add_edge(edge).expect("vertices exist");
+    assert!(!graph.optimize_bounded(5, 100).expect("optimise").bounded);
+}
+
+#[test]
+fn a_graph_within_the_bound_is_optimised_exactly_as_a_whole() {
+    let (graph, _) = chain_with_a_new_keyframe(30);
+    let (mut whole, mut bounded) = (graph.clone(), graph);
+    let a = whole.optimize(100).expect("optimise");
+    let b = bounded.optimize_bounded(60, 100).expect("optimise");
+    assert_eq!(a, b);
+    assert!(!b.bounded && b.vertices == 60);
+    assert_eq!(whole.poses(), bounded.poses());
+}
