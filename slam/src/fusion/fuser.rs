@@ -23,6 +23,7 @@ use crate::spill::{Spill, Stored};
 use crate::{Error, Result};
 
 use super::block::{BLOCK_SIDE, BlockIndex, BlockTable, UPPER_NEIGHBOURS};
+use super::block_list::BlockList;
 use super::chunks::{ChunkData, ChunkIndex, Residency, Surface};
 use super::config::FusionConfig;
 use super::input::FusionInput;
@@ -61,6 +62,10 @@ pub struct FusionStats {
     pub blocks_refused: usize,
     /// Blocks in the pool.
     pub blocks: usize,
+    /// Block indices the fused keyframes remember (to take them out again when they move),
+    /// and the bytes those lists hold.
+    pub keyframe_blocks: usize,
+    pub keyframe_block_bytes: usize,
     /// Blocks spilled to the session's store with their chunks (`fusion.resident_blocks`),
     /// and the chunks they form.
     pub blocks_spilled: usize,
@@ -86,7 +91,7 @@ pub struct FusionStats {
 #[derive(Debug)]
 struct Fused {
     pose: Sim3,
-    blocks: Vec<BlockIndex>,
+    blocks: BlockList,
     camera: PinholeCamera,
     median_depth: f32,
     input: Option<Arc<Stored<FusionInput>>>,
@@ -151,6 +156,8 @@ impl Fuser {
     pub fn stats(&self) -> FusionStats {
         let mut s = self.stats.clone();
         s.blocks = self.table.len();
+        s.keyframe_blocks = self.fused.values().map(|f| f.blocks.len()).sum();
+        s.keyframe_block_bytes = self.fused.values().map(|f| f.blocks.heap_bytes()).sum();
         let spilled = self.residency.figures();
         (s.blocks_spilled, s.chunks_spilled, s.chunk_loads) =
             (spilled.blocks, spilled.chunks, spilled.loads);
@@ -211,7 +218,7 @@ impl Fuser {
             id,
             Fused {
                 pose,
-                blocks,
+                blocks: BlockList::new(&blocks),
                 camera: input.camera,
                 median_depth: input.median_depth,
                 input: Some(Stored::new(&self.spill, Arc::new(input))),
@@ -242,13 +249,13 @@ impl Fuser {
             }
             // Read back when spilled; it stays in the store.
             let input = stored.get()?;
-            let (old, old_blocks) = (f.pose, f.blocks.clone());
+            let (old, old_blocks) = (f.pose, f.blocks.to_vec());
             self.residency.advance();
             self.deintegrate(&input, &old, &old_blocks)?;
             let blocks = self.integrate(&input, pose)?;
             let f = self.fused.get_mut(id).expect("checked above");
             f.pose = *pose;
-            f.blocks = blocks;
+            f.blocks = BlockList::new(&blocks);
             moved += 1;
             if self.table.len() > 2 * self.config.resident_blocks as usize {
                 // A loop closure can move every keyframe of an hour: the chunks the moves
@@ -273,7 +280,7 @@ impl Fuser {
         };
         if let Some(stored) = &f.input {
             let input = stored.get()?;
-            self.deintegrate(&input, &f.pose, &f.blocks)?;
+            self.deintegrate(&input, &f.pose, &f.blocks.to_vec())?;
             if stored.is_held() {
                 self.kept.retain(|k| *k != id);
                 self.kept_bytes -= input.bytes();

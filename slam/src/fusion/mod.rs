@@ -18,6 +18,7 @@
 //!   deltas; [`worker`] runs it on its own thread.
 
 pub mod block;
+pub mod block_list;
 pub mod chunks;
 pub mod config;
 pub mod fuser;
