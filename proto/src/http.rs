@@ -324,6 +324,12 @@ pub struct SessionMemory {
     pub fusion_chunk_loads: u64,
     /// Fusion inputs spilled to the store (read back when their keyframe moves).
     pub fusion_inputs_spilled: u64,
+    /// Block indices the fused keyframes keep (to take a keyframe out of the volume again
+    /// when the pose graph moves it), and the bytes those lists hold (delta-coded).
+    #[serde(default)]
+    pub fusion_keyframe_blocks: u64,
+    #[serde(default)]
+    pub fusion_keyframe_block_bytes: u64,
     /// Blocks of the session's copy of the mesh (what downloads, results and map snapshots
     /// read) in memory.
     #[serde(default)]

@@ -61,6 +61,8 @@ pub fn memory(engine: &Engine) -> Option<relfusion_proto::http::SessionMemory> {
         fusion_blocks_spilled: fusion.blocks_spilled as u64,
         fusion_chunk_loads: fusion.chunk_loads as u64,
         fusion_inputs_spilled: fusion.inputs_spilled as u64,
+        fusion_keyframe_blocks: fusion.keyframe_blocks as u64,
+        fusion_keyframe_block_bytes: fusion.keyframe_block_bytes as u64,
         // The session's mesh copy: filled in by the worker, which holds the session.
         mesh_blocks: 0,
         mesh_blocks_spilled: 0,
