@@ -35,7 +35,7 @@ use serde::{Deserialize, Serialize};
 
 use super::KeyframeId;
 use super::cholesky::BlockSparseSymmetric;
-use super::scope::{Changes, bounded_scope};
+use super::scope::{Changes, bounded_scope, pair};
 use crate::geometry::{Matrix7, Sim3, Vector7};
 use crate::{Error, Result};
 
@@ -270,6 +270,7 @@ impl PoseGraph {
         match self.edges.iter().position(|e| e == edge) {
             Some(i) => {
                 self.changes.touched.extend([edge.from, edge.to]);
+                self.changes.removed.insert(pair(edge.from, edge.to));
                 self.edges.remove(i);
                 true
             }
@@ -285,6 +286,7 @@ impl PoseGraph {
         let removed = before - self.edges.len();
         if removed > 0 {
             self.changes.touched.extend([a, b]);
+            self.changes.removed.insert(pair(a, b));
         }
         removed
     }

@@ -30,6 +30,8 @@ pub(super) struct Changes {
     pub added: BTreeSet<KeyframeId>,
     /// Edges added, as (from, to), in order.
     pub edges: Vec<(KeyframeId, KeyframeId)>,
+    /// The keyframe pairs ([`pair`]) of edges removed.
+    pub removed: BTreeSet<(KeyframeId, KeyframeId)>,
 }
 
 impl Changes {
@@ -102,8 +104,10 @@ pub(super) fn bounded_scope(
 
 /// Whether a new edge joins two parts of the scope that each hold an older vertex and that no
 /// older edge inside the scope joins: the loop it closes runs outside the scope, or it joins
-/// two fragments. Union–find over the scope's older edges, then the new ones in order (a new
-/// keyframe's first edge joins it to the map and is no loop).
+/// two fragments. Union–find over the scope's older joins, then the new ones in order (a new
+/// keyframe's first edge joins it to the map and is no loop). An edge between keyframes that
+/// were already joined, or whose edge it replaces (a re-estimate after a depth update, the
+/// window's edge of a consecutive pair), joins nothing new.
 fn new_edge_leaves_the_scope(
     ids: &[KeyframeId],
     index: &HashMap<KeyframeId, usize>,
@@ -115,17 +119,39 @@ fn new_edge_leaves_the_scope(
     for (i, id) in ids.iter().enumerate() {
         parts.has_older[i] = inside[i] && !changes.added.contains(id);
     }
-    let new: HashSet<(KeyframeId, KeyframeId)> = changes.edges.iter().copied().collect();
+    let mut added: HashMap<(KeyframeId, KeyframeId), usize> = HashMap::new();
+    for &(a, b) in &changes.edges {
+        *added.entry(pair(a, b)).or_default() += 1;
+    }
+    let mut present: HashMap<(KeyframeId, KeyframeId), usize> = HashMap::new();
+    for e in edges
+        .iter()
+        .filter(|e| added.contains_key(&pair(e.from, e.to)))
+    {
+        *present.entry(pair(e.from, e.to)).or_default() += 1;
+    }
+    // Pairs whose every edge is new and that had none removed since the last optimisation.
+    let joins: HashSet<(KeyframeId, KeyframeId)> = (added.iter())
+        .filter(|&(p, n)| present.get(p) == Some(n) && !changes.removed.contains(p))
+        .map(|(&p, _)| p)
+        .collect();
     let ends = |from: KeyframeId, to: KeyframeId| {
         let (a, b) = (*index.get(&from)?, *index.get(&to)?);
         (inside[a] && inside[b]).then_some((a, b))
     };
-    for e in edges.iter().filter(|e| !new.contains(&(e.from, e.to))) {
+    for e in edges
+        .iter()
+        .filter(|e| !joins.contains(&pair(e.from, e.to)))
+    {
         if let Some((a, b)) = ends(e.from, e.to) {
             parts.join(a, b);
         }
     }
-    for &(from, to) in &changes.edges {
+    for &(from, to) in changes
+        .edges
+        .iter()
+        .filter(|&&(a, b)| joins.contains(&pair(a, b)))
+    {
         let Some((a, b)) = ends(from, to) else {
             // An end outside the scope: only a graph whose touched vertices were cut off by the
             // bound; move everything.
@@ -138,6 +164,11 @@ fn new_edge_leaves_the_scope(
         parts.join(a, b);
     }
     false
+}
+
+/// The unordered pair of an edge's keyframes.
+pub(super) fn pair(a: KeyframeId, b: KeyframeId) -> (KeyframeId, KeyframeId) {
+    (a.min(b), a.max(b))
 }
 
 /// Union–find with path halving; a root knows whether its part holds an older vertex.

@@ -431,3 +431,34 @@ fn a_graph_within_the_bound_is_optimised_exactly_as_a_whole() {
     assert!(!b.bounded && b.vertices == 60);
     assert_eq!(whole.poses(), bounded.poses());
 }
+
+#[test]
+fn replacing_or_doubling_an_edge_of_a_chain_stays_bounded() {
+    // In a chain every edge is a bridge; re-estimating one (a depth update) or adding a second
+    // edge over the same pair (the window's) joins nothing that was not joined before.
+    let truth = circle(61);
+    let mut graph = drifting_chain(&truth[..60], &[], None);
+    graph.optimize(100).expect("optimise");
+    let old = graph
+        .edges()
+        .iter()
+        .find(|e| e.from == 50)
+        .expect("edge 50 → 49")
+        .clone();
+    assert!(graph.remove_edge(&old));
+    let nudge = Vector7::from_element(1e-3);
+    let replaced = Constraint {
+        to_from_from: old.to_from_from * Sim3::exp(&nudge),
+        ..old.clone()
+    };
+    graph.add_edge(replaced).expect("vertices exist");
+    let report = graph.optimize_bounded(10, 100).expect("optimise");
+    assert!(report.bounded && report.vertices == 10, "{report:?}");
+    let doubled = Constraint {
+        to_from_from: old.to_from_from * Sim3::exp(&-nudge),
+        ..old
+    };
+    graph.add_edge(doubled).expect("vertices exist");
+    let report = graph.optimize_bounded(10, 100).expect("optimise");
+    assert!(report.bounded && report.vertices == 10, "{report:?}");
+}
