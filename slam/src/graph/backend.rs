@@ -508,10 +508,7 @@ impl Backend {
         let report = self.process()?;
         match report.optimize {
             Some(r) => Ok(r),
-            None => {
-                self.optimizations[0] += 1;
-                self.graph.optimize(self.config.max_optimization_iterations)
-            }
+            None => self.optimize_within(Budget::All),
         }
     }
 

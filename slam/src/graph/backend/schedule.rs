@@ -113,7 +113,7 @@ impl Backend {
 
     /// The whole graph in the final pass, a bounded neighbourhood of what changed in a live
     /// one ([`crate::graph::PoseGraph::optimize_bounded`]).
-    fn optimize_within(&mut self, budget: Budget) -> Result<OptimizeReport> {
+    pub(super) fn optimize_within(&mut self, budget: Budget) -> Result<OptimizeReport> {
         let iterations = self.config.max_optimization_iterations;
         let report = match budget {
             Budget::All => self.graph.optimize(iterations)?,
