@@ -35,7 +35,7 @@ use serde::{Deserialize, Serialize};
 
 use super::KeyframeId;
 use super::cholesky::BlockSparseSymmetric;
-use super::scope::{Changes, bounded_scope, pair};
+use super::scope::{Changes, Whole, bounded_scope, pair};
 use crate::geometry::{Matrix7, Sim3, Vector7};
 use crate::{Error, Result};
 
@@ -397,8 +397,18 @@ impl PoseGraph {
         let free_set: BTreeSet<KeyframeId> = free.iter().copied().collect();
         let scope = bounded_scope(&ids, &free_set, &self.edges, &self.changes, max_vertices);
         self.changes.clear();
-        let Some(moved) = scope else {
-            return self.optimize_vertices(free, None, max_iterations);
+        let moved = match scope {
+            Ok(moved) => moved,
+            Err(why) => {
+                if tracing::enabled!(tracing::Level::DEBUG) {
+                    let chi2 = match why {
+                        Whole::Loop(a, b) | Whole::CutOff(a, b) => self.edge_chi2(a, b),
+                        _ => None,
+                    };
+                    tracing::debug!(?why, ?chi2, "live pose-graph pass moves the whole graph");
+                }
+                return self.optimize_vertices(free, None, max_iterations);
+            }
         };
         let inside: BTreeSet<KeyframeId> = moved.iter().copied().collect();
         let edges: Vec<usize> = (self.edges.iter().enumerate())
@@ -406,6 +416,18 @@ impl PoseGraph {
             .map(|(i, _)| i)
             .collect();
         self.optimize_vertices(moved, Some(edges), max_iterations)
+    }
+
+    /// The largest `rᵀΩr` of the edges from `from` to `to` at the current poses, with the
+    /// information the optimisation weighs them by.
+    fn edge_chi2(&self, from: KeyframeId, to: KeyframeId) -> Option<f64> {
+        (self.edges.iter())
+            .filter(|e| e.from == from && e.to == to)
+            .filter_map(|e| {
+                let r = relative_residual(&e.to_from_from, &self.pose(e.to)?, &self.pose(e.from)?);
+                Some(r.dot(&(self.information(e) * r)))
+            })
+            .reduce(f64::max)
     }
 
     /// The vertices an optimisation may move, in id order. A fixed vertex with a scale factor

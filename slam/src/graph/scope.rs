@@ -40,19 +40,38 @@ impl Changes {
     }
 }
 
+/// Why a bounded optimisation moved the whole graph (logged at debug level: which of them
+/// keeps a long session's live passes whole is what bounds their memory).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Whole {
+    /// The graph has at most the bound's free vertices.
+    Small,
+    /// Nothing changed since the last optimisation.
+    Untouched,
+    /// More vertices changed than the bound.
+    ManyTouched,
+    /// The new edge (from, to) closes a loop outside the neighbourhood or joins two fragments.
+    Loop(KeyframeId, KeyframeId),
+    /// The new edge (from, to) has an end that the bound left outside the neighbourhood.
+    CutOff(KeyframeId, KeyframeId),
+}
+
 /// The free vertices a bounded optimisation moves, in id order: breadth-first over the edges
-/// from the touched vertices until `max_vertices` free ones are reached. `None` when the whole
-/// graph must move: it has at most `max_vertices` free vertices, nothing was touched, or a new
-/// edge closes a loop outside the neighbourhood (module docs).
+/// from the touched vertices until `max_vertices` free ones are reached. Why the whole graph
+/// must move instead: it has at most `max_vertices` free vertices, nothing was touched, or a
+/// new edge closes a loop outside the neighbourhood (module docs).
 pub(super) fn bounded_scope(
     ids: &[KeyframeId],
     free: &BTreeSet<KeyframeId>,
     edges: &[Constraint],
     changes: &Changes,
     max_vertices: usize,
-) -> Option<Vec<KeyframeId>> {
-    if free.len() <= max_vertices || changes.touched.is_empty() {
-        return None;
+) -> Result<Vec<KeyframeId>, Whole> {
+    if free.len() <= max_vertices {
+        return Err(Whole::Small);
+    }
+    if changes.touched.is_empty() {
+        return Err(Whole::Untouched);
     }
     let index: HashMap<KeyframeId, usize> = ids.iter().enumerate().map(|(i, &k)| (k, i)).collect();
     let mut adjacent = vec![Vec::new(); ids.len()];
@@ -73,7 +92,7 @@ pub(super) fn bounded_scope(
         moved += usize::from(free.contains(id));
     }
     if moved > max_vertices {
-        return None;
+        return Err(Whole::ManyTouched);
     }
     'search: while let Some(i) = queue.pop_front() {
         for &j in &adjacent[i] {
@@ -90,20 +109,17 @@ pub(super) fn bounded_scope(
             queue.push_back(j);
         }
     }
-    if new_edge_leaves_the_scope(ids, &index, &inside, edges, changes) {
-        return None;
-    }
-    Some(
-        ids.iter()
-            .zip(&inside)
-            .filter(|&(k, &i)| i && free.contains(k))
-            .map(|(&k, _)| k)
-            .collect(),
-    )
+    new_edge_leaves_the_scope(ids, &index, &inside, edges, changes)?;
+    Ok(ids
+        .iter()
+        .zip(&inside)
+        .filter(|&(k, &i)| i && free.contains(k))
+        .map(|(&k, _)| k)
+        .collect())
 }
 
-/// Whether a new edge joins two parts of the scope that each hold an older vertex and that no
-/// older edge inside the scope joins: the loop it closes runs outside the scope, or it joins
+/// Fails with the first new edge that joins two parts of the scope that each hold an older
+/// vertex and that no older edge inside the scope joins: the loop it closes runs outside the scope, or it joins
 /// two fragments. Union–find over the scope's older joins, then the new ones in order (a new
 /// keyframe's first edge joins it to the map and is no loop). An edge between keyframes that
 /// were already joined, or whose edge it replaces (a re-estimate after a depth update, the
@@ -114,7 +130,7 @@ fn new_edge_leaves_the_scope(
     inside: &[bool],
     edges: &[Constraint],
     changes: &Changes,
-) -> bool {
+) -> Result<(), Whole> {
     let mut parts = Parts::new(ids.len());
     for (i, id) in ids.iter().enumerate() {
         parts.has_older[i] = inside[i] && !changes.added.contains(id);
@@ -155,15 +171,15 @@ fn new_edge_leaves_the_scope(
         let Some((a, b)) = ends(from, to) else {
             // An end outside the scope: only a graph whose touched vertices were cut off by the
             // bound; move everything.
-            return true;
+            return Err(Whole::CutOff(from, to));
         };
         let (ra, rb) = (parts.root(a), parts.root(b));
         if ra != rb && parts.has_older[ra] && parts.has_older[rb] {
-            return true;
+            return Err(Whole::Loop(from, to));
         }
         parts.join(a, b);
     }
-    false
+    Ok(())
 }
 
 /// The unordered pair of an edge's keyframes.
