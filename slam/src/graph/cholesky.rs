@@ -56,6 +56,11 @@ impl BlockSparseSymmetric {
         self.n
     }
 
+    /// Blocks stored: the diagonal and the lower triangle's (each 7×7 doubles).
+    pub fn stored_blocks(&self) -> usize {
+        self.blocks.len()
+    }
+
     /// Adds `block` to block (row, col) and, implicitly, its transpose to (col, row).
     pub fn add(&mut self, row: usize, col: usize, block: &Matrix7) {
         let (r, c, b) = if row >= col {
@@ -86,7 +91,7 @@ impl BlockSparseSymmetric {
     }
 
     /// The stored lower blocks: (row, column, block).
-    fn entries(&self) -> impl Iterator<Item = (usize, usize, &Matrix7)> {
+    pub(super) fn entries(&self) -> impl Iterator<Item = (usize, usize, &Matrix7)> {
         self.positions
             .iter()
             .zip(&self.blocks)

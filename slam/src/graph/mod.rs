@@ -8,7 +8,9 @@
 //! - [`search`]: candidate keyframes (pose proximity, appearance thumbnail) and the staged
 //!   reciprocal consistency test;
 //! - [`pose_graph`]: the graph and its sparse Levenberg–Marquardt ([`PoseGraph`]), solved by the
-//!   block Cholesky of [`cholesky`]; `scope`: which vertices a live (bounded) optimisation moves;
+//!   block Cholesky of [`cholesky`] (live passes over a whole large graph by the conjugate
+//!   gradients of [`conjugate_gradients`]); `scope`: which vertices a live (bounded)
+//!   optimisation moves;
 //! - [`backend`]: [`Backend`], the keyframe store, constraint search and optimisation;
 //! - [`resident`]: which keyframes the back end holds in full (the others compact);
 //! - [`link`]: [`BackendLink`], the back end in step or on its own thread.
@@ -20,6 +22,7 @@
 pub mod backend;
 pub mod cholesky;
 pub mod config;
+pub mod conjugate_gradients;
 pub mod link;
 pub mod points;
 pub mod pose_graph;

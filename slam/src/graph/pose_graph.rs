@@ -16,7 +16,8 @@
 //!
 //! The cost is `½ Σ ρ(rᵀ Ω r)` with g2o's Huber kernel ρ on the squared Mahalanobis norm. The
 //! first vertex is held fixed (it fixes the 7-DoF gauge of a monocular map). The normal
-//! equations are solved by the block-sparse Cholesky of [`super::cholesky`].
+//! equations are solved by the block-sparse Cholesky of [`super::cholesky`], those of a live
+//! pass over a whole graph beyond the live bound by [`super::conjugate_gradients`].
 //!
 //! A vertex may also carry a unary [`ScalePrior`] (a metric depth prior's observation of its
 //! scale, issue 39): `r = (ln s_i − ln m_i)/σ_i`. A right increment multiplies the scale by
@@ -35,6 +36,7 @@ use serde::{Deserialize, Serialize};
 
 use super::KeyframeId;
 use super::cholesky::BlockSparseSymmetric;
+use super::conjugate_gradients::CgStop;
 use super::scope::{Changes, Whole, bounded_scope, pair};
 use crate::geometry::{Matrix7, Sim3, Vector7};
 use crate::{Error, Result};
@@ -91,7 +93,28 @@ pub struct OptimizeReport {
     /// Whether it was bounded to such a neighbourhood.
     #[serde(default)]
     pub bounded: bool,
+    /// Whether its steps were solved by conjugate gradients (a whole live pass beyond the
+    /// bound), not exactly.
+    #[serde(default)]
+    pub iterative: bool,
 }
+
+/// How an optimisation solves the damped normal equations of each step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Solver {
+    /// Block Cholesky in a minimum-degree order: exact, its factor's fill grows with the loops.
+    Cholesky,
+    /// Preconditioned conjugate gradients to [`LIVE_CG`]: memory linear in the graph.
+    Iterative,
+}
+
+/// Conjugate gradients of a whole live pass: 500 iterations at most, Ceres' default for its
+/// iterative linear solvers, and a residual of 1e-4 relative — far below what moves a pose
+/// visibly, and the final pass solves exactly anyway.
+const LIVE_CG: CgStop = CgStop {
+    max_iterations: 500,
+    tolerance: 1e-4,
+};
 
 /// The residual `log(T_ij⁻¹ · T_wi⁻¹ · T_wj)` of a measurement `to_from_from = T_ij`
 /// (`i = to`, `j = from`).
@@ -379,14 +402,15 @@ impl PoseGraph {
     pub fn optimize(&mut self, max_iterations: usize) -> Result<OptimizeReport> {
         let free = self.free_vertices();
         self.changes.clear();
-        self.optimize_vertices(free, None, max_iterations)
+        self.optimize_vertices(free, None, max_iterations, Solver::Cholesky)
     }
 
     /// [`PoseGraph::optimize`] of at most `max_vertices` vertices, those nearest by edges to
     /// what changed since the last optimisation, the others held where they are; the whole
     /// graph when it is no larger or a new edge closes a loop outside that neighbourhood
-    /// ([`super::scope`]). For live passes: memory and time per pass stay bounded as the
-    /// session grows.
+    /// ([`super::scope`]), by conjugate gradients when it is larger. For live passes: memory
+    /// per pass stays linear in the graph, time bounded or linear per solver iteration, as
+    /// the session grows.
     pub fn optimize_bounded(
         &mut self,
         max_vertices: usize,
@@ -407,7 +431,13 @@ impl PoseGraph {
                     };
                     tracing::debug!(?why, ?chi2, "live pose-graph pass moves the whole graph");
                 }
-                return self.optimize_vertices(free, None, max_iterations);
+                // Past the bound a whole live pass must not allocate a factor that grows
+                // faster than the graph (`super::conjugate_gradients`).
+                let solver = match why {
+                    Whole::Small => Solver::Cholesky,
+                    _ => Solver::Iterative,
+                };
+                return self.optimize_vertices(free, None, max_iterations, solver);
             }
         };
         let inside: BTreeSet<KeyframeId> = moved.iter().copied().collect();
@@ -415,7 +445,7 @@ impl PoseGraph {
             .filter(|(_, e)| inside.contains(&e.from) || inside.contains(&e.to))
             .map(|(i, _)| i)
             .collect();
-        self.optimize_vertices(moved, Some(edges), max_iterations)
+        self.optimize_vertices(moved, Some(edges), max_iterations, Solver::Cholesky)
     }
 
     /// The largest `rᵀΩr` of the edges from `from` to `to` at the current poses, with the
@@ -441,12 +471,13 @@ impl PoseGraph {
     }
 
     /// Levenberg–Marquardt over the `free` vertices and the edges at `scope` (every edge when
-    /// `None`).
+    /// `None`), its steps solved by `solver`.
     fn optimize_vertices(
         &mut self,
         free: Vec<KeyframeId>,
         scope: Option<Vec<usize>>,
         max_iterations: usize,
+        solver: Solver,
     ) -> Result<OptimizeReport> {
         let pinned: Vec<bool> = free
             .iter()
@@ -462,6 +493,7 @@ impl PoseGraph {
             iterations: 0,
             vertices: free.len(),
             bounded: scope.is_some(),
+            iterative: solver == Solver::Iterative,
         };
         if free.is_empty() || (self.edges.is_empty() && self.scale_priors.is_empty()) {
             return Ok(report);
@@ -473,7 +505,9 @@ impl PoseGraph {
         for _ in 0..max_iterations {
             report.iterations += 1;
             let (h, g) = self.normal_equations(&index, free.len(), scope.as_deref());
-            let order = order.get_or_insert_with(|| h.minimum_degree_order());
+            if matches!(solver, Solver::Cholesky) && order.is_none() {
+                order = Some(h.minimum_degree_order());
+            }
             let mut improved = false;
             while lambda < 1e12 {
                 let mut damped = h.clone();
@@ -491,7 +525,11 @@ impl PoseGraph {
                     damped.add(i, i, &add);
                 }
                 let rhs: Vec<Vector7> = g.iter().map(|v| -v).collect();
-                let Some(mut step) = damped.solve_ordered(&rhs, order) else {
+                let step = match &order {
+                    Some(order) => damped.solve_ordered(&rhs, order),
+                    None => damped.solve_cg(&rhs, LIVE_CG).map(|(x, _)| x),
+                };
+                let Some(mut step) = step else {
                     lambda *= 10.0;
                     continue;
                 };
