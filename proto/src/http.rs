@@ -354,6 +354,10 @@ pub struct SessionMemory {
     /// Live pose-graph optimisations bounded to the neighbourhood of what changed.
     #[serde(default)]
     pub optimizations_bounded: u64,
+    /// Commands queued for the back end and not yet handled: how far behind it is (each holds
+    /// a keyframe's compact form or depth update).
+    #[serde(default)]
+    pub backend_commands_waiting: u64,
     /// Times an old keyframe became the current one again instead of a new keyframe being
     /// made: a camera revisiting a place adds no keyframes for it.
     #[serde(default)]

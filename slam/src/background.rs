@@ -53,6 +53,7 @@ pub struct WorkerSpec {
 /// What a worker's thread shares with its handle.
 #[derive(Debug, Default)]
 struct Status {
+    queued: AtomicU64,
     handled: AtomicU64,
     last_error: Mutex<Option<String>>,
 }
@@ -104,7 +105,13 @@ impl<S: Service> Worker<S> {
     /// Queues a job without waiting; `false` when the queue is full (the job is dropped).
     pub fn submit(&self, job: S::Job) -> Result<bool> {
         let jobs = self.jobs.as_ref().ok_or_else(|| self.stopped())?;
-        match jobs.try_send(job) {
+        // Counted before it is queued, so that `handled` never runs ahead of it.
+        self.status.queued.fetch_add(1, Ordering::SeqCst);
+        let sent = jobs.try_send(job);
+        if sent.is_err() {
+            self.status.queued.fetch_sub(1, Ordering::SeqCst);
+        }
+        match sent {
             Ok(()) => Ok(true),
             Err(TrySendError::Full(_)) => Ok(false),
             Err(TrySendError::Disconnected(_)) => Err(self.stopped()),
@@ -114,7 +121,11 @@ impl<S: Service> Worker<S> {
     /// Queues a job, waiting while the queue is full.
     pub fn send(&self, job: S::Job) -> Result<()> {
         let jobs = self.jobs.as_ref().ok_or_else(|| self.stopped())?;
-        jobs.send(job).map_err(|_| self.stopped())
+        self.status.queued.fetch_add(1, Ordering::SeqCst);
+        jobs.send(job).map_err(|_| {
+            self.status.queued.fetch_sub(1, Ordering::SeqCst);
+            self.stopped()
+        })
     }
 
     /// Replies ready now, without waiting.
@@ -125,6 +136,16 @@ impl<S: Service> Worker<S> {
     /// Jobs handled so far.
     pub fn handled(&self) -> u64 {
         self.status.handled.load(Ordering::SeqCst)
+    }
+
+    /// Jobs queued and not yet handled (those of the batch in hand included): what a service
+    /// fallen behind holds.
+    pub fn waiting(&self) -> u64 {
+        let handled = self.handled();
+        self.status
+            .queued
+            .load(Ordering::SeqCst)
+            .saturating_sub(handled)
     }
 
     /// The last error a job met on the thread, if any.

@@ -109,9 +109,15 @@ fn a_full_queue_refuses_without_waiting_and_batches_what_waited() {
         "the bounded queue holds {}",
         SPEC.queue
     );
+    assert_eq!(
+        worker.waiting(),
+        SPEC.queue as u64,
+        "refused jobs do not wait"
+    );
     drop(held);
     let mut worker = worker;
     let (replies, service) = worker.finish();
+    assert_eq!(worker.waiting(), 0);
     assert_eq!(replies.len(), SPEC.queue + 1, "{replies:?}");
     let service = service.expect("service");
     assert!(service.batches.len() < SPEC.queue, "{:?}", service.batches);

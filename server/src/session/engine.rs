@@ -71,6 +71,7 @@ pub fn memory(engine: &Engine) -> Option<relfusion_proto::http::SessionMemory> {
         searches_given_up: m.backend.map_or(0, |b| b.searches_given_up as u64),
         optimizations_full: m.backend.map_or(0, |b| b.optimizations_full as u64),
         optimizations_bounded: m.backend.map_or(0, |b| b.optimizations_bounded as u64),
+        backend_commands_waiting: m.backend.map_or(0, |b| b.commands_waiting as u64),
         keyframes_reactivated: pipeline.stats().keyframes_reactivated as u64,
     })
 }

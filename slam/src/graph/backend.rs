@@ -155,6 +155,10 @@ pub struct KeyframeMemory {
     pub optimizations_full: usize,
     #[serde(default)]
     pub optimizations_bounded: usize,
+    /// Commands queued for the back end's thread and not yet handled (0 in step): a back end
+    /// fallen behind holds their keyframes' compact forms and depth.
+    #[serde(default)]
+    pub commands_waiting: usize,
 }
 
 /// Graph bookkeeping of one keyframe.
@@ -563,6 +567,7 @@ impl Backend {
             searches_given_up: self.searches_given_up,
             optimizations_full: self.optimizations[0],
             optimizations_bounded: self.optimizations[1],
+            commands_waiting: 0,
         }
     }
 

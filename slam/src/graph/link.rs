@@ -161,7 +161,10 @@ impl BackendLink {
     pub fn memory(&self) -> KeyframeMemory {
         match self.backend() {
             Some(backend) => backend.memory(),
-            None => self.memory.lock().map(|m| *m).unwrap_or_default(),
+            None => KeyframeMemory {
+                commands_waiting: self.link.worker().map_or(0, |w| w.waiting() as usize),
+                ..self.memory.lock().map(|m| *m).unwrap_or_default()
+            },
         }
     }
 
