@@ -223,6 +223,7 @@ impl Backend {
         let mut graph = PoseGraph::new(config.pose_graph_huber);
         let metric = &config.metric_scale;
         graph.set_edge_scale_sigma(metric.enabled.then_some(metric.edge_scale_sigma))?;
+        graph.set_loop_pass_growth(config.loop_pass_growth)?;
         Ok(Self {
             tracker: Sim3Tracker::new(config.clone()),
             graph,

@@ -103,6 +103,13 @@ pub struct BackendConfig {
     /// shorter session is optimised whole, and an hour-long one no longer holds a factor of its
     /// whole graph at every pass (docs/tuning.md, issue 37).
     pub live_optimization_vertices: usize,
+    /// A live pass that a new loop edge would make whole waits until the graph has grown by
+    /// this fraction since its last whole pass, moving the neighbourhood meanwhile
+    /// ([`super::PoseGraph::set_loop_pass_growth`]). Default 0.05: whole passes cost time
+    /// linear in the graph, so one per 5 % of growth keeps their share of the back end's time
+    /// constant; an hour-long session at one per new loop edge spent its back end on them and
+    /// queued ever more keyframes (docs/tuning.md, thirty-fifth stop). 0 moves it at once.
+    pub loop_pass_growth: f64,
     /// Huber width on `sqrt(rᵀΩr)` of a pose-graph edge; `None` disables it. Default
     /// `5·sqrt(6000·1.5)` ≈ 474 (`kernelDelta` of `testConstraint` at LSD-SLAM's strictness).
     pub pose_graph_huber: Option<f64>,
@@ -169,6 +176,7 @@ impl Default for BackendConfig {
             retry_min_change: 0.1,
             max_optimization_iterations: 100,
             live_optimization_vertices: 500,
+            loop_pass_growth: 0.05,
             pose_graph_huber: Some(5.0 * (6000.0f64 * 1.5).sqrt()),
             channel_capacity: 256,
             catch_up_searches: 2,
@@ -230,6 +238,12 @@ impl BackendConfig {
                     "backend: {name} must be > 0, got {v}"
                 )));
             }
+        }
+        if !(self.loop_pass_growth.is_finite() && self.loop_pass_growth >= 0.0) {
+            return Err(Error::Config(format!(
+                "backend: loop_pass_growth must be finite and ≥ 0, got {}",
+                self.loop_pass_growth
+            )));
         }
         if self.catch_up_searches == 0 {
             return Err(Error::Config(

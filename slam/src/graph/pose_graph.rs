@@ -154,6 +154,13 @@ pub struct PoseGraph {
     edge_scale_sigma: Option<f64>,
     /// What changed since the last optimisation (where a bounded one starts).
     changes: Changes,
+    /// A loop closed outside a bounded pass's neighbourhood since the last whole optimisation:
+    /// the whole graph owes a pass ([`PoseGraph::set_loop_pass_growth`]).
+    whole_owed: Option<Whole>,
+    /// Vertices at the last whole optimisation.
+    vertices_at_whole: usize,
+    /// See [`PoseGraph::set_loop_pass_growth`].
+    loop_pass_growth: f64,
 }
 
 /// `ρ(e)` and `ρ'(e)` of g2o's Huber kernel on a squared error e.
@@ -178,7 +185,27 @@ impl PoseGraph {
             huber,
             edge_scale_sigma: None,
             changes: Changes::default(),
+            whole_owed: None,
+            vertices_at_whole: 0,
+            loop_pass_growth: 0.0,
         }
+    }
+
+    /// A live pass whose new edge closes a loop beyond its neighbourhood moves the whole graph
+    /// only once the graph has `growth` × its size at the last whole optimisation in new
+    /// vertices; until then it moves the neighbourhood (the loop's edges pulling it towards
+    /// the old keyframes, held where they are) and the whole pass is owed. A whole pass costs
+    /// time linear in the graph, so their share of the back end's time stays constant as a
+    /// session grows instead of growing with it (docs/tuning.md, issue 37). 0 (the default)
+    /// moves the whole graph at once; `growth` must be finite and ≥ 0.
+    pub fn set_loop_pass_growth(&mut self, growth: f64) -> Result<()> {
+        if !(growth.is_finite() && growth >= 0.0) {
+            return Err(Error::Backend(format!(
+                "pose graph: loop pass growth must be finite and ≥ 0, got {growth}"
+            )));
+        }
+        self.loop_pass_growth = growth;
+        Ok(())
     }
 
     /// Sets the floor `q` of every edge's relative-scale standard deviation (natural log), in
@@ -408,9 +435,9 @@ impl PoseGraph {
     /// [`PoseGraph::optimize`] of at most `max_vertices` vertices, those nearest by edges to
     /// what changed since the last optimisation, the others held where they are; the whole
     /// graph when it is no larger or a new edge closes a loop outside that neighbourhood
-    /// ([`super::scope`]), by conjugate gradients when it is larger. For live passes: memory
-    /// per pass stays linear in the graph, time bounded or linear per solver iteration, as
-    /// the session grows.
+    /// ([`super::scope`]; possibly later, [`PoseGraph::set_loop_pass_growth`]), by conjugate
+    /// gradients when it is larger. For live passes: memory per pass stays linear in the
+    /// graph, time bounded or linear per solver iteration, as the session grows.
     pub fn optimize_bounded(
         &mut self,
         max_vertices: usize,
@@ -421,31 +448,53 @@ impl PoseGraph {
         let free_set: BTreeSet<KeyframeId> = free.iter().copied().collect();
         let scope = bounded_scope(&ids, &free_set, &self.edges, &self.changes, max_vertices);
         self.changes.clear();
-        let moved = match scope {
-            Ok(moved) => moved,
-            Err(why) => {
-                if tracing::enabled!(tracing::Level::DEBUG) {
-                    let chi2 = match why {
-                        Whole::Loop(a, b) | Whole::CutOff(a, b) => self.edge_chi2(a, b),
-                        _ => None,
-                    };
-                    tracing::debug!(?why, ?chi2, "live pose-graph pass moves the whole graph");
-                }
-                // Past the bound a whole live pass must not allocate a factor that grows
-                // faster than the graph (`super::conjugate_gradients`).
-                let solver = match why {
-                    Whole::Small => Solver::Cholesky,
-                    _ => Solver::Iterative,
-                };
-                return self.optimize_vertices(free, None, max_iterations, solver);
-            }
+        let scope = match scope {
+            Ok(scope) => scope,
+            Err(why) => return self.optimize_whole(free, why, max_iterations),
         };
+        if let Some(why) = scope.closes {
+            self.whole_owed.get_or_insert(why);
+        }
+        if let Some(owed) = self.whole_owed {
+            let due = self.vertices_at_whole as f64 * (1.0 + self.loop_pass_growth);
+            if self.vertices.len() as f64 >= due {
+                return self.optimize_whole(free, owed, max_iterations);
+            }
+            tracing::debug!(
+                ?owed,
+                "a loop's whole pose-graph pass waits for the graph to grow"
+            );
+        }
+        let moved = scope.moved;
         let inside: BTreeSet<KeyframeId> = moved.iter().copied().collect();
         let edges: Vec<usize> = (self.edges.iter().enumerate())
             .filter(|(_, e)| inside.contains(&e.from) || inside.contains(&e.to))
             .map(|(i, _)| i)
             .collect();
         self.optimize_vertices(moved, Some(edges), max_iterations, Solver::Cholesky)
+    }
+
+    /// A live pass over the whole graph, for `why`.
+    fn optimize_whole(
+        &mut self,
+        free: Vec<KeyframeId>,
+        why: Whole,
+        max_iterations: usize,
+    ) -> Result<OptimizeReport> {
+        if tracing::enabled!(tracing::Level::DEBUG) {
+            let chi2 = match why {
+                Whole::Loop(a, b) | Whole::CutOff(a, b) => self.edge_chi2(a, b),
+                _ => None,
+            };
+            tracing::debug!(?why, ?chi2, "live pose-graph pass moves the whole graph");
+        }
+        // Past the bound a whole live pass must not allocate a factor that grows faster than
+        // the graph (`super::conjugate_gradients`).
+        let solver = match why {
+            Whole::Small => Solver::Cholesky,
+            _ => Solver::Iterative,
+        };
+        self.optimize_vertices(free, None, max_iterations, solver)
     }
 
     /// The largest `rᵀΩr` of the edges from `from` to `to` at the current poses, with the
@@ -485,6 +534,10 @@ impl PoseGraph {
             .collect();
         let index: HashMap<KeyframeId, usize> =
             free.iter().enumerate().map(|(i, &k)| (k, i)).collect();
+        if scope.is_none() {
+            self.whole_owed = None;
+            self.vertices_at_whole = self.vertices.len();
+        }
         let scoped = scope.as_deref().map(|at| (at, &index));
         let initial_cost = self.cost_with(&|id| self.pose(id), scoped);
         let mut report = OptimizeReport {

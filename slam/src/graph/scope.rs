@@ -10,7 +10,9 @@
 //! (every short sequence: the results are those of a full optimisation), and a new edge
 //! closes a loop that the neighbourhood does not contain (its two ends are joined only
 //! through vertices outside it, or not at all). A loop's correction must then spread along
-//! the whole loop, as LSD-SLAM's and ORB-SLAM's full loop-closure optimisations do. The
+//! the whole loop, as LSD-SLAM's and ORB-SLAM's full loop-closure optimisations do; such a
+//! pass may wait until the graph has grown by a fraction of itself
+//! ([`super::PoseGraph::set_loop_pass_growth`]), the neighbourhood moving meanwhile. The
 //! session's final pass optimises the whole graph in any case.
 //!
 //! [`PoseGraph::optimize_bounded`]: super::PoseGraph::optimize_bounded
@@ -56,17 +58,27 @@ pub(super) enum Whole {
     CutOff(KeyframeId, KeyframeId),
 }
 
-/// The free vertices a bounded optimisation moves, in id order: breadth-first over the edges
-/// from the touched vertices until `max_vertices` free ones are reached. Why the whole graph
-/// must move instead: it has at most `max_vertices` free vertices, nothing was touched, or a
-/// new edge closes a loop outside the neighbourhood (module docs).
+/// A bounded optimisation's neighbourhood.
+#[derive(Clone, Debug, PartialEq)]
+pub(super) struct Scope {
+    /// The free vertices it moves, in id order.
+    pub moved: Vec<KeyframeId>,
+    /// Why the whole graph should move as well: a new edge closes a loop outside the
+    /// neighbourhood ([`Whole::Loop`], [`Whole::CutOff`]).
+    pub closes: Option<Whole>,
+}
+
+/// The free vertices a bounded optimisation moves: breadth-first over the edges from the
+/// touched vertices until `max_vertices` free ones are reached, and whether a new edge closes
+/// a loop outside them. Why only the whole graph can move: it has at most `max_vertices` free
+/// vertices, nothing was touched, or more than that were (module docs).
 pub(super) fn bounded_scope(
     ids: &[KeyframeId],
     free: &BTreeSet<KeyframeId>,
     edges: &[Constraint],
     changes: &Changes,
     max_vertices: usize,
-) -> Result<Vec<KeyframeId>, Whole> {
+) -> Result<Scope, Whole> {
     if free.len() <= max_vertices {
         return Err(Whole::Small);
     }
@@ -109,13 +121,12 @@ pub(super) fn bounded_scope(
             queue.push_back(j);
         }
     }
-    new_edge_leaves_the_scope(ids, &index, &inside, edges, changes)?;
-    Ok(ids
-        .iter()
-        .zip(&inside)
+    let closes = new_edge_leaves_the_scope(ids, &index, &inside, edges, changes).err();
+    let moved = (ids.iter().zip(&inside))
         .filter(|&(k, &i)| i && free.contains(k))
         .map(|(&k, _)| k)
-        .collect())
+        .collect();
+    Ok(Scope { moved, closes })
 }
 
 /// Fails with the first new edge that joins two parts of the scope that each hold an older

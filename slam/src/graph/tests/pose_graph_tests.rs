@@ -435,6 +435,52 @@ fn a_loop_beyond_the_neighbourhood_moves_the_whole_graph() {
 }
 
 #[test]
+fn a_loops_whole_pass_waits_for_the_graph_to_grow() {
+    // As above, but a whole pass is owed only once the graph has grown by 5 % since its last
+    // one (60 vertices then: due at 63).
+    let (mut graph, _) = chain_with_a_new_keyframe(0);
+    graph.set_loop_pass_growth(0.05).expect("growth");
+    let before = graph.poses();
+    let report = graph.optimize_bounded(10, 100).expect("optimise");
+    assert!(report.bounded && report.vertices == 10, "{report:?}");
+    assert!(report.final_cost < report.initial_cost, "{report:?}");
+    assert_eq!(
+        graph.pose(30),
+        before.get(&30).copied(),
+        "the loop's far side is held"
+    );
+    // Two more keyframes, each on its parent alone: the owed whole pass comes with the second.
+    let step = Sim3::exp(&Vector7::from_element(0.01));
+    for k in 61..63 {
+        let parent = graph.pose(k - 1).expect("parent");
+        graph.add_vertex(k, parent * step);
+        let edge = Constraint {
+            from: k,
+            to: k - 1,
+            to_from_from: step,
+            information: Matrix7::identity(),
+        };
+        graph.add_edge(edge).expect("vertices exist");
+        let report = graph.optimize_bounded(10, 100).expect("optimise");
+        let whole = !report.bounded && report.iterative && report.vertices > 60;
+        assert_eq!(whole, k == 62, "keyframe {k}: {report:?}");
+    }
+    // Paid: a chain edge alone stays bounded again.
+    let parent = graph.pose(62).expect("parent");
+    graph.add_vertex(63, parent * step);
+    let edge = Constraint {
+        from: 63,
+        to: 62,
+        to_from_from: step,
+        information: Matrix7::identity(),
+    };
+    graph.add_edge(edge).expect("vertices exist");
+    assert!(graph.optimize_bounded(10, 100).expect("optimise").bounded);
+    assert!(graph.set_loop_pass_growth(-0.1).is_err());
+    assert!(graph.set_loop_pass_growth(f64::NAN).is_err());
+}
+
+#[test]
 fn a_graph_within_the_bound_is_optimised_exactly_as_a_whole() {
     let (graph, _) = chain_with_a_new_keyframe(30);
     let (mut whole, mut bounded) = (graph.clone(), graph);
