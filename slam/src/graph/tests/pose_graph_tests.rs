@@ -449,9 +449,10 @@ fn a_loops_whole_pass_waits_for_the_graph_to_grow() {
         before.get(&30).copied(),
         "the loop's far side is held"
     );
-    // Two more keyframes, each on its parent alone: the owed whole pass comes with the second.
+    // More keyframes, each on its parent alone: the owed whole pass comes at 63 vertices
+    // (keyframe 62); once paid, a chain edge alone stays bounded again.
     let step = Sim3::exp(&Vector7::from_element(0.01));
-    for k in 61..63 {
+    for k in 61..64 {
         let parent = graph.pose(k - 1).expect("parent");
         graph.add_vertex(k, parent * step);
         let edge = Constraint {
@@ -462,20 +463,13 @@ fn a_loops_whole_pass_waits_for_the_graph_to_grow() {
         };
         graph.add_edge(edge).expect("vertices exist");
         let report = graph.optimize_bounded(10, 100).expect("optimise");
-        let whole = !report.bounded && report.iterative && report.vertices > 60;
-        assert_eq!(whole, k == 62, "keyframe {k}: {report:?}");
+        if k == 62 {
+            let whole = !report.bounded && report.iterative && report.vertices > 60;
+            assert!(whole, "keyframe {k}: {report:?}");
+        } else {
+            assert!(report.bounded, "keyframe {k}: {report:?}");
+        }
     }
-    // Paid: a chain edge alone stays bounded again.
-    let parent = graph.pose(62).expect("parent");
-    graph.add_vertex(63, parent * step);
-    let edge = Constraint {
-        from: 63,
-        to: 62,
-        to_from_from: step,
-        information: Matrix7::identity(),
-    };
-    graph.add_edge(edge).expect("vertices exist");
-    assert!(graph.optimize_bounded(10, 100).expect("optimise").bounded);
     assert!(graph.set_loop_pass_growth(-0.1).is_err());
     assert!(graph.set_loop_pass_growth(f64::NAN).is_err());
 }
