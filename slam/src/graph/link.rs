@@ -65,6 +65,7 @@ impl Service for BackendService {
             .iter()
             .filter(|c| matches!(c, BackendCommand::AddKeyframe(_)))
             .count();
+        let (batch, started) = (commands.len(), std::time::Instant::now());
         for command in commands {
             let applied = match command {
                 BackendCommand::AddKeyframe(k) => self.backend.add_keyframe(*k),
@@ -85,6 +86,12 @@ impl Service for BackendService {
                 first_error.get_or_insert(e);
             }
         }
+        tracing::debug!(
+            batch,
+            new_keyframes,
+            apply_ms = started.elapsed().as_millis() as u64,
+            "back-end batch applied"
+        );
         let processed = if optimize {
             self.backend.optimize_full().map(|_| ())
         } else {

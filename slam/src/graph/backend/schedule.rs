@@ -42,6 +42,44 @@ impl Budget {
     }
 }
 
+/// The stages of a pass, timed for the debug log: what a loaded back end spends its time on.
+#[derive(Clone, Copy)]
+enum Stage {
+    New,
+    Refresh,
+    CatchUp,
+    Optimize,
+    Window,
+}
+
+/// Milliseconds per [`Stage`] of one pass.
+struct StageClock {
+    last: std::time::Instant,
+    ms: [u64; 5],
+}
+
+impl Default for StageClock {
+    fn default() -> Self {
+        Self {
+            last: std::time::Instant::now(),
+            ms: [0; 5],
+        }
+    }
+}
+
+impl StageClock {
+    /// Ends `stage`: the time since the previous lap is its.
+    fn lap(&mut self, stage: Stage) {
+        let now = std::time::Instant::now();
+        self.ms[stage as usize] = (now - self.last).as_millis() as u64;
+        self.last = now;
+    }
+
+    fn ms(&self) -> [u64; 5] {
+        self.ms
+    }
+}
+
 impl Backend {
     /// Searches constraints for every pending keyframe (in arrival order), re-estimates those of
     /// keyframes whose depth was updated, and optimises the graph when edges or scale factors
@@ -54,6 +92,7 @@ impl Backend {
     pub fn process_within(&mut self, budget: Budget) -> Result<ProcessReport> {
         let mut report = ProcessReport::default();
         let mut added = false;
+        let mut clock = StageClock::default();
         let pending = std::mem::take(&mut self.pending);
         let searched = !pending.is_empty();
         let full_from = match budget {
@@ -69,11 +108,13 @@ impl Backend {
                 report.searches_deferred += 1;
             }
         }
+        clock.lap(Stage::New);
         if !matches!(budget, Budget::Behind(_)) {
             for id in std::mem::take(&mut self.refresh) {
                 added |= self.refresh_constraints(id, &mut report)?;
             }
         }
+        clock.lap(Stage::Refresh);
         let catch_up = match budget {
             Budget::All => usize::MAX,
             Budget::CaughtUp(n) => n,
@@ -86,6 +127,7 @@ impl Backend {
             report.keyframes_searched += 1;
             added |= self.search(id, true, &mut report)?;
         }
+        clock.lap(Stage::CatchUp);
         let max = self.config.deferred_max;
         let (old_searches, old_refreshes) = (
             self.deferred.len().saturating_sub(max),
@@ -105,9 +147,19 @@ impl Backend {
         if added {
             report.optimize = Some(self.optimize_within(budget)?);
         }
+        clock.lap(Stage::Optimize);
         if searched && self.config.window.enabled && self.run_window(&mut report)? {
             report.optimize = Some(self.optimize_within(budget)?);
         }
+        clock.lap(Stage::Window);
+        tracing::debug!(
+            ?budget,
+            keyframes = self.keyframes.len(),
+            searched = report.keyframes_searched,
+            tests = report.candidates_tested,
+            ms = ?clock.ms(),
+            "back-end pass (ms: new, refresh, catch-up, optimise, window)"
+        );
         Ok(report)
     }
 
