@@ -115,7 +115,12 @@ fn drop_best_connected<'a>(
         close.iter().enumerate().map(|(i, c)| (c.0, i)).collect();
     let mut counts: Vec<usize> = close
         .iter()
-        .map(|c| neighbours(c.0).iter().filter(|n| index.contains_key(n)).count())
+        .map(|c| {
+            neighbours(c.0)
+                .iter()
+                .filter(|n| index.contains_key(n))
+                .count()
+        })
         .collect();
     let mut heap: BinaryHeap<Connected> = (close.iter().zip(&counts))
         .map(|(c, &count)| Connected::new(count, *c))
