@@ -36,10 +36,28 @@ pub const THUMBNAIL_MAX_SHIFT: usize = 4;
 /// nearby viewpoints differ by roughly a shift of the thumbnail, so [`Thumbnail::score`] is the
 /// best normalised cross-correlation over shifts up to [`THUMBNAIL_MAX_SHIFT`] cells. It is
 /// neither rotation- nor scale-invariant, which is acceptable because a proposal is verified by
-/// Sim(3) alignment from the identity anyway. Its cells are shared: the pipeline's record and
-/// the back end's keyframe hold one copy (3 kB a keyframe, kept for every keyframe; issue 37).
-#[derive(Clone, Debug, PartialEq)]
-pub struct Thumbnail(Arc<[f32]>);
+/// Sim(3) alignment from the identity anyway.
+///
+/// Every keyframe keeps one for the whole session and each full constraint search scores all
+/// of them, so the cells are stored as 8-bit codes over the descriptor's own range (768 B, was
+/// 3 kB of f32) and scored in integers: exact, and several times faster. The correlation is
+/// invariant to each side's offset and scale, so the codes change it only by their rounding
+/// (under 1/255 of the range). The codes are shared: the pipeline's record and the back end's
+/// keyframe hold one copy (issue 37).
+#[derive(Clone, Debug)]
+pub struct Thumbnail {
+    codes: Arc<[u8]>,
+    /// Value of code 0, and of one code step (0 for a uniform image).
+    offset: f32,
+    step: f32,
+}
+
+/// Two descriptors are equal when their codes are: the score reads nothing else.
+impl PartialEq for Thumbnail {
+    fn eq(&self, other: &Self) -> bool {
+        self.codes == other.codes
+    }
+}
 
 impl Thumbnail {
     /// The descriptor of `frame`, computed on the coarsest pyramid level that still has at
@@ -89,58 +107,139 @@ impl Thumbnail {
                 }
             }
         }
-        Self(v.into())
+        Self::quantise(&v)
     }
 
-    /// The descriptor's cells, row-major ([`THUMBNAIL_SIZE`]).
-    pub fn values(&self) -> &[f32] {
-        &self.0
+    /// 8-bit codes of `values` over their range (all finite).
+    fn quantise(values: &[f32]) -> Self {
+        let (lo, hi) = values
+            .iter()
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(v), hi.max(v))
+            });
+        let step = if hi > lo { (hi - lo) / 255.0 } else { 0.0 };
+        let codes = values
+            .iter()
+            .map(|&v| {
+                if step > 0.0 {
+                    ((v - lo) / step).round().clamp(0.0, 255.0) as u8
+                } else {
+                    0
+                }
+            })
+            .collect();
+        Self {
+            codes,
+            offset: lo,
+            step,
+        }
+    }
+
+    /// The descriptor's cells, row-major ([`THUMBNAIL_SIZE`]), as the values its codes stand
+    /// for.
+    pub fn values(&self) -> Vec<f32> {
+        (self.codes.iter())
+            .map(|&c| self.offset + f32::from(c) * self.step)
+            .collect()
     }
 
     /// A descriptor from stored cells; `None` unless there are exactly
-    /// [`THUMBNAIL_SIZE`] finite ones.
+    /// [`THUMBNAIL_SIZE`] finite ones. Cells [`Thumbnail::values`] gave come back as the same
+    /// codes.
     pub fn from_values(values: Vec<f32>) -> Option<Self> {
         (values.len() == THUMBNAIL_SIZE.0 * THUMBNAIL_SIZE.1
             && values.iter().all(|v| v.is_finite()))
-        .then_some(Self(values.into()))
-    }
-
-    /// Normalised cross-correlation of the overlap of `self` and `other` shifted by (dx, dy)
-    /// cells; 0 when either side is uniform there.
-    fn correlation(&self, other: &Thumbnail, dx: isize, dy: isize) -> f64 {
-        let (tw, th) = (THUMBNAIL_SIZE.0 as isize, THUMBNAIL_SIZE.1 as isize);
-        let (mut n, mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0);
-        for y in dy.max(0)..(th + dy).min(th) {
-            for x in dx.max(0)..(tw + dx).min(tw) {
-                let a = f64::from(self.0[(y * tw + x) as usize]);
-                let b = f64::from(other.0[((y - dy) * tw + x - dx) as usize]);
-                n += 1.0;
-                sa += a;
-                sb += b;
-                saa += a * a;
-                sbb += b * b;
-                sab += a * b;
-            }
-        }
-        let var = (n * saa - sa * sa) * (n * sbb - sb * sb);
-        if n < 1.0 || var.is_nan() || var <= 1e-9 {
-            0.0
-        } else {
-            (n * sab - sa * sb) / var.sqrt()
-        }
+        .then(|| Self::quantise(&values))
     }
 
     /// Best normalised cross-correlation in [−1, 1] over shifts of up to
-    /// [`THUMBNAIL_MAX_SHIFT`] cells.
+    /// [`THUMBNAIL_MAX_SHIFT`] cells; 0 for a shift where either side is uniform.
     pub fn score(&self, other: &Thumbnail) -> f64 {
+        let (a, b) = (Moments::of(&self.codes), Moments::of(&other.codes));
         let m = THUMBNAIL_MAX_SHIFT as isize;
         let mut best = f64::NEG_INFINITY;
         for dy in -m..=m {
             for dx in -m..=m {
-                best = best.max(self.correlation(other, dx, dy));
+                best = best.max(self.correlation(other, &a, &b, dx, dy));
             }
         }
         best
+    }
+
+    /// Normalised cross-correlation of the overlap of `self` and `other` shifted by (dx, dy)
+    /// cells (`a`, `b`: their [`Moments`]).
+    fn correlation(
+        &self,
+        other: &Thumbnail,
+        a: &Moments,
+        b: &Moments,
+        dx: isize,
+        dy: isize,
+    ) -> f64 {
+        let tw = THUMBNAIL_SIZE.0 as isize;
+        // Self's overlap is columns x0..x1, rows y0..y1; other's is the same shifted by −(dx, dy).
+        let (x0, x1) = (dx.max(0), (tw + dx).min(tw));
+        let (y0, y1) = (
+            dy.max(0),
+            (THUMBNAIL_SIZE.1 as isize + dy).min(THUMBNAIL_SIZE.1 as isize),
+        );
+        if x1 <= x0 || y1 <= y0 {
+            return 0.0;
+        }
+        let width = (x1 - x0) as usize;
+        let mut sab = 0u64;
+        for y in y0..y1 {
+            let ra = (y * tw + x0) as usize;
+            let rb = ((y - dy) * tw + x0 - dx) as usize;
+            let row: u32 = (self.codes[ra..ra + width].iter())
+                .zip(&other.codes[rb..rb + width])
+                .map(|(&p, &q)| u32::from(p) * u32::from(q))
+                .sum();
+            sab += u64::from(row);
+        }
+        let n = ((x1 - x0) * (y1 - y0)) as i64;
+        let (sa, saa) = a.sums(x0, x1, y0, y1);
+        let (sb, sbb) = b.sums(x0 - dx, x1 - dx, y0 - dy, y1 - dy);
+        let (var_a, var_b) = (n * saa - sa * sa, n * sbb - sb * sb);
+        if var_a <= 0 || var_b <= 0 {
+            return 0.0;
+        }
+        (n * sab as i64 - sa * sb) as f64 / ((var_a as f64) * (var_b as f64)).sqrt()
+    }
+}
+
+/// Summed-area tables of a descriptor's codes and their squares, so that the sums over any
+/// overlap cost four reads (exact integers).
+struct Moments {
+    sum: Vec<i64>,
+    squares: Vec<i64>,
+}
+
+impl Moments {
+    fn of(codes: &[u8]) -> Self {
+        let (tw, th) = THUMBNAIL_SIZE;
+        let stride = tw + 1;
+        let mut sum = vec![0i64; stride * (th + 1)];
+        let mut squares = vec![0i64; stride * (th + 1)];
+        for y in 0..th {
+            let (mut row, mut row_sq) = (0i64, 0i64);
+            for x in 0..tw {
+                let c = i64::from(codes[y * tw + x]);
+                row += c;
+                row_sq += c * c;
+                sum[(y + 1) * stride + x + 1] = sum[y * stride + x + 1] + row;
+                squares[(y + 1) * stride + x + 1] = squares[y * stride + x + 1] + row_sq;
+            }
+        }
+        Self { sum, squares }
+    }
+
+    /// Sums of the codes and of their squares over columns x0..x1, rows y0..y1.
+    fn sums(&self, x0: isize, x1: isize, y0: isize, y1: isize) -> (i64, i64) {
+        let stride = THUMBNAIL_SIZE.0 + 1;
+        let at = |t: &[i64], x: isize, y: isize| t[y as usize * stride + x as usize];
+        let rect = |t: &[i64]| at(t, x1, y1) - at(t, x0, y1) - at(t, x1, y0) + at(t, x0, y0);
+        (rect(&self.sum), rect(&self.squares))
     }
 }
 

@@ -180,7 +180,7 @@ fn write_contents(
             timestamp: kf.timestamp,
             world_from_keyframe: kf.world_from_keyframe,
             dense_camera: kf.dense.as_ref().map(|d| d.camera),
-            thumbnail: kf.thumbnail.values().to_vec(),
+            thumbnail: kf.thumbnail.values(),
             scale_prior: kf.scale_prior,
         });
     }

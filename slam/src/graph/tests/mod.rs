@@ -5,6 +5,7 @@
 mod backend_tests;
 mod pose_graph_tests;
 mod real_tests;
+mod thumbnail_tests;
 mod tracker_tests;
 
 use std::sync::{Arc, OnceLock};
