@@ -9,8 +9,11 @@
 //! thread simply lags; here a pass that finds the back end behind (several new keyframes
 //! queued at once) gives the newest keyframes their full search, links the older ones to
 //! their parent only and defers their full search and their depth refreshes until a pass
-//! finds it caught up. The final pass of a session does everything, so loop closures are
-//! found late, not missed; in step (deterministic runs) every pass is a caught-up one.
+//! finds it caught up. A caught-up pass then takes only a few of each, oldest first: running
+//! every waiting refresh at once made single passes of 90 s and queue spikes of 185 commands
+//! in an hour's session (docs/tuning.md, "thirty-seventh stop"). The final pass of a session
+//! does everything, so loop closures are found late, not missed; in step (deterministic runs)
+//! every pass is a caught-up one.
 
 use super::super::KeyframeId;
 use super::{Backend, ProcessReport};
@@ -22,8 +25,8 @@ use crate::graph::OptimizeReport;
 pub enum Budget {
     /// Everything queued and deferred (the final pass; [`Backend::process`]).
     All,
-    /// Caught up: every new keyframe and depth update in full, then up to `n` deferred
-    /// searches or refreshes.
+    /// Caught up: every new keyframe in full, then up to `n` depth refreshes and up to `n`
+    /// deferred searches, oldest first.
     CaughtUp(usize),
     /// Behind: full searches for the `n` newest keyframes, the parent test for the others;
     /// depth refreshes wait.
@@ -74,10 +77,6 @@ impl StageClock {
         self.ms[stage as usize] = (now - self.last).as_millis() as u64;
         self.last = now;
     }
-
-    fn ms(&self) -> [u64; 5] {
-        self.ms
-    }
 }
 
 impl Backend {
@@ -109,17 +108,18 @@ impl Backend {
             }
         }
         clock.lap(Stage::New);
-        if !matches!(budget, Budget::Behind(_)) {
-            for id in std::mem::take(&mut self.refresh) {
-                added |= self.refresh_constraints(id, &mut report)?;
-            }
-        }
-        clock.lap(Stage::Refresh);
         let catch_up = match budget {
             Budget::All => usize::MAX,
             Budget::CaughtUp(n) => n,
             Budget::Behind(_) => 0,
         };
+        let refreshes: Vec<_> = (self.refresh)
+            .drain(..catch_up.min(self.refresh.len()))
+            .collect();
+        for id in refreshes {
+            added |= self.refresh_constraints(id, &mut report)?;
+        }
+        clock.lap(Stage::Refresh);
         for _ in 0..catch_up {
             let Some(id) = self.deferred.pop_front() else {
                 break;
@@ -157,7 +157,7 @@ impl Backend {
             keyframes = self.keyframes.len(),
             searched = report.keyframes_searched,
             tests = report.candidates_tested,
-            ms = ?clock.ms(),
+            ms = ?clock.ms,
             "back-end pass (ms: new, refresh, catch-up, optimise, window)"
         );
         Ok(report)
@@ -180,5 +180,10 @@ impl Backend {
     /// Keyframes whose full constraint search waits for the back end to catch up.
     pub fn deferred(&self) -> impl Iterator<Item = KeyframeId> + '_ {
         self.deferred.iter().copied()
+    }
+
+    /// Keyframes whose constraints wait to be re-tested with their updated depth, oldest first.
+    pub fn refreshes(&self) -> impl Iterator<Item = KeyframeId> + '_ {
+        self.refresh.iter().copied()
     }
 }

@@ -552,6 +552,35 @@ fn a_back_end_behind_defers_full_searches_and_catches_up_to_the_same_loop() {
 }
 
 #[test]
+fn a_caught_up_pass_refreshes_a_few_depth_updates_oldest_first() {
+    use crate::graph::Budget;
+    let keyframes = loop_keyframes();
+    let mut backend = Backend::new(test_config()).expect("valid config");
+    for input in drifting_inputs(keyframes) {
+        backend.add_keyframe(input).expect("add");
+    }
+    backend.process().expect("searched");
+    for id in [4, 1, 6, 3, 1] {
+        let depth = Arc::clone(&keyframes[id].depth);
+        backend.update_keyframe_depth(id, depth).expect("update");
+    }
+    // Queued once each, in the order of their first update.
+    assert_eq!(backend.refreshes().collect::<Vec<_>>(), vec![4, 1, 6, 3]);
+    // Behind: refreshes wait.
+    backend.process_within(Budget::Behind(2)).expect("behind");
+    assert_eq!(backend.refreshes().count(), 4);
+    // Caught up: the two oldest, their neighbours re-tested.
+    let report = backend
+        .process_within(Budget::CaughtUp(2))
+        .expect("caught up");
+    assert!(report.candidates_tested > 0);
+    assert_eq!(backend.refreshes().collect::<Vec<_>>(), vec![6, 3]);
+    // The final pass does the rest.
+    backend.process().expect("final");
+    assert_eq!(backend.refreshes().count(), 0);
+}
+
+#[test]
 fn deferred_searches_past_their_limit_are_given_up() {
     use crate::graph::Budget;
     let inputs = drifting_inputs(loop_keyframes());
