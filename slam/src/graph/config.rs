@@ -121,8 +121,8 @@ pub struct BackendConfig {
     pub channel_capacity: usize,
     /// Full constraint searches per back-end pass while it is behind (more new keyframes than
     /// this queued since its last pass), and deferred searches and depth refreshes caught up
-    /// per pass otherwise (`graph::backend::schedule`). Default 2: a pass with one or two new keyframes is the
-    /// normal case and is searched in full, as LSD-SLAM does.
+    /// per pass otherwise (`graph::backend::schedule`). Default 2: a pass with one or two new
+    /// keyframes is the normal case and is searched in full, as LSD-SLAM does.
     pub catch_up_searches: usize,
     /// Deferred searches (and depth refreshes) kept waiting at most; older ones are given up,
     /// their keyframes staying candidates of later searches. Default 64, about a minute of
