@@ -329,7 +329,15 @@ impl GpuMarching {
 /// Decodes the kernel's triangles, sorts them by (job, cell, triangle in case) and assembles
 /// one mesh per job exactly as the CPU does.
 fn assemble_gpu(jobs: &[MeshJob], triangles: &[GpuTriangle]) -> Result<Vec<BlockMesh>> {
-    let mut per_job: Vec<Vec<CellTriangle>> = vec![Vec::new(); jobs.len()];
+    // Each job's triangles counted first: growing the vectors one push at a time was the
+    // fusion's largest source of reallocations (docs/tuning.md, issue 37, heaptrack).
+    let mut counts = vec![0usize; jobs.len()];
+    for t in triangles {
+        if let Some(n) = counts.get_mut(t.job as usize) {
+            *n += 1;
+        }
+    }
+    let mut per_job: Vec<Vec<CellTriangle>> = counts.into_iter().map(Vec::with_capacity).collect();
     for t in triangles {
         let job = jobs
             .get(t.job as usize)

@@ -157,8 +157,14 @@ pub(crate) fn assemble(index: BlockIndex, triangles: &[CellTriangle]) -> BlockMe
         index,
         ..BlockMesh::default()
     };
-    let mut vertex_of: HashMap<EdgeKey, u32> = HashMap::new();
-    mesh.indices.reserve(3 * triangles.len());
+    // A closed surface has about half as many vertices as triangles, an open patch up to three
+    // times as many: reserved for one per triangle, then trimmed, since the block keeps its
+    // mesh (docs/tuning.md, issue 37, heaptrack).
+    let mut vertex_of: HashMap<EdgeKey, u32> = HashMap::with_capacity(triangles.len());
+    mesh.indices.reserve_exact(3 * triangles.len());
+    mesh.positions.reserve(triangles.len());
+    mesh.colors.reserve(triangles.len());
+    mesh.edge_keys.reserve(triangles.len());
     for t in triangles {
         for v in 0..3 {
             let i = match vertex_of.entry(t.keys[v]) {
@@ -173,6 +179,9 @@ pub(crate) fn assemble(index: BlockIndex, triangles: &[CellTriangle]) -> BlockMe
             mesh.indices.push(i);
         }
     }
+    mesh.positions.shrink_to_fit();
+    mesh.colors.shrink_to_fit();
+    mesh.edge_keys.shrink_to_fit();
     mesh.normals = vertex_normals(&mesh.positions, &mesh.indices);
     mesh
 }
