@@ -127,6 +127,9 @@ async fn serve_until(
         }
     };
     let janitor = state.sessions.spawn_janitor();
+    let trimmer = memory::spawn_trimmer(std::time::Duration::from_secs(
+        state.config.limits.memory_trim_interval_s,
+    ));
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let router = app(state.clone());
     state.locator.serve_forwarded_with(router.clone());
@@ -141,6 +144,9 @@ async fn serve_until(
     tracing::info!("shutting down: no new connections; finishing sessions");
     let _ = stop_tx.send(());
     janitor.abort();
+    if let Some(trimmer) = trimmer {
+        trimmer.abort();
+    }
     state.sessions.shutdown().await;
     match zenoh {
         Some(ZenohSide::Up(zenoh)) => zenoh.close().await,

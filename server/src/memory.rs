@@ -257,6 +257,34 @@ pub fn release_free_memory() {
     }
 }
 
+/// Runs [`release_free_memory`] every `every` on the blocking pool (the walk of the arenas
+/// never holds a runtime thread), until the task is aborted; `None` when `every` is zero
+/// (`limits.memory_trim_interval_s`). The trims after checkpoints alone let freed pages that
+/// threads touch again pile up between checkpoints (docs/tuning.md, issue 37).
+pub fn spawn_trimmer(every: std::time::Duration) -> Option<tokio::task::JoinHandle<()>> {
+    if every.is_zero() {
+        return None;
+    }
+    Some(tokio::spawn(async move {
+        let mut tick = tokio::time::interval(every);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        tick.tick().await;
+        loop {
+            tick.tick().await;
+            let started = std::time::Instant::now();
+            if tokio::task::spawn_blocking(release_free_memory)
+                .await
+                .is_ok()
+            {
+                tracing::debug!(
+                    elapsed_ms = started.elapsed().as_secs_f64() * 1e3,
+                    "free memory released"
+                );
+            }
+        }
+    }))
+}
+
 /// Bytes the program holds from the heap (glibc's `mallinfo2`: in use in the arenas plus chunks
 /// mapped on their own, touched or not), for metrics. Beside the resident memory it tells the
 /// program's own growth from the rest: code, thread stacks, the libraries' mappings and what
@@ -312,6 +340,16 @@ mod tests {
             max_keyframes,
             ..Limits::default()
         }
+    }
+
+    #[tokio::test]
+    async fn trimmer_is_off_at_zero_and_runs_until_aborted() {
+        assert!(spawn_trimmer(std::time::Duration::ZERO).is_none());
+        let task = spawn_trimmer(std::time::Duration::from_millis(20)).expect("on");
+        tokio::time::sleep(std::time::Duration::from_millis(120)).await;
+        assert!(!task.is_finished(), "the trimmer stopped on its own");
+        task.abort();
+        assert!(task.await.expect_err("aborted").is_cancelled());
     }
 
     #[test]

@@ -63,6 +63,12 @@ pub struct Limits {
     /// keyframe changes (new keyframes, or old ones re-activated on a revisit) while a session
     /// runs, so a crash loses little of a live session.
     pub checkpoint_keyframes: usize,
+    /// Every this many seconds the allocator hands its free pages back to the system (besides
+    /// after each checkpoint); 0 = only after checkpoints. Freed pages that threads touch
+    /// again between two trims stay resident; every 10 s (about 30 ms of a blocking thread)
+    /// halved the hour's RSS slope and left 372 MB instead of 1.1 GB after the session
+    /// (docs/tuning.md, issue 37, "trimming on a timer").
+    pub memory_trim_interval_s: u64,
     /// On shutdown, how long (seconds) live sessions get to finish their queued frames and
     /// persist their results before the process exits anyway.
     pub shutdown_grace_s: u64,
@@ -110,6 +116,7 @@ impl Default for Limits {
             min_frame_rate: 0.5,
             max_timestamp_step_s: 3600.0,
             checkpoint_keyframes: 10,
+            memory_trim_interval_s: 10,
             shutdown_grace_s: 30,
             max_streams_per_session: 8,
             max_recording_mb: 256,
