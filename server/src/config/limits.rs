@@ -66,7 +66,7 @@ pub struct Limits {
     /// Every this many seconds the allocator hands its free pages back to the system (besides
     /// after each checkpoint); 0 = only after checkpoints. Freed pages that threads touch
     /// again between two trims stay resident; every 10 s (about 30 ms of a blocking thread)
-    /// halved the hour's RSS slope and left 372 MB instead of 1.1 GB after the session
+    /// made the hour's RSS slope 44 % flatter and left 372 MB, not 1.1 GB, after the session
     /// (docs/tuning.md, issue 37, "trimming on a timer").
     pub memory_trim_interval_s: u64,
     /// On shutdown, how long (seconds) live sessions get to finish their queued frames and
