@@ -245,7 +245,7 @@ pub fn configure_allocator() {
 /// Hands the heap's free pages back to the system. glibc keeps what threads free in their
 /// arenas: in a 640×480 session of 255 keyframes half the server's RSS (1.4 of 2.8 GB) was
 /// such free memory (docs/tuning.md, "third stage"), which the budget and `/healthz` count as
-/// used. Called after each checkpoint; a no-op elsewhere than glibc.
+/// used. Called after each checkpoint and by [`spawn_trimmer`]; a no-op elsewhere than glibc.
 pub fn release_free_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
