@@ -107,7 +107,8 @@ fn main(
         weight[j] = min(w1, params.max_weight);
     } else {
         let w1 = w0 - w;
-        if (w1 <= 1e-6) {
+        // EMPTY_WEIGHT of fusion/integrate.rs: rounding residues of a fully removed voxel.
+        if (w1 <= 1e-3) {
             tsdf[j] = 0.0;
             weight[j] = 0.0;
             color[j] = 0u;

@@ -23,6 +23,7 @@
 //! after which the pipeline never sees distortion (as LSD-SLAM does).
 
 mod camera;
+mod information;
 mod se3;
 mod sim3;
 mod so3;
@@ -32,6 +33,7 @@ mod undistort;
 mod lie_tests;
 
 pub use camera::{Distortion, PinholeCamera};
+pub use information::Information7;
 pub use se3::SE3;
 pub use sim3::{Matrix3x7, Matrix7, Sim3, Vector7, sim3_w_matrix};
 pub use so3::{SMALL_ANGLE, SO3};

@@ -25,7 +25,7 @@ use super::sim3_tracker::Sim3Tracker;
 use crate::frame::Frame;
 use nalgebra::Matrix6;
 
-use crate::geometry::{Matrix7, Sim3};
+use crate::geometry::{Information7, Matrix7, Sim3};
 use crate::mapping::{CompactDepth, DepthMap};
 use crate::metric_scale::ScaleObservation;
 use crate::{Error, Result};
@@ -45,7 +45,7 @@ pub struct ParentEdge {
     /// Information of a right perturbation of `parent_from_keyframe`, used as the parent edge
     /// only if the reciprocal Sim(3) test on the parent fails (LSD-SLAM's fallback odometry
     /// edge). It must be positive definite, including the scale entry.
-    pub information: Matrix7,
+    pub information: Information7,
 }
 
 /// Scale information of an odometry edge built from SE(3) tracking, relative to the mean of its
@@ -71,7 +71,7 @@ impl ParentEdge {
         Self {
             id,
             parent_from_keyframe,
-            information: info,
+            information: info.into(),
         }
     }
 }
@@ -495,7 +495,7 @@ impl Backend {
                 from: newer,
                 to: older,
                 to_from_from: world_from_older.inverse() * world_from_newer,
-                information: information * config.edge_weight,
+                information: information.scaled(config.edge_weight),
             };
             if let Some(old) = self.window_edges.remove(&(newer, older)) {
                 self.graph.remove_edge(&old);

@@ -38,7 +38,7 @@ use super::KeyframeId;
 use super::cholesky::BlockSparseSymmetric;
 use super::conjugate_gradients::CgStop;
 use super::scope::{Changes, Whole, bounded_scope, pair};
-use crate::geometry::{Matrix7, Sim3, Vector7};
+use crate::geometry::{Information7, Matrix7, Sim3, Vector7};
 use crate::{Error, Result};
 
 /// A relative Sim(3) measurement between two keyframes.
@@ -49,8 +49,8 @@ pub struct Constraint {
     /// Maps `from`-keyframe coordinates to `to`-keyframe coordinates.
     pub to_from_from: Sim3,
     /// Information (inverse covariance) of a right perturbation of `to_from_from`, tangent
-    /// order (ρ, φ, σ).
-    pub information: Matrix7,
+    /// order (ρ, φ, σ); symmetric, so kept as its upper triangle.
+    pub information: Information7,
 }
 
 /// A unary factor on one vertex's scale: `ln s ≈ log_scale` with standard deviation `sigma`,
@@ -228,11 +228,12 @@ impl PoseGraph {
     fn information(&self, e: &Constraint) -> Matrix7 {
         match self.edge_scale_sigma {
             Some(q) if !self.scale_priors.is_empty() => {
-                let column = e.information.column(6).into_owned();
+                let information = e.information.matrix();
+                let column = information.column(6).into_owned();
                 let q2 = q * q;
-                e.information - column * column.transpose() * (q2 / (1.0 + q2 * column[6]))
+                information - column * column.transpose() * (q2 / (1.0 + q2 * column[6]))
             }
-            _ => e.information,
+            _ => e.information.matrix(),
         }
     }
 
@@ -266,8 +267,7 @@ impl PoseGraph {
                 return Err(unknown(id));
             }
         }
-        if constraint.from == constraint.to || !constraint.information.iter().all(|v| v.is_finite())
-        {
+        if constraint.from == constraint.to || !constraint.information.is_finite() {
             return Err(Error::Backend(format!(
                 "pose graph: edge {} -> {} is a self-loop or has non-finite information",
                 constraint.from, constraint.to

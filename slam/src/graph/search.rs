@@ -580,13 +580,13 @@ pub fn reciprocal_test(
                 from: a.id,
                 to: b.id,
                 to_from_from: b_from_a,
-                information: fw.information,
+                information: fw.information.into(),
             },
             Constraint {
                 from: b.id,
                 to: a.id,
                 to_from_from: a_from_b,
-                information: bw.information,
+                information: bw.information.into(),
             },
         ));
     }

@@ -199,7 +199,7 @@ fn write_contents(
                 from: e.from,
                 to: e.to,
                 to_from_from: e.to_from_from,
-                information: e.information.transpose().iter().copied().collect(),
+                information: e.information.matrix().transpose().iter().copied().collect(),
             })
             .collect(),
     };
@@ -279,7 +279,7 @@ pub fn read_map(dir: &Path, camera: Option<&PinholeCamera>) -> Result<SavedMap> 
                 from: e.from,
                 to: e.to,
                 to_from_from: e.to_from_from,
-                information: Matrix7::from_row_slice(&e.information),
+                information: Matrix7::from_row_slice(&e.information).into(),
             })
         })
         .collect::<Result<Vec<_>>>()?;

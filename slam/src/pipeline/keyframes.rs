@@ -78,9 +78,9 @@ pub(super) struct KeyframeRecord {
     /// For relocalisation against finished keyframes; dropped with `frame`
     /// ([`Pipeline::keyframe_reference`] rebuilds it).
     pub reference: Option<Arc<TrackingReference>>,
-    /// The tracking constraint to the keyframe it was created from (sent with it to the back
-    /// end once the keyframe is finished).
-    /// Boxed, as `handover`: the record lives as long as the session (issue 37).
+    /// The tracking constraint to the keyframe it was created from, until it is sent with the
+    /// finished keyframe to the back end (which keeps it). Boxed, as `handover`: the record
+    /// lives as long as the session (issue 37).
     pub parent: Option<Box<ParentEdge>>,
     /// The tracking constraint to the old keyframe re-activated when this one was left
     /// (`super::reactivate`), sent with it like `parent`.
@@ -329,6 +329,10 @@ impl Pipeline {
         record.depth = Some(mapped.depth.clone());
         record.reference = Some(mapped.reference);
         record.mean_idepth = mapped.mean_idepth;
+        let pose_covariance = record
+            .parent
+            .as_ref()
+            .map_or_else(Matrix7::zeros, |p| covariance(&p.information.matrix()));
         let new = NewKeyframe {
             id,
             maps: KeyframeMaps::Shared {
@@ -337,14 +341,12 @@ impl Pipeline {
                 data: record.data.clone(),
             },
             world_from_keyframe: record.world_from_keyframe,
-            parent: record.parent.as_deref().cloned(),
+            // The back end keeps it from here on: a record lives as long as the session (few
+            // keyframes have a hand-over).
+            parent: record.parent.take().map(|p| *p),
             handover: record.handover.as_deref().cloned(),
             thumbnail: Some(record.thumbnail.clone()),
         };
-        let pose_covariance = record
-            .parent
-            .as_ref()
-            .map_or_else(Matrix7::zeros, |p| covariance(&p.information));
         let job = DenseJob {
             keyframe_id: id,
             frame,

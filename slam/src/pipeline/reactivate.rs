@@ -307,14 +307,18 @@ mod tests {
             .norm();
         assert!(error < 1e-9, "edge off the true similarity by {error}");
         // Two measurements composed: the edge is less certain than either, but still certain.
-        let block = edge.information.fixed_view::<6, 6>(0, 0).into_owned();
+        let block = edge
+            .information
+            .matrix()
+            .fixed_view::<6, 6>(0, 0)
+            .into_owned();
         let eigen = block.symmetric_eigenvalues();
         assert!(eigen.min() > 0.0, "not positive definite: {eigen}");
         assert!(
             eigen.max() <= 1e4 * (1.0 + 1e-9),
             "more certain than a tracking: {eigen}"
         );
-        assert!(edge.information[(6, 6)] > 0.0);
+        assert!(edge.information.at(6, 6) > 0.0);
         // A singular tracking gives no edge.
         let mut singular = tracked(frame_from(&world_from_left), 1e4);
         singular.information = Matrix6::zeros();

@@ -92,7 +92,7 @@ fn drifting_chain(truth: &[Sim3], loops: &[(usize, usize)], huber: Option<f64>) 
                 from: k,
                 to: k - 1,
                 to_from_from: measured,
-                information: info,
+                information: info.into(),
             })
             .expect("vertices exist");
     }
@@ -104,7 +104,7 @@ fn drifting_chain(truth: &[Sim3], loops: &[(usize, usize)], huber: Option<f64>) 
                 from,
                 to,
                 to_from_from: measured,
-                information: info,
+                information: info.into(),
             })
             .expect("vertices exist");
     }
@@ -147,7 +147,7 @@ fn pose_graph_huber_kernel_limits_a_false_loop_closure() {
                 from: 25,
                 to: 10,
                 to_from_from: Sim3::identity(),
-                information: info,
+                information: info.into(),
             })
             .expect("vertices");
     };
@@ -174,7 +174,7 @@ fn pose_graph_rejects_edges_to_unknown_vertices() {
         from: 3,
         to: 4,
         to_from_from: Sim3::identity(),
-        information: Matrix7::identity(),
+        information: Matrix7::identity().into(),
     };
     assert!(graph.add_edge(c.clone()).is_err());
     graph.add_vertex(4, Sim3::identity());
@@ -217,7 +217,7 @@ fn scale_drifting_chain(
             from: k,
             to: k - 1,
             to_from_from: measured,
-            information: info,
+            information: info.into(),
         };
         graph.add_edge(edge).expect("vertices exist");
     }
@@ -358,7 +358,7 @@ fn chain_with_a_new_keyframe(other: usize) -> (PoseGraph, Vec<Sim3>) {
                 from: 60,
                 to,
                 to_from_from: measured * Sim3::exp(&(nudge * 0.01)),
-                information: info,
+                information: info.into(),
             })
             .expect("vertices exist");
     }
@@ -413,7 +413,7 @@ fn a_loop_beyond_the_neighbourhood_moves_the_whole_graph() {
     for k in 21..30 {
         graph.add_vertex(k, truth[k]);
         let measured = truth[k - 1].inverse() * truth[k];
-        let information = Matrix7::identity();
+        let information = Matrix7::identity().into();
         let edge = Constraint {
             from: k,
             to: k - 1,
@@ -428,7 +428,7 @@ fn a_loop_beyond_the_neighbourhood_moves_the_whole_graph() {
         from: 29,
         to: 19,
         to_from_from: measured,
-        information: Matrix7::identity(),
+        information: Matrix7::identity().into(),
     };
     graph.add_edge(edge).expect("vertices exist");
     assert!(!graph.optimize_bounded(5, 100).expect("optimise").bounded);
@@ -459,7 +459,7 @@ fn a_loops_whole_pass_waits_for_the_graph_to_grow() {
             from: k,
             to: k - 1,
             to_from_from: step,
-            information: Matrix7::identity(),
+            information: Matrix7::identity().into(),
         };
         graph.add_edge(edge).expect("vertices exist");
         let report = graph.optimize_bounded(10, 100).expect("optimise");
