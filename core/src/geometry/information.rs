@@ -3,7 +3,8 @@
 //! A long session keeps every pose-graph edge for its whole length (about 12 edges a keyframe,
 //! 70 keyframes a minute at 30 fps), and a `Matrix7` is 392 B of each 472 B edge. The
 //! information of a Sim(3) edge is symmetric, so its 28 upper entries say everything: 224 B,
-//! exact for every symmetric matrix (issue 37).
+//! exact for every symmetric matrix (issue 37). One that is symmetric only up to rounding (an
+//! SE(3) tracking's `Adᵀ·H·Ad`) becomes its upper triangle's mirror.
 
 use super::sim3::Matrix7;
 use serde::{Deserialize, Serialize};
