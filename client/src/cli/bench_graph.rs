@@ -60,7 +60,8 @@ pub fn graph(args: &GraphArgs) -> anyhow::Result<()> {
                     from: i,
                     to: j,
                     to_from_from: measured,
-                    information: Matrix7::identity() / (args.noise * args.noise).max(1e-12),
+                    information: (Matrix7::identity() / (args.noise * args.noise).max(1e-12))
+                        .into(),
                 });
             }
         }
