@@ -181,7 +181,7 @@ pub struct IntegrateParams {
 }
 
 /// Weight below which a de-integrated voxel is empty (reset to zero). Taking every
-/// observation out again leaves f32 rounding residues of the weight sums, measured up to
+/// observation out again leaves f32 rounding residues of the weight sums, simulated up to
 /// 4·10⁻⁵ after 100 observations; a voxel that kept such a residue kept its block allocated,
 /// so every loop-closure move left the keyframes' old surfaces behind as blocks (issue 37).
 /// A thousandth of one confident observation is a tenth of the weakest pixel's weight
