@@ -5,8 +5,9 @@ use std::ffi::OsStr;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
 
-use crate::bin_path;
+use crate::{bin_path, free_port};
 
 /// A running `relfusiond`.
 #[derive(Debug)]
@@ -14,6 +15,8 @@ pub struct Relfusiond {
     child: Option<Child>,
     addr: String,
     data_dir: PathBuf,
+    /// Where this process's part of the log starts (the file is appended across restarts).
+    log_start: usize,
 }
 
 impl Relfusiond {
@@ -56,15 +59,66 @@ impl Relfusiond {
         )
     }
 
-    /// `relfusiond --zenoh-router ENDPOINT`: a cluster's Zenoh router (no HTTP), started and
-    /// up when this returns; `addr()` is the endpoint.
-    pub fn spawn_router(data_dir: &Path, endpoint: &str, envs: &[(&str, &str)]) -> Self {
-        Self::spawn_until(
-            data_dir,
-            ["--zenoh-router", endpoint],
-            envs,
-            "zenoh router on ",
-        )
+    /// `relfusiond --zenoh-router ENDPOINT` on a free loopback port: a cluster's Zenoh router
+    /// (no HTTP), up when this returns; returns it and its endpoint.
+    pub fn spawn_router(data_dir: &Path, envs: &[(&str, &str)]) -> (Self, String) {
+        on_free_endpoint(|endpoint| {
+            Self::try_spawn_until(
+                data_dir,
+                ["--zenoh-router", endpoint],
+                envs,
+                "zenoh router on ",
+            )
+        })
+    }
+
+    /// `relfusiond ARGS --zenoh-listen ENDPOINT` on a free loopback port (a Zenoh peer that
+    /// routes for its clients), its Zenoh side up when this returns; returns it and its
+    /// endpoint.
+    pub fn spawn_zenoh_peer<S: AsRef<OsStr>>(
+        data_dir: &Path,
+        args: &[S],
+        envs: &[(&str, &str)],
+    ) -> (Self, String) {
+        on_free_endpoint(|endpoint| Self::try_spawn_zenoh_peer(data_dir, args, envs, endpoint))
+    }
+
+    /// `relfusiond ARGS --zenoh-listen ENDPOINT`, its Zenoh side up when this returns; an
+    /// error with its log when it exits first (the endpoint taken).
+    pub fn try_spawn_zenoh_peer<S: AsRef<OsStr>>(
+        data_dir: &Path,
+        args: &[S],
+        envs: &[(&str, &str)],
+        endpoint: &str,
+    ) -> Result<Self, String> {
+        let listen = [OsStr::new("--zenoh-listen"), OsStr::new(endpoint)];
+        let all = args.iter().map(AsRef::as_ref).chain(listen);
+        let mut server = Self::spawn(data_dir, all, envs);
+        // HTTP listens first; a peer that cannot bind its endpoint exits after that.
+        server.wait_for_log("Zenoh endpoints up").map(|()| server)
+    }
+
+    /// Waits up to 60 s for `needle` in this process's log; an error with the log when the
+    /// process exits first or the time runs out.
+    fn wait_for_log(&mut self, needle: &str) -> Result<(), String> {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            let log = self.log();
+            let own = log.get(self.log_start..).unwrap_or_default();
+            if own.contains(needle) {
+                return Ok(());
+            }
+            let exited = self
+                .child
+                .as_mut()
+                .and_then(|c| c.try_wait().ok().flatten());
+            if exited.is_some() || Instant::now() > deadline {
+                return Err(format!(
+                    "relfusiond ({exited:?}) did not log {needle:?}:\n{own}"
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
     }
 
     fn spawn_until<I, S>(data_dir: &Path, args: I, envs: &[(&str, &str)], ready: &str) -> Self
@@ -72,8 +126,22 @@ impl Relfusiond {
         I: IntoIterator<Item = S>,
         S: AsRef<OsStr>,
     {
+        Self::try_spawn_until(data_dir, args, envs, ready).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    fn try_spawn_until<I, S>(
+        data_dir: &Path,
+        args: I,
+        envs: &[(&str, &str)],
+        ready: &str,
+    ) -> Result<Self, String>
+    where
+        I: IntoIterator<Item = S>,
+        S: AsRef<OsStr>,
+    {
         std::fs::create_dir_all(data_dir).expect("create data dir");
         let log_path = data_dir.with_extension("log");
+        let log_start = std::fs::metadata(&log_path).map_or(0, |m| m.len() as usize);
         let log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
@@ -97,14 +165,17 @@ impl Relfusiond {
             .expect("read the listening line");
         let Some(addr) = line.trim().strip_prefix(ready) else {
             let _ = child.kill();
+            let _ = child.wait();
             let log = std::fs::read_to_string(&log_path).unwrap_or_default();
-            panic!("relfusiond did not start: {line:?}\n{log}");
+            let own = log.get(log_start..).unwrap_or_default();
+            return Err(format!("relfusiond did not start: {line:?}\n{own}"));
         };
-        Self {
+        Ok(Self {
             addr: addr.to_string(),
             child: Some(child),
             data_dir: data_dir.to_path_buf(),
-        }
+            log_start,
+        })
     }
 
     /// `127.0.0.1:PORT`.
@@ -171,6 +242,27 @@ impl Drop for Relfusiond {
             let _ = child.wait();
         }
     }
+}
+
+/// Runs `start` on `tcp/127.0.0.1:PORT` with a free port, and again on another when that
+/// port was taken in between: [`free_port`] lets its port go, and another process may bind it,
+/// or get it as an outgoing connection's ephemeral port, before relfusiond does (a CI run
+/// lost a test to that). Any other failure panics with what `start` said.
+pub fn on_free_endpoint<T>(mut start: impl FnMut(&str) -> Result<T, String>) -> (T, String) {
+    const TRIES: usize = 5;
+    for _ in 1..TRIES {
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        match start(&endpoint) {
+            Ok(started) => return (started, endpoint),
+            Err(e) if e.contains("Address already in use") => {
+                eprintln!("{endpoint} was taken before relfusiond bound it; another port");
+            }
+            Err(e) => panic!("{e}"),
+        }
+    }
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let started = start(&endpoint).unwrap_or_else(|e| panic!("{e}"));
+    (started, endpoint)
 }
 
 /// A 320×240 synthetic TUM-layout sequence rendered once per test process by the real

@@ -15,7 +15,7 @@ use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::{StampedPose, parse_tum_trajectory};
 use relfusion_slam::eval::{AlignMode, DEFAULT_MAX_DT, align, associate_poses};
 use relfusion_slam::geometry::{SE3, SO3, Sim3};
-use relfusion_tests::{Relfusiond, free_port, json_lines, relfusion, synth_sequence, temp_dir};
+use relfusion_tests::{Relfusiond, json_lines, relfusion, synth_sequence, temp_dir};
 use serde_json::Value;
 
 const MAP_FRAMES: usize = 150;
@@ -37,9 +37,7 @@ fn refused(out: &Output) -> String {
 }
 
 fn spawn(data: &Path) -> (Relfusiond, String) {
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let server = Relfusiond::spawn(data, ["--zenoh-listen", &endpoint], &[TOKENS]);
-    (server, endpoint)
+    Relfusiond::spawn_zenoh_peer::<&str>(data, &[], &[TOKENS])
 }
 
 /// Downloads `session`'s results (alice's) into `out`; returns `out`.

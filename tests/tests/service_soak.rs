@@ -23,7 +23,7 @@ use relfusion_proto::Message as _;
 use relfusion_proto::v1::{ClientMessage, Frame, ImageEncoding, ServerMessage, client_message};
 use relfusion_slam::dataset::TumSequence;
 use relfusion_tests::attacks::{peak_rss, png_claiming, tar_of, tum_tar, zip_archive};
-use relfusion_tests::{Relfusiond, free_port, synth_sequence, temp_dir};
+use relfusion_tests::{Relfusiond, synth_sequence, temp_dir};
 use serde_json::{Value, json};
 use tungstenite::client::IntoClientRequest as _;
 use zenoh::Wait as _;
@@ -186,14 +186,11 @@ fn attacks_together_leave_honest_tenants_their_poses_and_memory_bounded() {
     let seq = TumSequence::open(&dir, None).expect("synth");
     let work = temp_dir("soak");
     std::fs::write(work.join("c.toml"), CONFIG).expect("config");
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let server = Relfusiond::spawn(
+    let (server, endpoint) = Relfusiond::spawn_zenoh_peer(
         &work.join("data"),
-        [
-            "--config".into(),
-            work.join("c.toml"),
-            "--zenoh-listen".into(),
-            endpoint.clone().into(),
+        &[
+            std::ffi::OsStr::new("--config"),
+            work.join("c.toml").as_os_str(),
         ],
         &[("RELFUSIOND_TOKENS", TOKENS)],
     );

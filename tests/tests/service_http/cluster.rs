@@ -13,7 +13,6 @@
 //!   session is served again.
 
 use super::client::*;
-use relfusion_tests::free_port;
 use relfusion_tests::s3::S3Server;
 
 const ALICE: &str = "alice-cluster-token";
@@ -115,8 +114,7 @@ fn three_nodes_are_one_service_and_an_upload_survives_its_node() {
         TumSequence::open(&synth_sequence("cluster-live", LIVE_FRAMES, 21), None).expect("synth");
     let upload_dir = synth_sequence("cluster-upload", UPLOAD_FRAMES, 22);
     let s3 = S3Server::start("cluster");
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let _router = Relfusiond::spawn_router(&work.join("router"), &endpoint, &NODE_ENV);
+    let (_router, endpoint) = Relfusiond::spawn_router(&work.join("router"), &NODE_ENV);
     let extra = format!("idle_timeout_s = 600\n{}", s3.storage_toml());
     let node = |name: &str, max_sessions: usize| {
         Relfusiond::spawn_node(&work, name, &endpoint, max_sessions, &extra, &NODE_ENV)

@@ -18,7 +18,7 @@ pub use relfusion_proto::zenoh_keys::{
 pub use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dataset::trajectory::StampedPose;
 use relfusion_slam::geometry::SE3;
-pub use relfusion_tests::{Relfusiond, bin_path, free_port, synth_sequence, temp_dir};
+pub use relfusion_tests::{Relfusiond, bin_path, synth_sequence, temp_dir};
 pub use zenoh::Wait as _;
 pub use zenoh::handlers::{FifoChannel, FifoChannelHandler};
 pub use zenoh::pubsub::Subscriber;
@@ -38,12 +38,9 @@ pub const SEED: u64 = 29;
 /// Longest wait for any single message (a pose, a reply).
 pub const PATIENCE: Duration = Duration::from_secs(60);
 
-/// A port nobody listens on now (the OS's pick for a listener that is dropped at once).
 /// `relfusiond` with Zenoh listening on a free loopback port; returns it and the endpoint.
 pub fn spawn_server(work: &Path, envs: &[(&str, &str)]) -> (Relfusiond, String) {
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let server = Relfusiond::spawn(&work.join("data"), ["--zenoh-listen", &endpoint], envs);
-    (server, endpoint)
+    Relfusiond::spawn_zenoh_peer::<&str>(&work.join("data"), &[], envs)
 }
 
 /// The Zenoh configuration of a client of `endpoint` only (no scouting), logged in as

@@ -10,3 +10,4 @@ mod late_router;
 mod placement;
 mod ros2;
 mod stream;
+mod taken_port;

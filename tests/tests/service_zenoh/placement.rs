@@ -32,8 +32,7 @@ fn zenoh_creates_go_to_the_node_with_room() {
     let seq = TumSequence::open(&synth_sequence("zenoh-placement", FRAME_COUNT, SEED), None)
         .expect("open sequence");
     let work = temp_dir("zenoh-placement");
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let router = Relfusiond::spawn_router(&work.join("router"), &endpoint, &NODE_ENV);
+    let (router, endpoint) = Relfusiond::spawn_router(&work.join("router"), &NODE_ENV);
     let node = |name: &str, max_sessions: usize| {
         let extra = "[quotas]\nmax_active_sessions = 4\n";
         Relfusiond::spawn_node(&work, name, &endpoint, max_sessions, extra, &NODE_ENV)

@@ -58,8 +58,7 @@ fn wait_ready(stdout: &mut BufReader<ChildStdout>) {
 
 /// A router (`relfusiond --zenoh-router`) and a relfusiond with `[ros2]` on, its client.
 fn spawn_ros2(work: &Path) -> (Relfusiond, Relfusiond, String) {
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let router = Relfusiond::spawn_router(&work.join("router"), &endpoint, &[]);
+    let (router, endpoint) = Relfusiond::spawn_router(&work.join("router"), &[]);
     let server = Relfusiond::spawn_node(
         work,
         "ros2-node",
