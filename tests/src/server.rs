@@ -250,19 +250,17 @@ impl Drop for Relfusiond {
 /// lost a test to that). Any other failure panics with what `start` said.
 pub fn on_free_endpoint<T>(mut start: impl FnMut(&str) -> Result<T, String>) -> (T, String) {
     const TRIES: usize = 5;
-    for _ in 1..TRIES {
+    for attempt in 1..=TRIES {
         let endpoint = format!("tcp/127.0.0.1:{}", free_port());
         match start(&endpoint) {
             Ok(started) => return (started, endpoint),
-            Err(e) if e.contains("Address already in use") => {
+            Err(e) if attempt < TRIES && e.contains("Address already in use") => {
                 eprintln!("{endpoint} was taken before relfusiond bound it; another port");
             }
             Err(e) => panic!("{e}"),
         }
     }
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let started = start(&endpoint).unwrap_or_else(|e| panic!("{e}"));
-    (started, endpoint)
+    unreachable!("the last try returns or panics")
 }
 
 /// A 320×240 synthetic TUM-layout sequence rendered once per test process by the real
