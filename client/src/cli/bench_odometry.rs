@@ -14,7 +14,7 @@ use relfusion_slam::dataset::trajectory::{StampedPose, write_tum_trajectory};
 use relfusion_slam::frame::Frame;
 use relfusion_slam::geometry::SE3;
 use relfusion_slam::geometry::UndistortMap;
-use relfusion_slam::odometry::truth::{self, TruthProbe};
+use relfusion_slam::odometry::truth::{self, FreshProbe, TruthProbe};
 use relfusion_slam::odometry::{
     Odometry, OdometryConfig, SlidingWindow, WindowObserver, WindowSnapshot,
 };
@@ -61,6 +61,11 @@ pub struct OdometryArgs {
     /// (`odometry::truth`); prints one summary line per run. About 3× slower.
     #[arg(long)]
     pub truth_probe: bool,
+    /// With `--truth-probe`: probe against the ground truth this many milliseconds after each
+    /// frame's stamp (interpolated in the sequence's `groundtruth.txt`), to see whether the
+    /// images and the truth are offset in time.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub truth_offset_ms: f64,
 }
 
 pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
@@ -94,7 +99,8 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
         let frames = undistorted_frames(&loaded)?;
         let truth = args
             .truth_probe
-            .then(|| truth_by_frame(&loaded.gt, &frames));
+            .then(|| truth_by_frame(dataset, &loaded.gt, &frames, args.truth_offset_ms))
+            .transpose()?;
         let mut medians: [Vec<f64>; 5] = Default::default();
         for run in 0..args.runs {
             let sequence = Sequence {
@@ -127,6 +133,7 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
             );
             if truth.is_some() {
                 print_truth_probes(&r.probes);
+                print_fresh_probes(&r.fresh);
             }
         }
         if args.runs > 1 {
@@ -194,6 +201,7 @@ struct RunResult {
     ms: f64,
     shape: ShapeSummary,
     probes: Vec<TruthProbe>,
+    fresh: Vec<FreshProbe>,
 }
 
 /// One run of the core over the sequence (seed `run`), with the window's depth probed after
@@ -207,13 +215,22 @@ fn run_once(
 ) -> anyhow::Result<RunResult> {
     let (loaded, frames) = (sequence.loaded, sequence.frames);
     let probes = Arc::new(Mutex::new(Vec::new()));
+    let fresh = Arc::new(Mutex::new(Vec::new()));
     let observer = truth.map(|truth| {
-        let probes = probes.clone();
+        let (probes, fresh) = (probes.clone(), fresh.clone());
+        let seq = loaded.seq.clone();
         WindowObserver(Arc::new(move |window: &SlidingWindow| {
-            if let Some(p) = truth::probe(window, &|id| truth.get(&id).copied())
+            let truth = |id: u64| truth.get(&id).copied();
+            if let Some(p) = truth::probe(window, &truth)
                 && let Ok(mut probes) = probes.lock()
             {
                 probes.push(p);
+            }
+            let sensor = |id: u64| seq.load_depth(id as usize).ok().flatten();
+            if let Some(p) = truth::probe_fresh(window, &truth, &sensor)
+                && let Ok(mut fresh) = fresh.lock()
+            {
+                fresh.push(p);
             }
         }))
     });
@@ -270,6 +287,10 @@ fn run_once(
         .lock()
         .map(|mut p| std::mem::take(&mut *p))
         .unwrap_or_default();
+    let fresh = fresh
+        .lock()
+        .map(|mut p| std::mem::take(&mut *p))
+        .unwrap_or_default();
     Ok(RunResult {
         tracked,
         keyframes: odometry.keyframe_count(),
@@ -282,6 +303,7 @@ fn run_once(
             .probe
             .summary(frames.first().map_or(0.0, |f| f.timestamp)),
         probes,
+        fresh,
     })
 }
 
@@ -375,10 +397,32 @@ impl WindowDepth {
     }
 }
 
-/// The ground-truth pose of every frame (by index, as the core numbers them) that has one
-/// within 20 ms of its timestamp.
-fn truth_by_frame(gt: &[StampedPose], frames: &[Arc<Frame>]) -> Arc<HashMap<u64, SE3>> {
+/// The true pose of every frame: the sequence's own association, or with `offset_ms` the
+/// poses of `groundtruth.txt` interpolated (linearly, rotation along the geodesic) at the
+/// frame's stamp plus the offset.
+fn truth_by_frame(
+    dataset: &std::path::Path,
+    gt: &[StampedPose],
+    frames: &[Arc<Frame>],
+    offset_ms: f64,
+) -> anyhow::Result<Arc<HashMap<u64, SE3>>> {
     let mut truth = HashMap::new();
+    if offset_ms != 0.0 {
+        let raw: Vec<(f64, SE3)> = relfusion_slam::dataset::trajectory::read_tum_trajectory(
+            &dataset.join("groundtruth.txt"),
+        )?
+        .into_iter()
+        .map(|p| (p.timestamp, p.world_from_camera))
+        .collect();
+        for (i, f) in frames.iter().enumerate() {
+            let t = f.timestamp + offset_ms * 1e-3;
+            // Bracketing poses up to 50 ms away: 7-Scenes has one per frame.
+            if let Some(pose) = relfusion_slam::dataset::tum::interpolate_pose(&raw, t, 0.05) {
+                truth.insert(i as u64, pose);
+            }
+        }
+        return Ok(Arc::new(truth));
+    }
     for (i, f) in frames.iter().enumerate() {
         let nearest = gt.iter().min_by(|a, b| {
             (a.timestamp - f.timestamp)
@@ -389,7 +433,7 @@ fn truth_by_frame(gt: &[StampedPose], frames: &[Arc<Frame>]) -> Arc<HashMap<u64,
             truth.insert(i as u64, g.world_from_camera);
         }
     }
-    Arc::new(truth)
+    Ok(Arc::new(truth))
 }
 
 /// One line: medians over the run's windows of the energies relative to the estimate's and
@@ -435,5 +479,37 @@ fn print_truth_probes(probes: &[TruthProbe]) {
             p.from_estimate.rotation_deg,
             p.from_estimate.translation_rel
         )),
+    );
+}
+
+/// One line: medians over the run's windows of the fresh probe ([`FreshProbe`]).
+fn print_fresh_probes(probes: &[FreshProbe]) {
+    let m = |f: fn(&FreshProbe) -> f64| {
+        median(probes.iter().map(f)).map_or_else(|| "-".into(), |v| format!("{v:.2}"))
+    };
+    println!(
+        "  fresh probe, medians of {} windows: {} points ({} with sensor depth), energy per point at the truth {} (compares runs: the truth's standing hardly depends on the estimate), energy at the truth ×{} of the estimate's, inlier residuals at the truth ×{}, points cheaper at the truth {}, the truth's excess in its costliest tenth of points {}",
+        probes.len(),
+        m(|p| p.points as f64),
+        m(|p| p.with_sensor as f64 / p.points.max(1) as f64),
+        m(|p| p.truth / p.points.max(1) as f64),
+        m(|p| p.truth / p.estimate.max(1e-12)),
+        m(|p| p.truth_residuals as f64 / p.estimate_residuals.max(1) as f64),
+        m(|p| p.truth_cheaper as f64 / p.points.max(1) as f64),
+        m(|p| p.top_tenth_share),
+    );
+    let thirds = |f: fn(&FreshProbe) -> [f64; 3]| {
+        (0..3)
+            .map(|i| {
+                median(probes.iter().map(|p| f(p)[i]))
+                    .map_or_else(|| "-".into(), |v| format!("{v:.2}"))
+            })
+            .collect::<Vec<_>>()
+            .join(" / ")
+    };
+    println!(
+        "    points cheaper at the truth by distance from the centre (inner / middle / outer third): {}; by rows (top / middle / bottom third): {}",
+        thirds(|p| p.cheaper_by_radius),
+        thirds(|p| p.cheaper_by_row),
     );
 }

@@ -458,8 +458,9 @@ pub fn associate(a: &[f64], b: &[f64], max_dt: f64) -> Vec<Option<usize>> {
     partner
 }
 
-/// The pose at time `t` from time-sorted `poses` (rule in the module docs).
-fn interpolate_pose(poses: &[(f64, SE3)], t: f64, max_dt: f64) -> Option<SE3> {
+/// The pose at time `t` from time-sorted `poses` (rule in the module docs; `max_dt` the
+/// farthest a bracketing pose may be).
+pub fn interpolate_pose(poses: &[(f64, SE3)], t: f64, max_dt: f64) -> Option<SE3> {
     let after = poses.partition_point(|(tp, _)| *tp < t);
     // A pose at the same instant on either side wins (no interpolation error at all).
     for idx in [after.checked_sub(1), Some(after)].into_iter().flatten() {

@@ -10,8 +10,10 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::energy;
 use super::residual::{FrameState, PATTERN};
+use super::select::select_candidates;
 use super::{SlidingWindow, WindowPoint, point_energy, refine_depth, solve};
 use crate::geometry::{SE3, SO3, Sim3};
+use crate::image::ImageF32;
 
 /// Iterations of the free optimisations: enough to reach the minimum near each start.
 const FREE_ITERATIONS: usize = 20;
@@ -20,6 +22,8 @@ const FREE_ITERATIONS: usize = 20;
 const DEPTH_SEARCH: usize = 61;
 /// Levenberg–Marquardt steps on each depth after the search.
 const DEPTH_ITERATIONS: usize = 10;
+/// Points of the fresh probe over the whole window: DSO's active-point density.
+const FRESH_POINTS: usize = 2000;
 
 /// The similarity that maps the poses `from` onto `to`: the rotation from the poses'
 /// rotations (chordal mean), scale and translation from their centres. Windows span little
@@ -232,6 +236,124 @@ pub fn probe(window: &SlidingWindow, truth: &dyn Fn(u64) -> Option<SE3>) -> Opti
     })
 }
 
+/// The window's energy on points chosen without it: candidates selected by gradient alone in
+/// every keyframe, their depths started from the sensor (the window's median where it has
+/// none) and searched again at each standing. The window's own points were chosen, traced and
+/// pruned at the estimate, so their energy may favour it; these cannot.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FreshProbe {
+    pub keyframe: u64,
+    pub points: usize,
+    /// Points started from a sensor depth.
+    pub with_sensor: usize,
+    /// The energy at the estimate's poses and at the truth's, and their inlier residuals.
+    pub estimate: f64,
+    pub truth: f64,
+    pub estimate_residuals: usize,
+    pub truth_residuals: usize,
+    /// Points that cost less at the truth than at the estimate.
+    pub truth_cheaper: usize,
+    /// The share of the truth's excess (the sum over points of what each costs more at the
+    /// truth) that the tenth of the points with the largest excess carries.
+    pub top_tenth_share: f64,
+    /// The share of points cheaper at the truth by where they lie in their host: thirds of the
+    /// distance from the image centre (a lens or focal-length error grows outwards), and
+    /// thirds of the rows from the top (a rolling shutter's error grows down the image).
+    pub cheaper_by_radius: [f64; 3],
+    pub cheaper_by_row: [f64; 3],
+}
+
+/// [`FreshProbe`] of `window` against `truth` (as [`probe`]); `sensor` gives a keyframe's
+/// sensor depth in the truth's units at the window's level 0 resolution.
+pub fn probe_fresh(
+    window: &SlidingWindow,
+    truth: &dyn Fn(u64) -> Option<SE3>,
+    sensor: &dyn Fn(u64) -> Option<ImageF32>,
+) -> Option<FreshProbe> {
+    if window.frames.len() < 4 {
+        return None;
+    }
+    let truth: Vec<SE3> = window
+        .frames
+        .iter()
+        .map(|f| truth(f.id))
+        .collect::<Option<_>>()?;
+    let into_window = fit_similarity(&truth, &window.poses());
+    let mut idepths: Vec<f64> = window.points.iter().map(|p| p.idepth).collect();
+    idepths.sort_by(f64::total_cmp);
+    let fallback = idepths.get(idepths.len() / 2).copied().unwrap_or(1.0);
+    let mut at_estimate = window.unprimed();
+    at_estimate.points.clear();
+    let per_keyframe = FRESH_POINTS / window.frames.len();
+    let level_scale = f64::from(1u32 << window.config.level);
+    let mut with_sensor = 0;
+    for f in &window.frames {
+        let depth = sensor(f.id);
+        for uv in select_candidates(f.frame.level(window.config.level), per_keyframe) {
+            let measured = depth.as_ref().and_then(|d| {
+                let (x, y) = (uv.x * level_scale, uv.y * level_scale);
+                let inside = x >= 0.0 && y >= 0.0 && x < d.width as f64 && y < d.height as f64;
+                let v = if inside {
+                    f64::from(d.at(x as usize, y as usize))
+                } else {
+                    0.0
+                };
+                (v > 0.0).then(|| 1.0 / (into_window.scale * v))
+            });
+            with_sensor += usize::from(measured.is_some());
+            at_estimate.add_point(f.id, uv, measured.unwrap_or(fallback), None);
+        }
+    }
+    let mut at_truth = at_estimate.clone();
+    for (f, t) in at_truth.frames.iter_mut().zip(&truth) {
+        f.state.world_from_camera = moved(&into_window, t);
+        f.first_estimate = f.state;
+    }
+    at_estimate.search_depths();
+    at_truth.search_depths();
+    let (e, t) = (at_estimate.standing(&truth), at_truth.standing(&truth));
+    let mut excess: Vec<f64> = at_estimate
+        .point_energies()
+        .into_iter()
+        .zip(at_truth.point_energies())
+        .map(|((e, _), (t, _))| t - e)
+        .collect();
+    let truth_cheaper = excess.iter().filter(|&&d| d < 0.0).count();
+    let level = window.frames[0].frame.level(window.config.level);
+    let (w, h) = (level.width() as f64, level.height() as f64);
+    let corner = (0.25 * (w * w + h * h)).sqrt();
+    let third = |v: f64| ((3.0 * v) as usize).min(2);
+    let (mut by_radius, mut by_row) = ([[0usize; 2]; 3], [[0usize; 2]; 3]);
+    for (p, d) in at_estimate.points.iter().zip(&excess) {
+        let radius = ((p.uv.x - 0.5 * w).powi(2) + (p.uv.y - 0.5 * h).powi(2)).sqrt() / corner;
+        for (bins, at) in [(&mut by_radius, radius), (&mut by_row, p.uv.y / h)] {
+            let bin = &mut bins[third(at)];
+            bin[0] += usize::from(*d < 0.0);
+            bin[1] += 1;
+        }
+    }
+    let shares = |bins: [[usize; 2]; 3]| bins.map(|[c, n]| c as f64 / n.max(1) as f64);
+    excess.sort_by(|a, b| b.total_cmp(a));
+    let positive: f64 = excess.iter().filter(|&&d| d > 0.0).sum();
+    let top: f64 = excess[..excess.len() / 10]
+        .iter()
+        .filter(|&&d| d > 0.0)
+        .sum();
+    Some(FreshProbe {
+        keyframe: window.frames.last()?.id,
+        points: at_estimate.points.len(),
+        with_sensor,
+        estimate: e.energy,
+        truth: t.energy,
+        estimate_residuals: e.residuals,
+        truth_residuals: t.residuals,
+        truth_cheaper,
+        top_tenth_share: if positive > 0.0 { top / positive } else { 0.0 },
+        cheaper_by_radius: shares(by_radius),
+        cheaper_by_row: shares(by_row),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use nalgebra::Vector6;
@@ -298,6 +420,24 @@ mod tests {
             "{p:?}"
         );
         assert!(probe(&window, &|_| None).is_none());
+
+        // Fresh points, started from the sensor depth in the truth's units: the truth costs
+        // less there too, and on most points.
+        let sensor = |id: u64| {
+            r.depths.get(id as usize).map(|d| ImageF32 {
+                data: d.data.iter().map(|v| v * elsewhere.scale as f32).collect(),
+                ..d.clone()
+            })
+        };
+        let fresh = probe_fresh(&window, &truth, &sensor).expect("a fresh probe");
+        assert!(fresh.points > 1000, "{fresh:?}");
+        assert!(fresh.with_sensor * 10 > fresh.points * 9, "{fresh:?}");
+        assert!(fresh.truth < fresh.estimate, "{fresh:?}");
+        assert!(2 * fresh.truth_cheaper > fresh.points, "{fresh:?}");
+        // Without a sensor every depth starts from the window's median and is searched.
+        let blind = probe_fresh(&window, &truth, &|_| None).expect("a fresh probe");
+        assert_eq!(blind.with_sensor, 0);
+        assert!(blind.truth < blind.estimate, "{blind:?}");
     }
 
     /// Rolling-shutter views of a moving camera (rendered row by row): the window that models
