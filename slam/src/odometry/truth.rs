@@ -103,6 +103,30 @@ impl SlidingWindow {
             .collect()
     }
 
+    /// The true poses of the window's keyframes and the similarity that maps them into the
+    /// window's gauge; `None` for a window of fewer than 4 keyframes or a keyframe without
+    /// truth.
+    fn true_poses(&self, truth: &dyn Fn(u64) -> Option<SE3>) -> Option<(Vec<SE3>, Sim3)> {
+        if self.frames.len() < 4 {
+            return None;
+        }
+        let truth: Vec<SE3> = self
+            .frames
+            .iter()
+            .map(|f| truth(f.id))
+            .collect::<Option<_>>()?;
+        let into_window = fit_similarity(&truth, &self.poses());
+        Some((truth, into_window))
+    }
+
+    /// Puts every keyframe at its true pose, in the window's gauge (linearised there too).
+    fn move_to(&mut self, truth: &[SE3], into_window: &Sim3) {
+        for (f, t) in self.frames.iter_mut().zip(truth) {
+            f.state.world_from_camera = moved(into_window, t);
+            f.first_estimate = f.state;
+        }
+    }
+
     fn standing(&self, truth: &[SE3]) -> Standing {
         let states: Vec<FrameState> = self.frames.iter().map(|f| f.state).collect();
         let views = solve::views(&self.config, &self.frames, &states);
@@ -192,20 +216,9 @@ impl SlidingWindow {
 /// The probe of `window` against `truth` (world_from_camera of a keyframe id, any world and
 /// scale); `None` for a window of fewer than 4 keyframes or a keyframe without truth.
 pub fn probe(window: &SlidingWindow, truth: &dyn Fn(u64) -> Option<SE3>) -> Option<TruthProbe> {
-    if window.frames.len() < 4 {
-        return None;
-    }
-    let truth: Vec<SE3> = window
-        .frames
-        .iter()
-        .map(|f| truth(f.id))
-        .collect::<Option<_>>()?;
-    let into_window = fit_similarity(&truth, &window.poses());
+    let (truth, into_window) = window.true_poses(truth)?;
     let mut at_truth = window.unprimed();
-    for (f, t) in at_truth.frames.iter_mut().zip(&truth) {
-        f.state.world_from_camera = moved(&into_window, t);
-        f.first_estimate = f.state;
-    }
+    at_truth.move_to(&truth, &into_window);
     at_truth.search_depths();
     let mut from_truth = at_truth.clone();
     from_truth.optimize();
@@ -270,15 +283,7 @@ pub fn probe_fresh(
     truth: &dyn Fn(u64) -> Option<SE3>,
     sensor: &dyn Fn(u64) -> Option<ImageF32>,
 ) -> Option<FreshProbe> {
-    if window.frames.len() < 4 {
-        return None;
-    }
-    let truth: Vec<SE3> = window
-        .frames
-        .iter()
-        .map(|f| truth(f.id))
-        .collect::<Option<_>>()?;
-    let into_window = fit_similarity(&truth, &window.poses());
+    let (truth, into_window) = window.true_poses(truth)?;
     let mut idepths: Vec<f64> = window.points.iter().map(|p| p.idepth).collect();
     idepths.sort_by(f64::total_cmp);
     let fallback = idepths.get(idepths.len() / 2).copied().unwrap_or(1.0);
@@ -305,10 +310,7 @@ pub fn probe_fresh(
         }
     }
     let mut at_truth = at_estimate.clone();
-    for (f, t) in at_truth.frames.iter_mut().zip(&truth) {
-        f.state.world_from_camera = moved(&into_window, t);
-        f.first_estimate = f.state;
-    }
+    at_truth.move_to(&truth, &into_window);
     at_estimate.search_depths();
     at_truth.search_depths();
     let (e, t) = (at_estimate.standing(&truth), at_truth.standing(&truth));
