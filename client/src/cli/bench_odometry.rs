@@ -16,7 +16,7 @@ use relfusion_slam::geometry::SE3;
 use relfusion_slam::geometry::UndistortMap;
 use relfusion_slam::odometry::truth::{self, FreshProbe, TruthProbe};
 use relfusion_slam::odometry::{
-    Odometry, OdometryConfig, SlidingWindow, WindowObserver, WindowSnapshot,
+    FirstMap, Odometry, OdometryConfig, SlidingWindow, WindowObserver, WindowSnapshot,
 };
 
 use relfusion_slam::dataset::TumSequence;
@@ -66,6 +66,11 @@ pub struct OdometryArgs {
     /// images and the truth are offset in time.
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     pub truth_offset_ms: f64,
+    /// Start the window from the sensor's depth shape instead of the initialiser's (each
+    /// first-frame point's inverse depth from the depth image, mean 1; points without depth
+    /// dropped): an oracle that shows how much a run owes to its first map.
+    #[arg(long)]
+    pub oracle_first_map: bool,
 }
 
 pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
@@ -236,6 +241,9 @@ fn run_once(
     });
     let mut odometry =
         Odometry::start_observed(config.clone(), run as u64, args.threaded, observer)?;
+    if args.oracle_first_map {
+        odometry = odometry.with_first_map(sensor_first_map(loaded.seq.clone()));
+    }
     let mut tracked = 0;
     let mut keyframe_stamps = Vec::new();
     let t0 = Instant::now();
@@ -305,6 +313,38 @@ fn run_once(
         probes,
         fresh,
     })
+}
+
+/// The first map with the sensor's depth shape: each point's inverse depth from the depth
+/// image at its pixel, scaled to mean 1 (the initialiser's units); points without depth are
+/// dropped. Without a depth image the initialiser's map stays.
+fn sensor_first_map(seq: TumSequence) -> FirstMap {
+    FirstMap(Arc::new(
+        move |first: &Frame, points: &[(nalgebra::Vector2<f64>, f64)]| {
+            let Ok(Some(depth)) = seq.load_depth(first.id as usize) else {
+                return points.to_vec();
+            };
+            let sensor: Vec<_> = points
+                .iter()
+                .filter_map(|(uv, _)| {
+                    let (x, y) = (uv.x.round(), uv.y.round());
+                    let inside =
+                        x >= 0.0 && y >= 0.0 && x < depth.width as f64 && y < depth.height as f64;
+                    let d = if inside {
+                        f64::from(depth.at(x as usize, y as usize))
+                    } else {
+                        0.0
+                    };
+                    (d > 0.0).then(|| (*uv, 1.0 / d))
+                })
+                .collect();
+            let mean = sensor.iter().map(|p| p.1).sum::<f64>() / sensor.len().max(1) as f64;
+            if sensor.is_empty() || !mean.is_finite() {
+                return points.to_vec();
+            }
+            sensor.into_iter().map(|(uv, d)| (uv, d / mean)).collect()
+        },
+    ))
 }
 
 /// The window's depth against the sensor's, probed whenever it has published a new keyframe.

@@ -30,6 +30,16 @@ const COARSEST: usize = 3;
 const ALPHA_LIMIT: f64 = 2.5 * 2.5;
 /// Frames optimised after parallax was reached before the first keyframe is made (DSO: 5).
 const FRAMES_AFTER_SNAP: usize = 5;
+/// Least translation, as a share of the mean depth, the initialiser hands over: DSO's own
+/// snap threshold `√(alphaK / alphaW)` = 1/60, but measured in scale-free units
+/// (`|t| · mean ρ`). Before the snap the depths are held at 1 and the two agree; after it the
+/// scale is free (the mean inverse depth drifted to 0.04 on redkitchen 0-299), and the snap,
+/// set off by a few frames' noisy translation, no longer says how much parallax the depths
+/// rest on. Handing over at 0.0097 gave 0-299 an inverted first map (depth-shape slope
+/// −0.52) that the window never repaired; waiting for 1/60 gives slope 1.38 and a median ATE
+/// of 0.023 m instead of 0.104 m over nine orders, at +13 % on a rendered hand-held path
+/// (docs/tuning.md, 2026-12-07).
+const MIN_PARALLAX: f64 = 2.5 / 150.0;
 /// Weight pulling every inverse depth to 1 until there is parallax (DSO's `alphaW` = 150²):
 /// without translation a depth is unobservable, and left free it wanders off by orders of
 /// magnitude (measured: log-inverse-depth spread 4.9 on a near-planar synthetic scene whose
@@ -52,6 +62,21 @@ pub struct Initialised {
     pub points: Vec<(Vector2<f64>, f64)>,
     /// `world_from_camera` of the frames given so far (the first is the identity).
     pub poses: Vec<SE3>,
+}
+
+/// Replaces the initialiser's first map before the window starts from it: a probe, not an
+/// estimator (`relfusion bench odometry --oracle-first-map` gives it the sensor's depth shape to
+/// measure how much a run owes to its first map). Given the first frame and the handed-over
+/// `(pixel, inverse depth)` points (mean 1), it returns the points to start from.
+#[derive(Clone)]
+pub struct FirstMap(
+    pub Arc<dyn Fn(&Frame, &[(Vector2<f64>, f64)]) -> Vec<(Vector2<f64>, f64)> + Send + Sync>,
+);
+
+impl std::fmt::Debug for FirstMap {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("FirstMap")
+    }
 }
 
 /// The `k` nearest other points of each of `points` (image distance).
@@ -107,7 +132,9 @@ impl Initialiser {
     }
 
     /// Optimises `frame`'s pose with the first frame's depths; `Some` once there has been
-    /// enough parallax for long enough.
+    /// parallax for [`FRAMES_AFTER_SNAP`] frames and the translation is [`MIN_PARALLAX`] of the
+    /// mean depth. Like DSO's, it waits as long as the camera does not translate: without
+    /// parallax a monocular camera has no map to start from.
     pub fn push(&mut self, frame: Arc<Frame>) -> Option<Initialised> {
         let n = self.poses.len();
         let guess = match n {
@@ -126,10 +153,19 @@ impl Initialiser {
         if self
             .frames_since_snap
             .is_some_and(|s| s >= FRAMES_AFTER_SNAP)
+            && self.parallax(&pose) >= MIN_PARALLAX
         {
             return Some(self.finish());
         }
         None
+    }
+
+    /// The baseline from the first frame to `pose` times the first frame's mean inverse
+    /// depth: the parallax the depths rest on, whatever scale the optimisation drifted to.
+    fn parallax(&self, pose: &SE3) -> f64 {
+        let mean =
+            self.points.iter().map(|(_, d)| d).sum::<f64>() / self.points.len().max(1) as f64;
+        pose.translation.norm() * mean
     }
 
     /// The result with the inverse depths rescaled to a mean of 1 and the translations with
@@ -308,5 +344,30 @@ mod tests {
         let mean = done.points.iter().map(|(_, d)| d).sum::<f64>() / done.points.len() as f64;
         assert!((mean - 1.0).abs() < 1e-9, "mean inverse depth {mean}");
         assert_eq!(done.poses.len(), init.poses.len());
+    }
+
+    #[test]
+    fn it_hands_over_only_once_the_baseline_is_a_sixtieth_of_the_depth() {
+        // On this hand-held start the snap comes early: handing over after DSO's five frames
+        // alone would leave a baseline of 0.0157 mean depths.
+        let frames = rendered_frames(&SynthConfig {
+            width: 320,
+            height: 240,
+            seed: 1,
+            frames: 40,
+            motion: Motion::Handheld,
+            ..SynthConfig::default()
+        });
+        let mut init = Initialiser::new(&OdometryConfig::default(), frames[0].clone(), 600);
+        let done = frames[1..]
+            .iter()
+            .find_map(|f| init.push(f.clone()))
+            .expect("initialised within 40 frames");
+        // With a mean inverse depth of 1 the last baseline is the parallax handed over.
+        let baseline = done.poses.last().expect("pose").translation.norm();
+        assert!(
+            baseline >= MIN_PARALLAX,
+            "handed over at parallax {baseline}"
+        );
     }
 }

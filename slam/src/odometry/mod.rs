@@ -38,6 +38,7 @@ use std::sync::Arc;
 use nalgebra::{Vector2, Vector6};
 
 pub use config::OdometryConfig;
+pub use init::FirstMap;
 pub use mapper::{PublishedPoint, WindowObserver, WindowSnapshot};
 pub use prior::MarginalisationPrior;
 pub use residual::{FrameState, Linearisation, PATTERN};

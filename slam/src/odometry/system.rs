@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use nalgebra::{Vector3, Vector6};
 
 use super::OdometryConfig;
-use super::init::Initialiser;
+use super::init::{FirstMap, Initialiser};
 use super::mapper::{MapJob, Published, WindowMapper, WindowObserver, WindowSnapshot};
 use crate::background::{Link, Priority, WorkerSpec};
 use crate::frame::Frame;
@@ -69,6 +69,8 @@ pub struct Odometry {
     last_stamp: Option<f64>,
     /// Tracking residual of the first frame after the newest keyframe.
     first_residual: Option<f32>,
+    /// Replaces the initialiser's map (a probe; `None` in every live use).
+    first_map: Option<FirstMap>,
 }
 
 impl Odometry {
@@ -125,7 +127,15 @@ impl Odometry {
             last: None,
             last_stamp: None,
             first_residual: None,
+            first_map: None,
         })
+    }
+
+    /// The odometry starting its window from the map `first_map` makes of the initialiser's
+    /// (a probe of how much a run owes to its first map).
+    pub fn with_first_map(mut self, first_map: FirstMap) -> Self {
+        self.first_map = Some(first_map);
+        self
     }
 
     /// The window as last published (after its latest keyframe).
@@ -310,9 +320,12 @@ impl Odometry {
             ));
             return Ok(untracked);
         };
-        let Some(done) = init.push(frame) else {
+        let Some(mut done) = init.push(frame) else {
             return Ok(untracked);
         };
+        if let Some(map) = &self.first_map {
+            done.points = (map.0)(&done.first, &done.points);
+        }
         for ((_, p), pose) in self.frames.iter_mut().zip(&done.poses) {
             p.keyframe_from_frame = *pose;
         }

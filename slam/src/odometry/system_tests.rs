@@ -115,3 +115,38 @@ fn threaded_window_that_catches_up_computes_what_the_window_in_step_does() {
         );
     }
 }
+
+#[test]
+fn a_first_map_replaces_the_initialisers_before_the_window_starts() {
+    let frames = rendered_frames(&SynthConfig {
+        width: 320,
+        height: 240,
+        seed: 4,
+        frames: 30,
+        ..SynthConfig::default()
+    });
+    // Keep the first 100 points, every one at inverse depth 0.5.
+    let first_map = super::FirstMap(Arc::new(
+        |_: &Frame, points: &[(nalgebra::Vector2<f64>, f64)]| {
+            points.iter().take(100).map(|(uv, _)| (*uv, 0.5)).collect()
+        },
+    ));
+    let mut odometry = Odometry::new(OdometryConfig::default())
+        .expect("odometry")
+        .with_first_map(first_map);
+    for f in &frames {
+        if odometry.push(f.clone()).expect("push").keyframe {
+            break;
+        }
+    }
+    let window = odometry.window().expect("the first keyframe");
+    assert_eq!(window.frames.len(), 1);
+    assert_eq!(
+        window.points.len(),
+        100,
+        "the window starts from the given map"
+    );
+    for p in &window.points {
+        assert!((p.idepth - 0.5).abs() < 1e-12, "inverse depth {}", p.idepth);
+    }
+}
