@@ -58,6 +58,12 @@ pub struct OdometryConfig {
     /// helps rendered rolling-shutter video, but 23 or 30 ms made the real sequences worse
     /// (docs/tuning.md, 2026-11-28, fifth stop); a camera's known read-out time may be set.
     pub rolling_shutter_readout: f64,
+    /// Least baseline, in mean depths of the first frame (`|t| · mean ρ`), at which the
+    /// initialiser hands over; 0: DSO's rule alone (five frames after the snap). 1/60 is DSO's
+    /// own snap threshold `√(alphaK/alphaW)` in scale-free units: it takes redkitchen 0-299
+    /// from 0.104 to 0.023 m (nine orders), but costs 13 % on a rendered hand-held path and
+    /// 14 % on 0-299 at 525 px, so it is not the default (docs/tuning.md, 2026-12-07).
+    pub init_min_parallax: f64,
 }
 
 impl Default for OdometryConfig {
@@ -81,6 +87,7 @@ impl Default for OdometryConfig {
             keyframe_rotation_weight: 0.02,
             keyframe_affine_weight: 2.0,
             rolling_shutter_readout: 0.0,
+            init_min_parallax: 0.0,
         }
     }
 }
@@ -124,6 +131,9 @@ impl OdometryConfig {
             && (0.0..=1.0).contains(&self.rolling_shutter_readout))
         {
             return bad("rolling_shutter_readout must be in 0..=1 s");
+        }
+        if !(self.init_min_parallax.is_finite() && (0.0..=1.0).contains(&self.init_min_parallax)) {
+            return bad("init_min_parallax must be in 0..=1 mean depths");
         }
         if self.active_points == 0 || self.active_points > 20_000 {
             return bad("active_points must be in 1..=20000");

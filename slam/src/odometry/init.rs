@@ -30,16 +30,6 @@ const COARSEST: usize = 3;
 const ALPHA_LIMIT: f64 = 2.5 * 2.5;
 /// Frames optimised after parallax was reached before the first keyframe is made (DSO: 5).
 const FRAMES_AFTER_SNAP: usize = 5;
-/// Least translation, as a share of the mean depth, the initialiser hands over: DSO's own
-/// snap threshold `√(alphaK / alphaW)` = 1/60, but measured in scale-free units
-/// (`|t| · mean ρ`). Before the snap the depths are held at 1 and the two agree; after it the
-/// scale is free (the mean inverse depth drifted to 0.04 on redkitchen 0-299), and the snap,
-/// set off by a few frames' noisy translation, no longer says how much parallax the depths
-/// rest on. Handing over at 0.0097 gave 0-299 an inverted first map (depth-shape slope
-/// −0.52) that the window never repaired; waiting for 1/60 gives slope 1.38 and a median ATE
-/// of 0.023 m instead of 0.104 m over nine orders, at +13 % on a rendered hand-held path
-/// (docs/tuning.md, 2026-12-07).
-const MIN_PARALLAX: f64 = 2.5 / 150.0;
 /// Weight pulling every inverse depth to 1 until there is parallax (DSO's `alphaW` = 150²):
 /// without translation a depth is unobservable, and left free it wanders off by orders of
 /// magnitude (measured: log-inverse-depth spread 4.9 on a near-planar synthetic scene whose
@@ -132,9 +122,12 @@ impl Initialiser {
     }
 
     /// Optimises `frame`'s pose with the first frame's depths; `Some` once there has been
-    /// parallax for [`FRAMES_AFTER_SNAP`] frames and the translation is [`MIN_PARALLAX`] of the
-    /// mean depth. Like DSO's, it waits as long as the camera does not translate: without
-    /// parallax a monocular camera has no map to start from.
+    /// parallax for [`FRAMES_AFTER_SNAP`] frames and the baseline is `init_min_parallax` mean
+    /// depths. Before the snap the depths are held at 1 and `|t|` is that ratio; after it the
+    /// scale is free (the mean inverse depth drifted to 0.04 on redkitchen 0-299, where the
+    /// five frames alone hand over at 0.0097 mean depths and an inverted first map). Like
+    /// DSO's, it waits as long as the camera does not translate: without parallax a monocular
+    /// camera has no map to start from.
     pub fn push(&mut self, frame: Arc<Frame>) -> Option<Initialised> {
         let n = self.poses.len();
         let guess = match n {
@@ -153,7 +146,7 @@ impl Initialiser {
         if self
             .frames_since_snap
             .is_some_and(|s| s >= FRAMES_AFTER_SNAP)
-            && self.parallax(&pose) >= MIN_PARALLAX
+            && self.parallax(&pose) >= self.config.init_min_parallax
         {
             return Some(self.finish());
         }
@@ -347,9 +340,9 @@ mod tests {
     }
 
     #[test]
-    fn it_hands_over_only_once_the_baseline_is_a_sixtieth_of_the_depth() {
-        // On this hand-held start the snap comes early: handing over after DSO's five frames
-        // alone would leave a baseline of 0.0157 mean depths.
+    fn with_a_least_parallax_it_waits_for_that_baseline() {
+        // On this hand-held start the snap comes early: DSO's five frames alone hand over at a
+        // baseline of 0.0157 mean depths.
         let frames = rendered_frames(&SynthConfig {
             width: 320,
             height: 240,
@@ -358,16 +351,22 @@ mod tests {
             motion: Motion::Handheld,
             ..SynthConfig::default()
         });
-        let mut init = Initialiser::new(&OdometryConfig::default(), frames[0].clone(), 600);
-        let done = frames[1..]
-            .iter()
-            .find_map(|f| init.push(f.clone()))
-            .expect("initialised within 40 frames");
         // With a mean inverse depth of 1 the last baseline is the parallax handed over.
-        let baseline = done.poses.last().expect("pose").translation.norm();
-        assert!(
-            baseline >= MIN_PARALLAX,
-            "handed over at parallax {baseline}"
-        );
+        let baseline = |least: f64| {
+            let config = OdometryConfig {
+                init_min_parallax: least,
+                ..OdometryConfig::default()
+            };
+            let mut init = Initialiser::new(&config, frames[0].clone(), 600);
+            let done = frames[1..]
+                .iter()
+                .find_map(|f| init.push(f.clone()))
+                .expect("initialised within 40 frames");
+            done.poses.last().expect("pose").translation.norm()
+        };
+        let dso = baseline(0.0);
+        assert!(dso < 1.0 / 60.0, "DSO's rule alone handed over at {dso}");
+        let waited = baseline(1.0 / 60.0);
+        assert!(waited >= 1.0 / 60.0, "handed over at parallax {waited}");
     }
 }
