@@ -326,17 +326,7 @@ fn sensor_first_map(seq: TumSequence) -> FirstMap {
             };
             let sensor: Vec<_> = points
                 .iter()
-                .filter_map(|(uv, _)| {
-                    let (x, y) = (uv.x.round(), uv.y.round());
-                    let inside =
-                        x >= 0.0 && y >= 0.0 && x < depth.width as f64 && y < depth.height as f64;
-                    let d = if inside {
-                        f64::from(depth.at(x as usize, y as usize))
-                    } else {
-                        0.0
-                    };
-                    (d > 0.0).then(|| (*uv, 1.0 / d))
-                })
+                .filter_map(|(uv, _)| depth_at(&depth, uv.x, uv.y).map(|d| (*uv, 1.0 / d)))
                 .collect();
             let mean = sensor.iter().map(|p| p.1).sum::<f64>() / sensor.len().max(1) as f64;
             if sensor.is_empty() || !mean.is_finite() {
@@ -345,6 +335,18 @@ fn sensor_first_map(seq: TumSequence) -> FirstMap {
             sensor.into_iter().map(|(uv, d)| (uv, d / mean)).collect()
         },
     ))
+}
+
+/// The sensor depth at the pixel nearest `(x, y)` (level-0 coordinates), when it has one.
+fn depth_at(depth: &ImageF32, x: f64, y: f64) -> Option<f64> {
+    let (x, y) = (x.round(), y.round());
+    let inside = x >= 0.0 && y >= 0.0 && x < depth.width as f64 && y < depth.height as f64;
+    let d = if inside {
+        f64::from(depth.at(x as usize, y as usize))
+    } else {
+        0.0
+    };
+    (d > 0.0).then_some(d)
 }
 
 /// The window's depth against the sensor's, probed whenever it has published a new keyframe.
@@ -423,12 +425,9 @@ impl WindowDepth {
                 }
             };
             let Some(depth) = depth else { continue };
-            let (x, y) = ((p.uv.x * factor).round(), (p.uv.y * factor).round());
-            if x < 0.0 || y < 0.0 || x >= depth.width as f64 || y >= depth.height as f64 {
-                continue;
-            }
-            let d = f64::from(depth.at(x as usize, y as usize));
-            if d > 0.0 && p.idepth > 0.0 {
+            if let Some(d) = depth_at(depth, p.uv.x * factor, p.uv.y * factor)
+                && p.idepth > 0.0
+            {
                 pairs.push((-d.ln(), p.idepth.ln()));
             }
         }

@@ -156,9 +156,11 @@ impl Initialiser {
     /// The baseline from the first frame to `pose` times the first frame's mean inverse
     /// depth: the parallax the depths rest on, whatever scale the optimisation drifted to.
     fn parallax(&self, pose: &SE3) -> f64 {
-        let mean =
-            self.points.iter().map(|(_, d)| d).sum::<f64>() / self.points.len().max(1) as f64;
-        pose.translation.norm() * mean
+        pose.translation.norm() * self.mean_idepth()
+    }
+
+    fn mean_idepth(&self) -> f64 {
+        self.points.iter().map(|(_, d)| d).sum::<f64>() / self.points.len().max(1) as f64
     }
 
     /// The result with the inverse depths rescaled to a mean of 1 and the translations with
@@ -166,8 +168,7 @@ impl Initialiser {
     /// DSO hands over the smoothed depths; the optimised ones did better here
     /// (docs/tuning.md, 2026-11-28).
     fn finish(&self) -> Initialised {
-        let mean =
-            self.points.iter().map(|(_, d)| d).sum::<f64>() / self.points.len().max(1) as f64;
+        let mean = self.mean_idepth();
         let factor = if mean.is_finite() && mean > 0.0 {
             1.0 / mean
         } else {
