@@ -71,6 +71,12 @@ pub struct OdometryArgs {
     /// dropped): an oracle that shows how much a run owes to its first map.
     #[arg(long)]
     pub oracle_first_map: bool,
+    /// Run `r` starts `r ×` this many frames into the sequence (the frames before it are not
+    /// given). The initialiser is deterministic, so the runs of one start share its first
+    /// map; only another start samples another initialisation. 0: every run starts at the
+    /// first frame.
+    #[arg(long, default_value_t = 0)]
+    pub start_stride: usize,
 }
 
 pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
@@ -84,7 +90,7 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
     };
     config.validate()?;
     println!(
-        "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8} {:>8} {:>11} {:>7}",
+        "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8} {:>8} {:>11} {:>7} {:>6}",
         "sequence",
         "frames",
         "tracked",
@@ -96,7 +102,8 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
         "ms/frame",
         "shape@1s",
         "shape range",
-        "scale×"
+        "scale×",
+        "focal×"
     );
     let fmt = |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |x| format!("{x:.d$}"));
     for dataset in &args.datasets {
@@ -122,7 +129,7 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 column.extend(value);
             }
             println!(
-                "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8.1} {:>8} {:>11} {:>7}",
+                "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8.1} {:>8} {:>11} {:>7} {:>6.3}",
                 dataset.display().to_string(),
                 frames.len(),
                 r.tracked,
@@ -135,6 +142,7 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 fmt(r.shape.slope_after_1s, 2),
                 r.shape.range_text(),
                 fmt(r.shape.scale_ratio, 2),
+                r.focal,
             );
             if truth.is_some() {
                 print_truth_probes(&r.probes);
@@ -144,7 +152,7 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
         if args.runs > 1 {
             let [ate, kf_ate, share, drift, ms] = medians.map(|v| median(v.into_iter()));
             println!(
-                "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8} {:>8} {:>11} {:>7}",
+                "{:<48} {:>6} {:>7} {:>4} {:>9} {:>9} {:>7} {:>7} {:>8} {:>8} {:>11} {:>7} {:>6}",
                 format!("{} (median of {})", dataset.display(), args.runs),
                 frames.len(),
                 "-",
@@ -154,6 +162,7 @@ pub fn odometry(args: &OdometryArgs) -> anyhow::Result<()> {
                 fmt(share, 2),
                 fmt(drift, 2),
                 fmt(ms, 1),
+                "-",
                 "-",
                 "-",
                 "-",
@@ -188,6 +197,12 @@ fn undistorted_frames(loaded: &Loaded) -> anyhow::Result<Vec<Arc<Frame>>> {
     Ok(frames)
 }
 
+/// The timestamp of frame `id` in `frames`, whose ids are consecutive from the first's.
+fn stamp_of(frames: &[Arc<Frame>], id: u64) -> f64 {
+    let first = frames.first().map_or(0, |f| f.id);
+    frames[id.saturating_sub(first) as usize].timestamp
+}
+
 /// One sequence as the runs see it.
 struct Sequence<'a> {
     path: &'a std::path::Path,
@@ -205,6 +220,8 @@ struct RunResult {
     drift: Option<f64>,
     ms: f64,
     shape: ShapeSummary,
+    /// The focal length the odometry chose, relative to the sequence's.
+    focal: f64,
     probes: Vec<TruthProbe>,
     fresh: Vec<FreshProbe>,
 }
@@ -218,7 +235,9 @@ fn run_once(
     truth: Option<Arc<HashMap<u64, SE3>>>,
     run: usize,
 ) -> anyhow::Result<RunResult> {
-    let (loaded, frames) = (sequence.loaded, sequence.frames);
+    let loaded = sequence.loaded;
+    let start = (args.start_stride * run).min(sequence.frames.len().saturating_sub(1));
+    let frames = &sequence.frames[start..];
     let probes = Arc::new(Mutex::new(Vec::new()));
     let fresh = Arc::new(Mutex::new(Vec::new()));
     let observer = truth.map(|truth| {
@@ -272,7 +291,7 @@ fn run_once(
         .trajectory()
         .into_iter()
         .map(|(id, pose)| StampedPose {
-            timestamp: frames[id as usize].timestamp,
+            timestamp: stamp_of(frames, id),
             world_from_camera: pose,
         })
         .collect();
@@ -310,6 +329,7 @@ fn run_once(
         shape: watch
             .probe
             .summary(frames.first().map_or(0.0, |f| f.timestamp)),
+        focal: odometry.focal_scale(),
         probes,
         fresh,
     })
@@ -375,7 +395,7 @@ impl WindowWatch {
         let Some(&(id, _, (a, b))) = window.frames.last() else {
             return Ok(());
         };
-        let timestamp = frames[id as usize].timestamp;
+        let timestamp = stamp_of(frames, id);
         self.depth
             .measure(&mut self.probe, seq, window, timestamp)?;
         if print {

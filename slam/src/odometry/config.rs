@@ -6,6 +6,10 @@ use serde::{Deserialize, Serialize};
 use crate::frame::PYRAMID_LEVELS;
 use crate::{Error, Result};
 
+/// Most initialisers [`OdometryConfig::focal_candidates`] may start (each costs one
+/// initialiser's work per frame until the hand-over).
+const MAX_FOCAL_CANDIDATES: usize = 8;
+
 /// Configuration of [`super::SlidingWindow`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -61,9 +65,17 @@ pub struct OdometryConfig {
     /// Least baseline, in mean depths of the first frame (`|t| · mean ρ`), at which the
     /// initialiser hands over; 0: DSO's rule alone (five frames after the snap). 1/60 is DSO's
     /// own snap threshold `√(alphaK/alphaW)` in scale-free units: it takes redkitchen 0-299
-    /// from 0.104 to 0.023 m (nine orders), but costs 13 % on a rendered hand-held path and
-    /// 14 % on 0-299 at 525 px, so it is not the default (docs/tuning.md, 2026-12-07).
+    /// from 0.104 to 0.023 m (nine orders of its first frame), but started 5-25 frames later
+    /// only one of five starts gains, so it is not the default (docs/tuning.md, 2026-12-07).
     pub init_min_parallax: f64,
+    /// Focal lengths tried at initialisation, relative to the given one, each by its own
+    /// initialiser on the same frames; the one whose map and poses fit the images best is
+    /// kept for the whole run ([`super::focal`]). Empty: the given focal length alone. For a
+    /// camera whose focal length is not known or suspect, e.g. `[0.9, 1.0, 1.1]` (about 3×
+    /// the initialiser's work, and a joint refinement per candidate at the hand-over). Not
+    /// the default: it chose the true focal length in 76 % of rendered starts and waits for
+    /// twice the parallax (docs/tuning.md, 2026-12-07).
+    pub focal_candidates: Vec<f64>,
 }
 
 impl Default for OdometryConfig {
@@ -88,6 +100,7 @@ impl Default for OdometryConfig {
             keyframe_affine_weight: 2.0,
             rolling_shutter_readout: 0.0,
             init_min_parallax: 0.0,
+            focal_candidates: Vec::new(),
         }
     }
 }
@@ -134,6 +147,16 @@ impl OdometryConfig {
         }
         if !(self.init_min_parallax.is_finite() && (0.0..=1.0).contains(&self.init_min_parallax)) {
             return bad("init_min_parallax must be in 0..=1 mean depths");
+        }
+        if self.focal_candidates.len() > MAX_FOCAL_CANDIDATES
+            || !self
+                .focal_candidates
+                .iter()
+                .all(|s| s.is_finite() && (0.5..=2.0).contains(s))
+        {
+            return bad(
+                "focal_candidates: at most 8, each in 0.5..=2 times the given focal length",
+            );
         }
         if self.active_points == 0 || self.active_points > 20_000 {
             return bad("active_points must be in 1..=20000");

@@ -39,6 +39,12 @@ const ALPHA_WEIGHT: f64 = 150.0 * 150.0;
 /// (DSO's `couplingWeight` = 1): it decides only the points the photometric error leaves
 /// unconstrained (no gradient along their epipolar line).
 const COUPLING_WEIGHT: f64 = 1.0;
+/// Frames kept for [`Initialiser::score`] at most: when one more comes, every other is
+/// dropped (the newest kept), so that they span the whole baseline at any length and a
+/// camera that turns in place for minutes holds no more than these.
+const SCORE_FRAMES: usize = 12;
+/// Gauss–Newton iterations per level of [`Initialiser::score`].
+const SCORE_ITERATIONS: usize = 10;
 /// Neighbours of a point in its smoothed target (DSO: 10) and the share of their median in it
 /// (DSO's `regWeight` = 0.8).
 const NEIGHBOURS: usize = 10;
@@ -103,6 +109,9 @@ pub struct Initialiser {
     smoothed: Vec<f64>,
     poses: Vec<SE3>,
     frames_since_snap: Option<usize>,
+    /// Frames after the first for [`Initialiser::score`] with their index in `poses`; kept
+    /// only when `config.focal_candidates` asks for a comparison.
+    scored: Vec<(usize, Arc<Frame>)>,
 }
 
 impl Initialiser {
@@ -118,6 +127,7 @@ impl Initialiser {
             first,
             poses: vec![SE3::identity()],
             frames_since_snap: None,
+            scored: Vec::new(),
         }
     }
 
@@ -139,6 +149,17 @@ impl Initialiser {
         };
         let pose = self.optimize(&frame, guess);
         self.poses.push(pose);
+        if self.config.focal_candidates.len() > 1 {
+            self.scored.push((self.poses.len() - 1, frame));
+            if self.scored.len() > SCORE_FRAMES {
+                let newest = self.scored.len() - 1;
+                let mut i = 0;
+                self.scored.retain(|_| {
+                    i += 1;
+                    (newest + 1 - i) % 2 == 0
+                });
+            }
+        }
         if self.frames_since_snap.is_some() || self.alpha_energy(&pose) > ALPHA_LIMIT {
             let since = self.frames_since_snap.get_or_insert(0);
             *since += 1;
@@ -159,6 +180,11 @@ impl Initialiser {
         pose.translation.norm() * self.mean_idepth()
     }
 
+    /// The baseline of the latest frame in mean depths of the first ([`Self::parallax`]).
+    pub fn baseline(&self) -> f64 {
+        self.poses.last().map_or(0.0, |p| self.parallax(p))
+    }
+
     fn mean_idepth(&self) -> f64 {
         self.points.iter().map(|(_, d)| d).sum::<f64>() / self.points.len().max(1) as f64
     }
@@ -167,7 +193,7 @@ impl Initialiser {
     /// them: DSO's units, in which [`HANDOVER_PRIOR_WEIGHT`] means the same in every scene.
     /// DSO hands over the smoothed depths; the optimised ones did better here
     /// (docs/tuning.md, 2026-11-28).
-    fn finish(&self) -> Initialised {
+    pub fn finish(&self) -> Initialised {
         let mean = self.mean_idepth();
         let factor = if mean.is_finite() && mean > 0.0 {
             1.0 / mean
@@ -253,6 +279,77 @@ impl Initialiser {
         pose
     }
 
+    /// How well the first frame's depths and the frames' poses fit the images together: the
+    /// photometric energy per inlier residual after a joint optimisation of the depths and
+    /// the poses of the kept frames ([`SCORE_FRAMES`]), coarse to fine, on a copy. Why:
+    /// under a wrong focal length no map and poses fit every frame at once, so the energy is
+    /// least at the right one (rendered and real sequences, docs/tuning.md, 2026-12-07); the
+    /// initialiser's own optimisation sees one frame at a time. Infinite without frames
+    /// (only kept when `focal_candidates` asks for a comparison).
+    pub fn score(&self) -> f64 {
+        let mut depths: Vec<f64> = self.points.iter().map(|p| p.1).collect();
+        let mut poses: Vec<SE3> = self.scored.iter().map(|(i, _)| self.poses[*i]).collect();
+        if self.scored.is_empty() {
+            return f64::INFINITY;
+        }
+        let mut energy = f64::INFINITY;
+        let top = COARSEST.min(self.first.pyramid.levels.len() - 1);
+        for level in (0..=top).rev() {
+            let config = OdometryConfig {
+                level,
+                iterations: SCORE_ITERATIONS,
+                ..self.config.clone()
+            };
+            let Ok(mut window) = SlidingWindow::new(config) else {
+                return f64::INFINITY;
+            };
+            let state = |pose: SE3| FrameState {
+                world_from_camera: pose,
+                affine: (0.0, 0.0),
+            };
+            if window
+                .add_frame(0, self.first.clone(), state(SE3::identity()))
+                .is_err()
+            {
+                return f64::INFINITY;
+            }
+            for (k, (_, frame)) in self.scored.iter().enumerate() {
+                if window
+                    .add_frame(k as u64 + 1, frame.clone(), state(poses[k]))
+                    .is_err()
+                {
+                    return f64::INFINITY;
+                }
+            }
+            // The first frame held, every other pose free: the scale stays where the
+            // initialiser put it, the depths' smoothed values as weak priors.
+            window.set_anchor(Some(Anchor {
+                translation_weight: 0.0,
+            }));
+            let factor = f64::from(1u32 << level);
+            let mut kept = Vec::new();
+            for (i, ((uv, _), idepth)) in self.points.iter().zip(&depths).enumerate() {
+                let prior = DepthPrior {
+                    idepth: self.smoothed[i],
+                    weight: COUPLING_WEIGHT,
+                };
+                if window.add_point(0, uv / factor, *idepth, Some(prior)) {
+                    kept.push(i);
+                }
+            }
+            let report = window.optimize();
+            energy = report.final_energy / report.residuals.max(1) as f64;
+            let first = window.frames()[0].state.world_from_camera.inverse();
+            for (k, pose) in poses.iter_mut().enumerate() {
+                *pose = first * window.frames()[k + 1].state.world_from_camera;
+            }
+            for (&i, p) in kept.iter().zip(window.points()) {
+                depths[i] = p.idepth;
+            }
+        }
+        energy
+    }
+
     /// Each point's smoothed inverse depth: its own blended with its neighbours' median
     /// (DSO's `optReg`).
     fn smooth(&mut self) {
@@ -325,6 +422,28 @@ mod tests {
         );
         let t = init.poses.last().expect("pose").translation.norm();
         assert!(t < (ALPHA_LIMIT / ALPHA_WEIGHT).sqrt(), "translation {t}");
+    }
+
+    #[test]
+    fn the_frames_kept_for_scoring_are_bounded_and_span_the_baseline() {
+        let frames = frames(Motion::Rotation, 30);
+        let config = OdometryConfig {
+            focal_candidates: vec![0.9, 1.0, 1.1],
+            ..OdometryConfig::default()
+        };
+        let mut init = Initialiser::new(&config, frames[0].clone(), 300);
+        for f in &frames[1..] {
+            init.push(f.clone());
+            assert!(init.scored.len() <= SCORE_FRAMES);
+        }
+        let kept: Vec<usize> = init.scored.iter().map(|(i, _)| *i).collect();
+        assert_eq!(kept.last(), Some(&29), "the newest is kept: {kept:?}");
+        assert!(
+            kept[0] <= 4,
+            "the kept frames start near the first: {kept:?}"
+        );
+        let alone = Initialiser::new(&OdometryConfig::default(), frames[0].clone(), 300);
+        assert!(alone.scored.is_empty() && alone.score().is_infinite());
     }
 
     #[test]

@@ -14,7 +14,8 @@
 //! - [`solve`]: Levenberg–Marquardt with the Schur complement, the step out of the gauge;
 //! - [`prior`]: the marginalisation prior; [`gauge`]: the 7 unobservable directions;
 //! - [`select`]: candidate points spread over the image by a region-adaptive threshold;
-//! - [`init`]: the coarse initialiser; [`immature`]: candidates traced along epipolar lines;
+//! - [`init`]: the coarse initialiser; [`focal`]: initialisers competing over the focal
+//!   length; [`immature`]: candidates traced along epipolar lines;
 //! - [`mapper`]: the window's side (tracing, activation, keyframes), in step or on a thread;
 //!   [`system`]: the tracking side, which drives it;
 //! - [`truth`]: a benchmark's probe of where the window's energy has its minimum against the
@@ -22,6 +23,7 @@
 
 pub mod config;
 pub mod energy;
+pub mod focal;
 pub mod gauge;
 pub mod immature;
 pub mod init;

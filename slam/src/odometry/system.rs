@@ -13,7 +13,8 @@ use std::time::{Duration, Instant};
 use nalgebra::{Vector3, Vector6};
 
 use super::OdometryConfig;
-use super::init::{FirstMap, Initialiser};
+use super::focal::{FocalSearch, with_focal};
+use super::init::FirstMap;
 use super::mapper::{MapJob, Published, WindowMapper, WindowObserver, WindowSnapshot};
 use crate::background::{Link, Priority, WorkerSpec};
 use crate::frame::Frame;
@@ -50,7 +51,10 @@ pub struct Odometry {
     config: OdometryConfig,
     tracker: SE3Tracker,
     window: Link<WindowMapper>,
-    initialiser: Option<Initialiser>,
+    initialiser: Option<FocalSearch>,
+    /// The focal length the initialisation chose, relative to the frames' own (1 until then
+    /// and without [`OdometryConfig::focal_candidates`]): every frame is taken with it.
+    focal_scale: f64,
     /// The window's last publication: newest keyframe, its pose and tracking reference.
     current: Option<Published>,
     /// Publications so far (a benchmark polls it to see a new window).
@@ -118,6 +122,7 @@ impl Odometry {
             tracker: SE3Tracker::new(tracking)?,
             config,
             initialiser: None,
+            focal_scale: 1.0,
             current: None,
             published: 0,
             sent: 0,
@@ -177,9 +182,16 @@ impl Odometry {
         Ok(())
     }
 
+    /// The focal length chosen at initialisation relative to the frames' own
+    /// ([`OdometryConfig::focal_candidates`]); 1 before.
+    pub fn focal_scale(&self) -> f64 {
+        self.focal_scale
+    }
+
     /// Processes the next frame.
     pub fn push(&mut self, frame: Arc<Frame>) -> Result<FrameOutcome> {
         self.poll();
+        let frame = with_focal(&frame, self.focal_scale);
         let Some(current) = &self.current else {
             return self.initialise(frame);
         };
@@ -312,17 +324,19 @@ impl Odometry {
             keyframe: false,
             tracked: false,
         };
-        let Some(init) = self.initialiser.as_mut() else {
-            self.initialiser = Some(Initialiser::new(
+        let Some(search) = self.initialiser.as_mut() else {
+            self.initialiser = Some(FocalSearch::new(
                 &self.config,
-                frame,
+                &frame,
                 self.config.active_points,
             ));
             return Ok(untracked);
         };
-        let Some(mut done) = init.push(frame) else {
+        let Some(chosen) = search.push(&frame) else {
             return Ok(untracked);
         };
+        self.focal_scale = chosen.scale;
+        let mut done = chosen.initialised;
         if let Some(map) = &self.first_map {
             done.points = (map.0)(&done.first, &done.points);
         }
