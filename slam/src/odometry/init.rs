@@ -14,7 +14,7 @@ use nalgebra::Vector2;
 
 use super::residual::FrameState;
 use super::select::select_candidates;
-use super::{Anchor, DepthPrior, OdometryConfig, SlidingWindow};
+use super::{Anchor, DepthPrior, OdometryConfig, SlidingWindow, SolveReport};
 use crate::frame::Frame;
 use crate::geometry::SE3;
 
@@ -219,40 +219,16 @@ impl Initialiser {
     fn optimize(&mut self, frame: &Arc<Frame>, guess: SE3) -> SE3 {
         let mut pose = guess;
         let top = COARSEST.min(frame.pyramid.levels.len() - 1);
+        let snapped = self.frames_since_snap.is_some();
+        let translation_weight = if snapped {
+            0.0
+        } else {
+            ALPHA_WEIGHT * self.points.len() as f64
+        };
         for level in (0..=top).rev() {
-            let config = OdometryConfig {
-                level,
-                iterations: 8,
-                ..self.config.clone()
-            };
-            let Ok(mut window) = SlidingWindow::new(config) else {
-                return pose;
-            };
-            let identity = FrameState {
-                world_from_camera: SE3::identity(),
-                affine: (0.0, 0.0),
-            };
-            let current = FrameState {
-                world_from_camera: pose,
-                affine: (0.0, 0.0),
-            };
-            if window.add_frame(0, self.first.clone(), identity).is_err()
-                || window.add_frame(1, frame.clone(), current).is_err()
-            {
-                return pose;
-            }
-            let snapped = self.frames_since_snap.is_some();
-            window.set_anchor(Some(Anchor {
-                translation_weight: if snapped {
-                    0.0
-                } else {
-                    ALPHA_WEIGHT * self.points.len() as f64
-                },
-            }));
-            let factor = f64::from(1u32 << level);
-            let mut kept = Vec::new();
-            for (i, (uv, idepth)) in self.points.iter().enumerate() {
-                let prior = if snapped {
+            let depths: Vec<f64> = self.points.iter().map(|p| p.1).collect();
+            let prior = |i: usize| {
+                if snapped {
                     DepthPrior {
                         idepth: self.smoothed[i],
                         weight: COUPLING_WEIGHT,
@@ -262,21 +238,78 @@ impl Initialiser {
                         idepth: 1.0,
                         weight: ALPHA_WEIGHT,
                     }
-                };
-                if window.add_point(0, uv / factor, *idepth, Some(prior)) {
-                    kept.push(i);
                 }
-            }
-            window.optimize();
-            // Re-express in the first frame's coordinates (the gauge-free step may move it).
-            let first = window.frames()[0].state.world_from_camera;
-            pose = first.inverse() * window.frames()[1].state.world_from_camera;
-            for (&i, p) in kept.iter().zip(window.points()) {
-                self.points[i].1 = p.idepth;
+            };
+            let Some((poses, depths, _)) = self.solve_level(
+                level,
+                8,
+                &[(frame, pose)],
+                &depths,
+                prior,
+                translation_weight,
+            ) else {
+                return pose;
+            };
+            pose = poses[0];
+            for (p, d) in self.points.iter_mut().zip(depths) {
+                p.1 = d;
             }
             self.smooth();
         }
         pose
+    }
+
+    /// One level of a joint optimisation of the first frame's point depths (from `depths`,
+    /// each pulled to `prior(i)`) and the poses of `views` (frames with their poses relative
+    /// to the first frame, which is held; later translations charged `translation_weight`).
+    /// Returns the views' poses re-expressed in the first frame's coordinates (the gauge-free
+    /// step may move it), the depths (unchanged for points outside the level) and the
+    /// solver's report; `None` when the window cannot be built.
+    fn solve_level(
+        &self,
+        level: usize,
+        iterations: usize,
+        views: &[(&Arc<Frame>, SE3)],
+        depths: &[f64],
+        prior: impl Fn(usize) -> DepthPrior,
+        translation_weight: f64,
+    ) -> Option<(Vec<SE3>, Vec<f64>, SolveReport)> {
+        let config = OdometryConfig {
+            level,
+            iterations,
+            ..self.config.clone()
+        };
+        let mut window = SlidingWindow::new(config).ok()?;
+        let state = |pose: SE3| FrameState {
+            world_from_camera: pose,
+            affine: (0.0, 0.0),
+        };
+        window
+            .add_frame(0, self.first.clone(), state(SE3::identity()))
+            .ok()?;
+        for (k, (frame, pose)) in views.iter().enumerate() {
+            window
+                .add_frame(k as u64 + 1, (*frame).clone(), state(*pose))
+                .ok()?;
+        }
+        window.set_anchor(Some(Anchor { translation_weight }));
+        let factor = f64::from(1u32 << level);
+        let mut kept = Vec::new();
+        for (i, ((uv, _), idepth)) in self.points.iter().zip(depths).enumerate() {
+            if window.add_point(0, uv / factor, *idepth, Some(prior(i))) {
+                kept.push(i);
+            }
+        }
+        let report = window.optimize();
+        let first = window.frames()[0].state.world_from_camera.inverse();
+        let poses = (1..=views.len())
+            .map(|k| first * window.frames()[k].state.world_from_camera)
+            .collect();
+        let mut depths = depths.to_vec();
+        for (&i, p) in kept.iter().zip(window.points()) {
+            depths[i] = p.idepth;
+        }
+        Some((poses, depths, report))
     }
 
     /// How well the first frame's depths and the frames' poses fit the images together: the
@@ -287,65 +320,33 @@ impl Initialiser {
     /// initialiser's own optimisation sees one frame at a time. Infinite without frames
     /// (only kept when `focal_candidates` asks for a comparison).
     pub fn score(&self) -> f64 {
-        let mut depths: Vec<f64> = self.points.iter().map(|p| p.1).collect();
-        let mut poses: Vec<SE3> = self.scored.iter().map(|(i, _)| self.poses[*i]).collect();
         if self.scored.is_empty() {
             return f64::INFINITY;
         }
+        let mut depths: Vec<f64> = self.points.iter().map(|p| p.1).collect();
+        let mut poses: Vec<SE3> = self.scored.iter().map(|(i, _)| self.poses[*i]).collect();
         let mut energy = f64::INFINITY;
         let top = COARSEST.min(self.first.pyramid.levels.len() - 1);
+        // The first frame held, every other pose free: the scale stays where the initialiser
+        // put it, the depths' smoothed values as weak priors.
+        let prior = |i: usize| DepthPrior {
+            idepth: self.smoothed[i],
+            weight: COUPLING_WEIGHT,
+        };
         for level in (0..=top).rev() {
-            let config = OdometryConfig {
-                level,
-                iterations: SCORE_ITERATIONS,
-                ..self.config.clone()
-            };
-            let Ok(mut window) = SlidingWindow::new(config) else {
+            let views: Vec<(&Arc<Frame>, SE3)> = self
+                .scored
+                .iter()
+                .zip(&poses)
+                .map(|((_, frame), pose)| (frame, *pose))
+                .collect();
+            let Some((solved, solved_depths, report)) =
+                self.solve_level(level, SCORE_ITERATIONS, &views, &depths, prior, 0.0)
+            else {
                 return f64::INFINITY;
             };
-            let state = |pose: SE3| FrameState {
-                world_from_camera: pose,
-                affine: (0.0, 0.0),
-            };
-            if window
-                .add_frame(0, self.first.clone(), state(SE3::identity()))
-                .is_err()
-            {
-                return f64::INFINITY;
-            }
-            for (k, (_, frame)) in self.scored.iter().enumerate() {
-                if window
-                    .add_frame(k as u64 + 1, frame.clone(), state(poses[k]))
-                    .is_err()
-                {
-                    return f64::INFINITY;
-                }
-            }
-            // The first frame held, every other pose free: the scale stays where the
-            // initialiser put it, the depths' smoothed values as weak priors.
-            window.set_anchor(Some(Anchor {
-                translation_weight: 0.0,
-            }));
-            let factor = f64::from(1u32 << level);
-            let mut kept = Vec::new();
-            for (i, ((uv, _), idepth)) in self.points.iter().zip(&depths).enumerate() {
-                let prior = DepthPrior {
-                    idepth: self.smoothed[i],
-                    weight: COUPLING_WEIGHT,
-                };
-                if window.add_point(0, uv / factor, *idepth, Some(prior)) {
-                    kept.push(i);
-                }
-            }
-            let report = window.optimize();
             energy = report.final_energy / report.residuals.max(1) as f64;
-            let first = window.frames()[0].state.world_from_camera.inverse();
-            for (k, pose) in poses.iter_mut().enumerate() {
-                *pose = first * window.frames()[k + 1].state.world_from_camera;
-            }
-            for (&i, p) in kept.iter().zip(window.points()) {
-                depths[i] = p.idepth;
-            }
+            (poses, depths) = (solved, solved_depths);
         }
         energy
     }
