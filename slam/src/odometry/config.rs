@@ -76,6 +76,11 @@ pub struct OdometryConfig {
     /// the default: it chose the true focal length in 76 % of rendered starts and waits for
     /// twice the parallax (docs/tuning.md, 2026-12-07).
     pub focal_candidates: Vec<f64>,
+    /// Whether the initialiser waits for the two-view geometry of tracked corners (an
+    /// essential matrix with a clear winner and 1° of parallax, as ORB-SLAM's) and starts its
+    /// map from it ([`super::two_view`]); off: DSO's photometric initialiser alone, which
+    /// hands over inverted maps in about half the starts (docs/tuning.md, 2026-12-07).
+    pub init_two_view: bool,
 }
 
 impl Default for OdometryConfig {
@@ -101,6 +106,7 @@ impl Default for OdometryConfig {
             rolling_shutter_readout: 0.0,
             init_min_parallax: 0.0,
             focal_candidates: Vec::new(),
+            init_two_view: true,
         }
     }
 }

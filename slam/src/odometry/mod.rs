@@ -27,6 +27,7 @@ pub mod focal;
 pub mod gauge;
 pub mod immature;
 pub mod init;
+pub mod klt;
 pub mod mapper;
 pub mod prior;
 pub mod residual;
@@ -34,6 +35,7 @@ pub mod select;
 pub mod solve;
 pub mod system;
 pub mod truth;
+pub mod two_view;
 
 use std::sync::Arc;
 

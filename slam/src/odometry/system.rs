@@ -340,8 +340,13 @@ impl Odometry {
         if let Some(map) = &self.first_map {
             done.points = (map.0)(&done.first, &done.points);
         }
-        for ((_, p), pose) in self.frames.iter_mut().zip(&done.poses) {
-            p.keyframe_from_frame = *pose;
+        // Frames before a restarted initialisation's first are put at it: they gave no
+        // parallax (or no tracks) to measure their motion by, and every frame has a pose.
+        let skipped = done.skipped.min(self.frames.len());
+        let poses = std::iter::repeat_n(SE3::identity(), skipped).chain(done.poses.iter().copied());
+        for ((_, p), pose) in self.frames.iter_mut().zip(poses) {
+            p.keyframe = done.first.id;
+            p.keyframe_from_frame = pose;
         }
         let pose = done.poses.last().copied().unwrap_or_else(SE3::identity);
         let previous = done
