@@ -461,6 +461,7 @@ impl Initialiser {
 mod tests {
     use super::*;
     use crate::dataset::synth::{Motion, Scene, SynthConfig, render_frame_with};
+    use crate::eval::depth_slope::log_slope;
     use crate::image::ImageF32;
     use crate::odometry::system_tests::rendered_frames;
 
@@ -584,14 +585,7 @@ mod tests {
                 (z > 0.0 && *d > 0.0).then(|| (-z.ln(), d.ln()))
             })
             .collect();
-        let n = pairs.len() as f64;
-        let (mx, my) = (
-            pairs.iter().map(|p| p.0).sum::<f64>() / n,
-            pairs.iter().map(|p| p.1).sum::<f64>() / n,
-        );
-        let sxy: f64 = pairs.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
-        let sxx: f64 = pairs.iter().map(|p| (p.0 - mx).powi(2)).sum();
-        sxy / sxx
+        log_slope(&pairs).expect("the rendered depths span a range")
     }
 
     #[test]

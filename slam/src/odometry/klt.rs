@@ -118,7 +118,9 @@ fn patch(image: &ImageF32, at: &Vector2<f64>) -> Option<Vec<f64>> {
     Some(values)
 }
 
-fn normalise(values: &mut [f64]) {
+/// Removes the mean of `values` and divides by their standard deviation (not when that is
+/// about 0); returns the standard deviation.
+fn normalise(values: &mut [f64]) -> f64 {
     let n = values.len().max(1) as f64;
     let mean = values.iter().sum::<f64>() / n;
     let sd = (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
@@ -126,6 +128,7 @@ fn normalise(values: &mut [f64]) {
     for v in values.iter_mut() {
         *v = (*v - mean) * scale;
     }
+    sd
 }
 
 /// Lucas–Kanade at one level: where the patch of `from` at `at` lies in `to`, starting at
@@ -153,12 +156,10 @@ fn track_level(
     }
     // The gradients in the normalised template's units.
     let n = template.len() as f64;
-    let mean = template.iter().sum::<f64>() / n;
-    let sd = (template.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
+    let sd = normalise(&mut template);
     if sd <= 1e-9 {
         return None;
     }
-    normalise(&mut template);
     let mut hessian = Matrix2::zeros();
     for g in gradients.iter_mut() {
         *g /= sd;

@@ -157,11 +157,16 @@ impl TwoView {
 
     fn solve(&mut self, frame: &Frame) -> Option<TwoViewSolution> {
         let (c0, c1) = (&self.first.camera, &frame.camera);
-        let bearing = |c: &crate::geometry::PinholeCamera, p: &Vector2<f64>| {
-            Vector3::new((p.x - c.cx) / c.fx, (p.y - c.cy) / c.fy, 1.0)
-        };
-        let a: Vec<Vector3<f64>> = self.tracks.iter().map(|t| bearing(c0, &t.0)).collect();
-        let b: Vec<Vector3<f64>> = self.tracks.iter().map(|t| bearing(c1, &t.1)).collect();
+        let a: Vec<Vector3<f64>> = self
+            .tracks
+            .iter()
+            .map(|t| c0.unproject(&t.0, 1.0))
+            .collect();
+        let b: Vec<Vector3<f64>> = self
+            .tracks
+            .iter()
+            .map(|t| c1.unproject(&t.1, 1.0))
+            .collect();
         let focal = 0.5 * (c1.fx + c1.fy);
         let threshold = INLIER_PIXELS / focal;
         let (essential, inliers) =
@@ -206,7 +211,7 @@ impl TwoView {
         for k in 0..frames.saturating_sub(1) {
             let seen: Vec<(Vector3<f64>, Vector3<f64>)> = points
                 .iter()
-                .map(|(i, x, _)| (*x, bearing(c1, &self.history[*i][k].cast())))
+                .map(|(i, x, _)| (*x, c1.unproject(&self.history[*i][k].cast(), 1.0)))
                 .collect();
             guess = pose_from_points(&seen, guess, limit);
             between.push(guess.inverse());
