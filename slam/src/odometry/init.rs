@@ -54,10 +54,10 @@ const COUPLING_WEIGHT: f64 = 1.0;
 const SCORE_FRAMES: usize = 12;
 /// Gauss–Newton iterations per level of [`Initialiser::score`].
 const SCORE_ITERATIONS: usize = 10;
-/// Frames after the snap the initialiser waits for the two-view geometry ([`TwoView`]) to
-/// become clear (2 s at 30 Hz); a camera whose tracks give none by then starts again from its
-/// newest frame (the photometric map that long after the snap had diverged: rendered
-/// hand-held 4 from frame 25, translation 10⁴ mean depths at the hand-over).
+/// Frames after the corners' snap ([`TwoView::had_parallax`]) the initialiser waits for their
+/// two-view geometry to become clear (2 s at 30 Hz); a camera whose tracks give none by then
+/// starts again from its newest frame, whose motion may give one (ORB-SLAM's initialiser
+/// restarts too).
 const TWO_VIEW_WAIT: usize = 60;
 /// Neighbours of a point in its smoothed target (DSO: 10) and the share of their median in it
 /// (DSO's `regWeight` = 0.8).
@@ -158,26 +158,33 @@ impl Initialiser {
         }
     }
 
-    /// Optimises `frame`'s pose with the first frame's depths; `Some` once there has been
-    /// parallax for [`FRAMES_AFTER_SNAP`] frames and the baseline is `init_min_parallax` mean
-    /// depths. Before the snap the depths are held at 1 and `|t|` is that ratio; after it the
-    /// scale is free (the mean inverse depth drifted to 0.04 on redkitchen 0-299, where the
-    /// five frames alone hand over at 0.0097 mean depths and an inverted first map). Like
-    /// DSO's, it waits as long as the camera does not translate: without parallax a monocular
-    /// camera has no map to start from. With the two-view check on, the hand-over comes with
-    /// its solution instead ([`Self::seed`]); when its corners are lost, followed for
-    /// [`two_view::MAX_FRAMES`] frames or for [`TWO_VIEW_WAIT`] after the snap without one,
-    /// the initialisation starts again from `frame`.
+    /// Optimises `frame`'s pose with the first frame's depths (DSO's initialiser alone, or
+    /// after the two-view seed); `Some` once there has been parallax for [`FRAMES_AFTER_SNAP`]
+    /// frames and the baseline is `init_min_parallax` mean depths. Before the snap the depths
+    /// are held at 1 and `|t|` is that ratio; after it the scale is free (the mean inverse
+    /// depth drifted to 0.04 on redkitchen 0-299, where the five frames alone hand over at
+    /// 0.0097 mean depths and an inverted first map). Like DSO's, it waits as long as the
+    /// camera does not translate: without parallax a monocular camera has no map to start
+    /// from. With the two-view check on, the hand-over comes with its solution instead ([`Self::seed`]), and until then a frame costs only its corner
+    /// tracking (about 10-40 ms at 640×480 instead of the photometric step's 80-130 ms, which
+    /// left a live camera seconds behind at the hand-over); when its corners are lost,
+    /// followed for [`two_view::MAX_FRAMES`] frames or for [`TWO_VIEW_WAIT`] after their snap
+    /// without one, the initialisation starts again from `frame`.
     pub fn push(&mut self, frame: Arc<Frame>) -> Option<Initialised> {
-        let n = self.poses.len();
-        let guess = match n {
-            1 => SE3::identity(),
-            _ => {
-                let (a, b) = (self.poses[n - 2], self.poses[n - 1]);
-                b * (a.inverse() * b)
-            }
+        let pose = if self.two_view.is_some() {
+            // Posed from the corners at the seed.
+            SE3::identity()
+        } else {
+            let n = self.poses.len();
+            let guess = match n {
+                1 => SE3::identity(),
+                _ => {
+                    let (a, b) = (self.poses[n - 2], self.poses[n - 1]);
+                    b * (a.inverse() * b)
+                }
+            };
+            self.optimize(&frame, guess)
         };
-        let pose = self.optimize(&frame, guess);
         self.poses.push(pose);
         if self.config.focal_candidates.len() > 1 {
             self.scored.push((self.poses.len() - 1, frame.clone()));
@@ -190,12 +197,12 @@ impl Initialiser {
                 });
             }
         }
-        if self.frames_since_snap.is_some() || self.alpha_energy(&pose) > ALPHA_LIMIT {
-            let since = self.frames_since_snap.get_or_insert(0);
-            *since += 1;
-        }
         if let Some(view) = self.two_view.as_mut() {
-            if let Some(solution) = view.push(&frame) {
+            let solution = view.push(&frame);
+            if view.had_parallax() {
+                *self.frames_since_snap.get_or_insert(0) += 1;
+            }
+            if let Some(solution) = solution {
                 self.seed(&solution, &frame);
             } else if view.tracks() < two_view::MIN_POINTS
                 || view.frames() >= two_view::MAX_FRAMES
@@ -206,6 +213,9 @@ impl Initialiser {
                 self.skipped = skipped;
                 return None;
             }
+        } else if self.frames_since_snap.is_some() || self.alpha_energy(&pose) > ALPHA_LIMIT {
+            let since = self.frames_since_snap.get_or_insert(0);
+            *since += 1;
         }
         let pose = *self.poses.last().expect("a pose per frame");
         if self.two_view.is_none()
@@ -476,20 +486,33 @@ mod tests {
         })
     }
 
-    #[test]
-    fn without_parallax_the_depths_stay_at_one_and_the_translation_small() {
-        let frames = frames(Motion::Rotation, 6);
-        let mut init = Initialiser::new(&OdometryConfig::default(), frames[0].clone(), 600);
+    /// The initialiser after `frames` with the two-view check on or off.
+    fn pushed(frames: &[Arc<Frame>], two_view: bool) -> Initialiser {
+        let config = OdometryConfig {
+            init_two_view: two_view,
+            ..OdometryConfig::default()
+        };
+        let mut init = Initialiser::new(&config, frames[0].clone(), 600);
         for f in &frames[1..] {
             assert!(
                 init.push(f.clone()).is_none(),
-                "initialised on rotation alone"
+                "initialised on rotation alone (two-view {two_view})"
             );
         }
         assert!(
             init.frames_since_snap.is_none(),
-            "snapped on rotation alone"
+            "snapped on rotation alone (two-view {two_view})"
         );
+        init
+    }
+
+    #[test]
+    fn without_parallax_the_depths_stay_at_one_and_the_translation_small() {
+        let frames = frames(Motion::Rotation, 6);
+        // The corners see no parallax either: the two-view check does not snap.
+        let corners = pushed(&frames, true);
+        assert!(corners.two_view.as_ref().is_some_and(|v| !v.had_parallax()));
+        let init = pushed(&frames, false);
         let worst = init
             .points
             .iter()

@@ -104,6 +104,9 @@ pub struct TwoView {
     history: Vec<Vec<Vector2<f32>>>,
     /// Seed of the RANSAC sampler (xorshift): the same frames give the same solution.
     state: u64,
+    /// Whether a frame has given the best decomposition [`MIN_PARALLAX_DEGREES`] of
+    /// parallax, clear or not ([`Self::had_parallax`]).
+    had_parallax: bool,
 }
 
 impl TwoView {
@@ -118,7 +121,15 @@ impl TwoView {
             history: vec![Vec::new(); tracks.len()],
             tracks,
             state: 0x9e37_79b9_7f4a_7c15,
+            had_parallax: false,
         }
+    }
+
+    /// Whether the corners have had [`MIN_PARALLAX_DEGREES`] of parallax, the solution clear
+    /// or not: DSO's snap (its parallax test, 2.5/150 ≈ 1° at the mean depth) measured on
+    /// the corners, so the initialiser needs no photometric step per frame to time its wait.
+    pub fn had_parallax(&self) -> bool {
+        self.had_parallax
     }
 
     /// Tracks still followed.
@@ -191,16 +202,19 @@ impl TwoView {
         let Decomposition { r, t, points } = solutions.swap_remove(0);
         let good = points.len();
         let runner_up = solutions.iter().map(|s| s.points.len()).max().unwrap_or(0);
-        if good < MIN_POINTS
-            || (good as f64) < WINNER_SHARE * inlier_count as f64
-            || runner_up as f64 >= RUNNER_UP_SHARE * good as f64
-        {
+        if good < MIN_POINTS {
             return None;
         }
         let mut parallax: Vec<f64> = points.iter().map(|p| p.2.clamp(-1.0, 1.0).acos()).collect();
         parallax.sort_by(f64::total_cmp);
         let parallax_degrees = parallax[parallax.len().saturating_sub(MIN_POINTS + 1)].to_degrees();
         if parallax_degrees < MIN_PARALLAX_DEGREES {
+            return None;
+        }
+        self.had_parallax = true;
+        if (good as f64) < WINNER_SHARE * inlier_count as f64
+            || runner_up as f64 >= RUNNER_UP_SHARE * good as f64
+        {
             return None;
         }
         let camera_from_first = SE3::new(SO3::from_matrix(&r), t);
