@@ -165,9 +165,10 @@ impl Initialiser {
     /// depth drifted to 0.04 on redkitchen 0-299, where the five frames alone hand over at
     /// 0.0097 mean depths and an inverted first map). Like DSO's, it waits as long as the
     /// camera does not translate: without parallax a monocular camera has no map to start
-    /// from. With the two-view check on, the hand-over comes with its solution instead ([`Self::seed`]), and until then a frame costs only its corner
-    /// tracking (about 10-40 ms at 640×480 instead of the photometric step's 80-130 ms, which
-    /// left a live camera seconds behind at the hand-over); when its corners are lost,
+    /// from. With the two-view check on, the hand-over comes with its solution instead
+    /// ([`Self::seed`]), and until then a frame costs only its corner tracking (7-63 ms at
+    /// 640×480 on fr1/rpy; the photometric step's 80-130 ms left a live camera seconds behind
+    /// at the hand-over, docs/tuning.md 2026-12-07); when its corners are lost,
     /// followed for [`two_view::MAX_FRAMES`] frames or for [`TWO_VIEW_WAIT`] after their snap
     /// without one, the initialisation starts again from `frame`.
     pub fn push(&mut self, frame: Arc<Frame>) -> Option<Initialised> {

@@ -33,8 +33,9 @@ const REPROJECTION_PIXELS: f64 = 2.0;
 /// (ORB-SLAM's `minTriangulated`).
 pub const MIN_POINTS: usize = 50;
 /// Parallax, degrees, that the point ranked [`MIN_POINTS`] + 1 by parallax must have
-/// (ORB-SLAM's `minParallax`, there of the point at index 50). The median's instead waits longer: worse on forward
-/// motion (rendered f11 0.0011 → 0.0014 m over six starts; docs/tuning.md, 2026-12-07).
+/// (ORB-SLAM's `minParallax`, there of the point at index 50). The median's instead waits
+/// longer: worse on forward motion (rendered f11 0.0011 → 0.0014 m over six starts;
+/// docs/tuning.md, 2026-12-07).
 const MIN_PARALLAX_DEGREES: f64 = 1.0;
 /// The runner-up decomposition must triangulate fewer than this share of the winner's points
 /// (ORB-SLAM: 0.7), and the winner at least [`WINNER_SHARE`] of the inliers (ORB-SLAM: 0.9).
