@@ -168,9 +168,9 @@ impl Initialiser {
     /// from. With the two-view check on, the hand-over comes with its solution instead
     /// ([`Self::seed`]), and until then a frame costs only its corner tracking (7-63 ms at
     /// 640×480 on fr1/rpy; the photometric step's 80-130 ms left a live camera seconds behind
-    /// at the hand-over, docs/tuning.md 2026-12-07); when its corners are lost,
-    /// followed for [`two_view::MAX_FRAMES`] frames or for [`TWO_VIEW_WAIT`] after their snap
-    /// without one, the initialisation starts again from `frame`.
+    /// at the hand-over, docs/tuning.md 2026-12-07); when its corners are lost, followed for
+    /// [`two_view::MAX_FRAMES`] frames or for [`TWO_VIEW_WAIT`] after their snap without one,
+    /// the initialisation starts again from `frame`.
     pub fn push(&mut self, frame: Arc<Frame>) -> Option<Initialised> {
         let pose = if self.two_view.is_some() {
             // Posed from the corners at the seed.

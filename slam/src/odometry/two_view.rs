@@ -44,7 +44,7 @@ const WINNER_SHARE: f64 = 0.9;
 /// Nearest triangulated corners whose median inverse depth a photometric point takes.
 const NEAREST: usize = 5;
 /// Frames of track history kept at most (5 s at 30 Hz): a camera that turns in place longer
-/// gives no two-view solution, and the initialiser goes on as DSO's.
+/// gives no two-view solution, and the initialiser starts again from its newest frame.
 pub const MAX_FRAMES: usize = 150;
 /// Gauss–Newton iterations of a frame's pose from the triangulated corners.
 const POSE_ITERATIONS: usize = 10;
@@ -367,12 +367,8 @@ pub fn essential_ransac(
     if n < 8 || b.len() != n {
         return None;
     }
-    let inliers_of = |e: &Matrix3<f64>| -> Vec<bool> {
-        a.iter()
-            .zip(b)
-            .map(|(p, q)| sampson(e, p, q) <= threshold)
-            .collect()
-    };
+    let is_inlier = |e: &Matrix3<f64>, i: usize| sampson(e, &a[i], &b[i]) <= threshold;
+    let inliers_of = |e: &Matrix3<f64>| -> Vec<bool> { (0..n).map(|i| is_inlier(e, i)).collect() };
     let mut best: Option<(usize, Matrix3<f64>)> = None;
     for _ in 0..iterations {
         let mut sample = Vec::with_capacity(8);
@@ -385,7 +381,7 @@ pub fn essential_ransac(
         let Some(e) = eight_point(a, b, &sample) else {
             continue;
         };
-        let count = inliers_of(&e).iter().filter(|i| **i).count();
+        let count = (0..n).filter(|&i| is_inlier(&e, i)).count();
         if best.as_ref().is_none_or(|(c, _)| count > *c) {
             best = Some((count, e));
         }
