@@ -46,6 +46,10 @@ pub struct ParentEdge {
     /// only if the reciprocal Sim(3) test on the parent fails (LSD-SLAM's fallback odometry
     /// edge). It must be positive definite, including the scale entry.
     pub information: Information7,
+    /// The front end's estimate is better than a Sim(3) alignment of the two depth maps
+    /// could make it (a window's joint optimisation of poses and depths, `pipeline.frontend
+    /// = "dso"`): it is the edge, neither tested nor re-estimated after depth updates.
+    pub trusted: bool,
 }
 
 /// Scale information of an odometry edge built from SE(3) tracking, relative to the mean of its
@@ -72,6 +76,7 @@ impl ParentEdge {
             id,
             parent_from_keyframe,
             information: info.into(),
+            trusted: false,
         }
     }
 }

@@ -47,7 +47,7 @@ pub use mapper::{PublishedPoint, WindowObserver, WindowSnapshot};
 pub use prior::MarginalisationPrior;
 pub use residual::{FrameState, Linearisation, PATTERN};
 pub use solve::{Anchor, SolveReport};
-pub use system::{FrameOutcome, Odometry};
+pub use system::{FirstKeyframe, FrameOutcome, Odometry};
 
 use crate::frame::Frame;
 use crate::{Error, Result};

@@ -10,7 +10,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use nalgebra::{Vector3, Vector6};
+use nalgebra::{Matrix6, Vector3, Vector6};
 
 use super::OdometryConfig;
 use super::focal::{FocalSearch, with_focal};
@@ -36,6 +36,25 @@ pub struct FrameOutcome {
     pub keyframe: bool,
     /// False while initialising or when tracking failed (the pose is then the motion model's).
     pub tracked: bool,
+    /// The tracking residual (grey levels; infinite when not tracked), LSD's
+    /// `initialTrackedResidual`, for a depth filter fed by these poses.
+    pub residual: f32,
+    /// Information of the tracked pose relative to the keyframe it was tracked against (a
+    /// right perturbation, as [`crate::tracking::TrackingResult::information`]; zero when not
+    /// tracked).
+    pub information: Matrix6<f64>,
+}
+
+impl FrameOutcome {
+    fn untracked(world_from_camera: SE3, keyframe: bool) -> Self {
+        Self {
+            world_from_camera,
+            keyframe,
+            tracked: false,
+            residual: f32::INFINITY,
+            information: Matrix6::zeros(),
+        }
+    }
 }
 
 /// A frame's pose relative to the keyframe it was tracked against.
@@ -75,6 +94,20 @@ pub struct Odometry {
     first_residual: Option<f32>,
     /// Replaces the initialiser's map (a probe; `None` in every live use).
     first_map: Option<FirstMap>,
+    /// The window's first keyframe and its points (level-0 pixel, inverse depth), from the
+    /// initialisation until [`Odometry::take_first_keyframe`].
+    first_keyframe: Option<FirstKeyframe>,
+    /// Whether tracked frames go into `frames` ([`Odometry::trajectory`]); a caller that
+    /// keeps its own turns it off, so that an hour's frames cost nothing here.
+    record_trajectory: bool,
+}
+
+/// The window's first keyframe as the initialiser handed it over: the frame (at the
+/// identity) and its points, `(level-0 pixel, inverse depth)` with mean inverse depth 1.
+#[derive(Clone, Debug)]
+pub struct FirstKeyframe {
+    pub frame: Arc<Frame>,
+    pub points: Vec<(nalgebra::Vector2<f64>, f64)>,
 }
 
 impl Odometry {
@@ -133,6 +166,8 @@ impl Odometry {
             last_stamp: None,
             first_residual: None,
             first_map: None,
+            first_keyframe: None,
+            record_trajectory: true,
         })
     }
 
@@ -188,6 +223,27 @@ impl Odometry {
         self.focal_scale
     }
 
+    /// The latest estimate of keyframe `id`'s pose (the window's, or its tracked pose while
+    /// the window has not published it yet); `None` for a frame that is no keyframe.
+    pub fn keyframe_pose(&self, id: u64) -> Option<SE3> {
+        match self.pending {
+            Some((pending, pose)) if pending == id => Some(pose),
+            _ => self.keyframes.get(&id).copied(),
+        }
+    }
+
+    /// The window's first keyframe, once, after the initialisation handed it over (how a
+    /// pipeline driven by this odometry begins its map at the same frame).
+    pub fn take_first_keyframe(&mut self) -> Option<FirstKeyframe> {
+        self.first_keyframe.take()
+    }
+
+    /// Stops recording tracked frames for [`Odometry::trajectory`] (the frames of the
+    /// initialisation stay): for a caller that records every frame's pose itself.
+    pub fn stop_recording_trajectory(&mut self) {
+        self.record_trajectory = false;
+    }
+
     /// Processes the next frame.
     pub fn push(&mut self, frame: Arc<Frame>) -> Result<FrameOutcome> {
         self.poll();
@@ -200,7 +256,7 @@ impl Odometry {
             Some((prev, last)) => last * (prev.inverse() * last),
             None => world_from_kf,
         };
-        let (pose, tracked, residual) = self.track(&frame, &world_from_kf, &guess);
+        let (pose, tracked, residual, information) = self.track(&frame, &world_from_kf, &guess);
         let velocity = match (self.last, self.last_stamp) {
             (Some((_, before)), Some(t)) if frame.timestamp > t => {
                 (before.inverse() * pose).log() / (frame.timestamp - t)
@@ -209,19 +265,17 @@ impl Odometry {
         };
         self.last = Some((self.last.map_or(pose, |l| l.1), pose));
         self.last_stamp = Some(frame.timestamp);
-        self.frames.push((
-            frame.id,
-            FramePose {
-                keyframe: kf_id,
-                keyframe_from_frame: world_from_kf.inverse() * pose,
-            },
-        ));
+        if self.record_trajectory {
+            self.frames.push((
+                frame.id,
+                FramePose {
+                    keyframe: kf_id,
+                    keyframe_from_frame: world_from_kf.inverse() * pose,
+                },
+            ));
+        }
         if !tracked {
-            return Ok(FrameOutcome {
-                world_from_camera: pose,
-                keyframe: false,
-                tracked,
-            });
+            return Ok(FrameOutcome::untracked(pose, false));
         }
         let first = *self.first_residual.get_or_insert(residual);
         let keyframe = self.pending.is_none()
@@ -243,6 +297,8 @@ impl Odometry {
             world_from_camera: pose,
             keyframe,
             tracked,
+            residual,
+            information,
         })
     }
 
@@ -319,11 +375,7 @@ impl Odometry {
                 keyframe_from_frame: SE3::identity(),
             },
         ));
-        let untracked = FrameOutcome {
-            world_from_camera: SE3::identity(),
-            keyframe: false,
-            tracked: false,
-        };
+        let untracked = FrameOutcome::untracked(SE3::identity(), false);
         let Some(search) = self.initialiser.as_mut() else {
             self.initialiser = Some(FocalSearch::new(
                 &self.config,
@@ -355,6 +407,10 @@ impl Odometry {
             .copied()
             .unwrap_or(pose);
         self.initialiser = None;
+        self.first_keyframe = Some(FirstKeyframe {
+            frame: done.first.clone(),
+            points: done.points.clone(),
+        });
         self.send(MapJob::Start(done))?;
         // Nothing can be tracked before the first keyframe's reference: wait for it.
         self.catch_up(FIRST_KEYFRAME_TIMEOUT)?;
@@ -369,6 +425,8 @@ impl Odometry {
             world_from_camera: pose,
             keyframe: true,
             tracked: true,
+            residual: 0.0,
+            information: Matrix6::zeros(),
         })
     }
 
@@ -376,10 +434,15 @@ impl Odometry {
     /// velocity, double, half and no velocity, then small rotations about each axis): the
     /// first good result wins; when none is good, the lowest residual of those that
     /// converged (DSO never stops tracking on a bad frame, it takes the best it has);
-    /// `(pose, tracked, residual)`.
-    fn track(&mut self, frame: &Frame, world_from_kf: &SE3, guess: &SE3) -> (SE3, bool, f32) {
+    /// `(pose, tracked, residual, information)`.
+    fn track(
+        &mut self,
+        frame: &Frame,
+        world_from_kf: &SE3,
+        guess: &SE3,
+    ) -> (SE3, bool, f32, Matrix6<f64>) {
         let Some(current) = &self.current else {
-            return (*guess, false, f32::INFINITY);
+            return (*guess, false, f32::INFINITY, Matrix6::zeros());
         };
         let reference = current.reference.as_ref();
         let last = self.last.map_or(*world_from_kf, |l| l.1);
@@ -393,7 +456,7 @@ impl Odometry {
                 hypotheses.push(*guess * SE3::exp(&xi));
             }
         }
-        let mut best: Option<(SE3, f32)> = None;
+        let mut best: Option<(SE3, f32, Matrix6<f64>)> = None;
         for hypothesis in &hypotheses {
             let initial = hypothesis.inverse() * *world_from_kf;
             let result = self.tracker.track(reference, frame, &initial);
@@ -402,15 +465,15 @@ impl Odometry {
             }
             let pose = *world_from_kf * result.frame_from_keyframe.inverse();
             if result.good {
-                return (pose, true, result.residual);
+                return (pose, true, result.residual, result.information);
             }
-            if best.is_none_or(|b| result.residual < b.1) {
-                best = Some((pose, result.residual));
+            if best.as_ref().is_none_or(|b| result.residual < b.1) {
+                best = Some((pose, result.residual, result.information));
             }
         }
         match best {
-            Some((pose, residual)) => (pose, true, residual),
-            None => (*guess, false, f32::INFINITY),
+            Some((pose, residual, information)) => (pose, true, residual, information),
+            None => (*guess, false, f32::INFINITY, Matrix6::zeros()),
         }
     }
 

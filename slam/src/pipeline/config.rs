@@ -21,11 +21,30 @@ pub enum DepthInit {
     Random,
 }
 
+/// What estimates the frames' poses.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Frontend {
+    /// LSD-SLAM's loop: tracking against the current keyframe's semi-dense depth, which the
+    /// tracked poses refine (Engel et al. 2014).
+    #[default]
+    Lsd,
+    /// The DSO-class odometry (`crate::odometry`, issue 35): poses, affine brightness and
+    /// point depths solved jointly over a window of keyframes; its keyframes become the
+    /// pipeline's, and the semi-dense depth filter only follows its poses to give each
+    /// keyframe the map the dense layer and the back end need. Not the default until it is
+    /// at least as good on every sequence (docs/tuning.md).
+    Dso,
+}
+
 /// Front-end orchestration settings. Its user settings are listed in
 /// [`crate::pipeline::user_config`]; the rest is expert level.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct PipelineConfig {
+    /// What estimates the poses. With `dso`, its settings are `odometry`; relocalisation,
+    /// re-activation and map fragments are LSD's and not used.
+    pub frontend: Frontend,
     /// First-keyframe depth initialisation.
     pub init: DepthInit,
     /// Variance given to prior-initialised inverse depths, in the normalised keyframe scale
@@ -115,6 +134,7 @@ impl PipelineConfig {
 impl Default for PipelineConfig {
     fn default() -> Self {
         Self {
+            frontend: Frontend::Lsd,
             init: DepthInit::Prior,
             prior_init_var: 0.1,
             deterministic: false,
@@ -155,6 +175,8 @@ pub struct Config {
     pub localize: crate::map::LocalizeConfig,
     /// Extending a saved map (`relfusion run --map … --mode extend`).
     pub extend: super::ExtendConfig,
+    /// The DSO-class odometry, when it is the front end (`pipeline.frontend = "dso"`).
+    pub odometry: crate::odometry::OdometryConfig,
 }
 
 impl Config {
@@ -194,6 +216,14 @@ impl Config {
             return Err(Error::Config(format!(
                 "pipeline.reactivation_candidates must be at most {MAX_REACTIVATION_CANDIDATES}"
             )));
+        }
+        if self.pipeline.frontend == Frontend::Dso {
+            self.odometry.validate()?;
+            if !self.odometry.focal_candidates.is_empty() {
+                return Err(Error::Config(
+                    "odometry.focal_candidates: the pipeline takes the camera as given".into(),
+                ));
+            }
         }
         self.tracking.validate()?;
         self.localize.validate()?;

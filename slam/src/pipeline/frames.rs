@@ -23,6 +23,9 @@ impl Pipeline {
     pub(super) fn push_frame(&mut self, input: FrameInput) -> Result<Vec<Event>> {
         let frame = Arc::new(self.make_frame(input)?);
         self.stats.frames += 1;
+        if self.odometry.is_some() {
+            return self.push_odometry(frame);
+        }
         if self.current.is_none() {
             return match self.map {
                 Some(_) => self.start_in_map(frame),

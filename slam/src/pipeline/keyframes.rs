@@ -195,11 +195,13 @@ impl Pipeline {
         // The tracking information is for a right perturbation of frame_from_source; for its
         // inverse, δ' = −Ad(T)·δ, so Λ' = Ad(T⁻¹)ᵀ Λ Ad(T⁻¹).
         let ad = frame_from_source.inverse().adjoint();
-        let parent = ParentEdge::from_se3_information(
+        let mut parent = ParentEdge::from_se3_information(
             source_id,
             source_from_new,
             &(ad.transpose() * information * ad),
         );
+        // The odometry's relative pose comes from its window's joint optimisation.
+        parent.trusted = self.odometry.is_some();
         let world_from_source = self.current_pose(source_id);
         self.finish_current()?;
         let events = self.begin_keyframe(
@@ -217,7 +219,10 @@ impl Pipeline {
     /// Fills the holes of a new keyframe's propagated depth from the depth prior
     /// (`pipeline.prior_fill`; nothing without a prior or an RGB image).
     /// Returns the prior's output when the network ran, for the dense layer to reuse.
-    fn fill_from_prior(&mut self, filter: &mut DepthFilter) -> Result<Option<Arc<ImageF32>>> {
+    pub(super) fn fill_from_prior(
+        &mut self,
+        filter: &mut DepthFilter,
+    ) -> Result<Option<Arc<ImageF32>>> {
         let cfg = &self.config.pipeline;
         let (true, Some(prior), Some(rgb)) = (
             cfg.prior_fill,
@@ -244,7 +249,7 @@ impl Pipeline {
 
     /// Registers `frame` as the current keyframe and reports it; with `report_frame`, also its
     /// pose as a frame (already reported when the keyframe was made on the mapping thread).
-    fn begin_keyframe(
+    pub(super) fn begin_keyframe(
         &mut self,
         frame: Arc<Frame>,
         filter: DepthFilter,

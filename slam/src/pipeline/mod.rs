@@ -20,6 +20,8 @@
 //! - [`extend`]: a pipeline that starts from a saved map and extends it;
 //! - [`reactivate`]: an old keyframe made current again instead of a new one (revisits);
 //! - [`mapper`]: the current keyframe's depth mapping, in step or on its own thread;
+//! - [`odometry_front`]: the pipeline driven by the DSO-class odometry instead of LSD's
+//!   tracking (`pipeline.frontend = "dso"`);
 //! - [`user_config`]: the few settings a user should ever touch, and who may set them.
 
 pub mod config;
@@ -33,6 +35,9 @@ mod layers;
 mod mapper;
 #[cfg(test)]
 mod metric_tests;
+mod odometry_front;
+#[cfg(test)]
+mod odometry_front_tests;
 mod reactivate;
 #[cfg(test)]
 mod reactivate_tests;
@@ -43,7 +48,7 @@ pub mod user_config;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
-pub use config::{Config, DepthInit, PipelineConfig};
+pub use config::{Config, DepthInit, Frontend, PipelineConfig};
 pub use engine::{Engine, Start, Trajectories};
 pub use events::{Event, KeyframeEvent, KeyframePose, PoseEvent, TrackingState};
 pub use export::SemidenseSnapshot;
@@ -167,6 +172,8 @@ pub struct Pipeline {
     /// made in metres.
     metres: bool,
     tracker: SE3Tracker,
+    /// The DSO-class odometry when it is the front end (`pipeline.frontend = "dso"`).
+    odometry: Option<Box<odometry_front::OdometryFront>>,
     backend: BackendLink,
     dense: Option<Link<DenseLayer>>,
     fusion: Option<FusionLink>,
@@ -254,6 +261,15 @@ impl Pipeline {
             .is_some()
             .then(|| UndistortMap::new(&camera));
         let tracker = SE3Tracker::new(config.tracking.clone())?;
+        let odometry = match config.pipeline.frontend {
+            Frontend::Lsd => None,
+            Frontend::Dso if backend.is_some() => {
+                return Err(crate::Error::Config(
+                    "extending a saved map needs pipeline.frontend = \"lsd\"".into(),
+                ));
+            }
+            Frontend::Dso => Some(Box::new(odometry_front::OdometryFront::new(&config)?)),
+        };
         let backend = match backend {
             Some(backend) => BackendLink::with_backend(backend, threaded)?,
             None => BackendLink::new(config.backend.clone(), threaded)?,
@@ -293,6 +309,7 @@ impl Pipeline {
             metric,
             metres: metric,
             tracker,
+            odometry,
             backend,
             dense,
             fusion,
@@ -387,6 +404,9 @@ impl Pipeline {
     /// re-integrates the fusion at the final poses and returns the optimised pose of every
     /// keyframe.
     pub fn finish(&mut self) -> Result<Vec<(KeyframeId, Sim3)>> {
+        if let Some(front) = &mut self.odometry {
+            front.finish()?;
+        }
         self.finish_current()?;
         self.update_mapping_stats();
         if let Some(dense) = &mut self.dense {

@@ -101,6 +101,10 @@ macro_rules! user_settings {
 }
 
 user_settings! {
+    // The window's keyframes and points are not in the admission's memory model yet.
+    Operator Bound::Choice(&["lsd", "dso"]),
+        "poses from LSD-SLAM's tracking or from the DSO-class window (issue 35)"
+        => pipeline.frontend;
     Anyone Bound::Choice(&["prior", "random"]),
         "first keyframe's depth from the depth prior, or LSD-SLAM's random start"
         => pipeline.init;

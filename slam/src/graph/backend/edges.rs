@@ -28,7 +28,8 @@ impl Backend {
         };
         let tests = self.tests_of(id, pose, with_candidates);
         let (accepted, failed) = self.run_tests(id, tests, report)?;
-        // A tracked edge whose Sim(3) test failed falls back to the tracking estimate.
+        // A tracked edge whose Sim(3) test failed falls back to the tracking estimate; a
+        // trusted one is taken as it is.
         let fallbacks: Vec<_> = self.keyframes[&id]
             .tracked()
             .filter(|p| {
@@ -50,11 +51,14 @@ impl Backend {
             any = true;
         }
         for p in fallbacks {
-            tracing::warn!(
-                keyframe = id,
-                tracked = p.id,
-                "Sim(3) test of a tracked edge failed; odometry edge"
-            );
+            if !p.trusted {
+                tracing::warn!(
+                    keyframe = id,
+                    tracked = p.id,
+                    "Sim(3) test of a tracked edge failed; odometry edge"
+                );
+                report.fallback_parent_edges += 1;
+            }
             self.link(id, p.id);
             self.graph.add_edge(Constraint {
                 from: id,
@@ -62,7 +66,6 @@ impl Backend {
                 to_from_from: p.parent_from_keyframe,
                 information: p.information,
             })?;
-            report.fallback_parent_edges += 1;
             any = true;
         }
         if let Some(entry) = self.keyframes.get_mut(&id) {
@@ -108,10 +111,9 @@ impl Backend {
                 tests.push((cid, initial, self.config.loop_closure_strictness));
             }
         }
-        for p in entry
-            .tracked()
-            .filter(|p| self.keyframes.contains_key(&p.id) && !entry.neighbours.contains(&p.id))
-        {
+        for p in entry.tracked().filter(|p| {
+            !p.trusted && self.keyframes.contains_key(&p.id) && !entry.neighbours.contains(&p.id)
+        }) {
             // candidate_from_keyframe = parent_from_keyframe.
             tests.push((p.id, p.parent_from_keyframe, self.config.parent_strictness));
         }
@@ -147,8 +149,18 @@ impl Backend {
         Ok((accepted, failed))
     }
 
-    /// Re-tests keyframe `id` against each neighbour from the current relative pose and
-    /// replaces the pair of edges when accepted.
+    /// Whether `a` and `b` are joined by a trusted tracked edge (either's).
+    fn trusted_between(&self, a: KeyframeId, b: KeyframeId) -> bool {
+        let trusts = |from: KeyframeId, to: KeyframeId| {
+            self.keyframes
+                .get(&from)
+                .is_some_and(|e| e.tracked().any(|p| p.trusted && p.id == to))
+        };
+        trusts(a, b) || trusts(b, a)
+    }
+
+    /// Re-tests keyframe `id` against each neighbour (but those a trusted edge joins it to)
+    /// from the current relative pose and replaces the pair of edges when accepted.
     pub(super) fn refresh_constraints(
         &mut self,
         id: KeyframeId,
@@ -163,7 +175,13 @@ impl Backend {
         let tracked: Vec<KeyframeId> = entry.tracked().map(|p| p.id).collect();
         let mut accepted = Vec::new();
         let this = self.resident.get(&entry.kept)?;
-        for &n in &entry.neighbours {
+        let neighbours: Vec<KeyframeId> = entry
+            .neighbours
+            .iter()
+            .copied()
+            .filter(|&n| !self.trusted_between(id, n))
+            .collect();
+        for n in neighbours {
             let (Some(other), Some(npose)) = (self.keyframes.get(&n), self.graph.pose(n)) else {
                 continue;
             };

@@ -54,6 +54,7 @@ fn drifting_inputs(keyframes: &[SynthKeyframe]) -> Vec<NewKeyframe> {
                     id: k - 1,
                     parent_from_keyframe: measured,
                     information: (Matrix7::identity() * 1e6).into(),
+                    trusted: false,
                 }
             });
             NewKeyframe {
