@@ -42,8 +42,9 @@ pub enum Frontend {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct PipelineConfig {
-    /// What estimates the poses. With `dso`, its settings are `odometry`; relocalisation,
-    /// re-activation and map fragments are LSD's and not used.
+    /// What estimates the poses. With `dso`, its settings are `odometry`; relocalisation and
+    /// re-activation are LSD's and not used, and a lost odometry starts again in a new map
+    /// fragment after `new_fragment_after_lost_s`.
     pub frontend: Frontend,
     /// First-keyframe depth initialisation.
     pub init: DepthInit,

@@ -12,8 +12,9 @@
 //! closures as before.
 //!
 //! Not used with this front end: LSD's relocalisation (the odometry takes its best
-//! hypothesis on a bad frame, as DSO does), re-activation and map fragments; extending a saved
-//! map needs the LSD front end.
+//! hypothesis on a bad frame, as DSO does; when it can track nothing for
+//! `pipeline.new_fragment_after_lost_s` it starts again and begins a map fragment) and
+//! re-activation; extending a saved map needs the LSD front end.
 
 use std::sync::Arc;
 
@@ -34,6 +35,12 @@ use crate::{Error, Result};
 #[derive(Debug)]
 pub(super) struct OdometryFront {
     odometry: Odometry,
+    /// What a restarted odometry is made from.
+    config: crate::odometry::OdometryConfig,
+    threaded: bool,
+    /// Where the next first keyframe goes in the world: the identity for the map's first,
+    /// where the camera was last seen for a fragment's.
+    origin: Sim3,
     /// Frames that arrived while the odometry initialised, `(frame id, timestamp)`: their
     /// poses are known once it has.
     waiting: Vec<(u64, f64)>,
@@ -48,6 +55,9 @@ impl OdometryFront {
         let threaded = !config.pipeline.deterministic;
         Ok(Self {
             odometry: Odometry::start(config.odometry.clone(), 0, threaded)?,
+            config: config.odometry.clone(),
+            threaded,
+            origin: Sim3::identity(),
             waiting: Vec::new(),
             keyframes: Vec::new(),
         })
@@ -106,7 +116,7 @@ impl Pipeline {
                         timestamp: frame.timestamp,
                         world_from_camera: Sim3::identity(),
                         state: TrackingState::Initializing,
-                        keyframe_id: 0,
+                        keyframe_id: self.keyframes.len(),
                         is_keyframe: false,
                     })])
                 }
@@ -116,6 +126,11 @@ impl Pipeline {
             .odometry_front()?
             .relative(kf_id, &outcome.world_from_camera)?;
         if !outcome.tracked {
+            let since = *self.lost_since.get_or_insert(frame.timestamp);
+            let after = self.config.pipeline.new_fragment_after_lost_s;
+            if after > 0.0 && frame.timestamp - since >= after {
+                return self.restart_odometry(frame);
+            }
             self.stats.frames_lost += 1;
             return Ok(vec![self.record_frame(
                 &frame,
@@ -124,6 +139,8 @@ impl Pipeline {
                 TrackingState::Lost,
             )]);
         }
+        self.lost_since = None;
+        self.last_frame_from_keyframe = keyframe_from_frame.inverse();
         if outcome.keyframe {
             return self.odometry_keyframe(frame, kf_id, keyframe_from_frame, &outcome);
         }
@@ -138,6 +155,29 @@ impl Pipeline {
             keyframe_from_frame,
             TrackingState::Tracking,
         )])
+    }
+
+    /// The odometry has tracked nothing for `pipeline.new_fragment_after_lost_s`: it has no
+    /// relocalisation, and a frame it cannot track never becomes a keyframe, so it would
+    /// stay lost. A new odometry starts from `frame`, and its first keyframe begins a map
+    /// fragment where the camera was last seen, held apart until the back end finds a
+    /// constraint to the map (as the LSD front end's fragments, ORB-SLAM3's Atlas).
+    fn restart_odometry(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
+        let last_seen = self.current.map_or_else(Sim3::identity, |id| {
+            self.current_pose(id) * Sim3::from_se3(&self.last_frame_from_keyframe.inverse(), 1.0)
+        });
+        self.finish_current()?;
+        self.lost_since = None;
+        self.stats.fragments += 1;
+        tracing::info!(
+            frame = frame.id,
+            keyframe = self.keyframes.len(),
+            "odometry lost: started again, new map fragment"
+        );
+        let front = self.odometry_front()?;
+        front.odometry = Odometry::start(front.config.clone(), 0, front.threaded)?;
+        front.origin = last_seen;
+        self.push_odometry(frame)
     }
 
     fn odometry_front(&mut self) -> Result<&mut OdometryFront> {
@@ -200,14 +240,9 @@ impl Pipeline {
         )?;
         let prior = self.fill_from_prior(&mut filter)?;
         // The points' mean inverse depth is 1: the map's unit is the odometry's.
-        let mut events = self.begin_keyframe(
-            keyframe.clone(),
-            filter,
-            Sim3::identity(),
-            None,
-            prior,
-            None,
-        )?;
+        let origin = std::mem::replace(&mut self.odometry_front()?.origin, Sim3::identity());
+        let mut events =
+            self.begin_keyframe(keyframe.clone(), filter, origin, None, prior, None)?;
         let id = self.keyframes.len() - 1;
         let front = self.odometry_front()?;
         front.keyframes.push((keyframe.id, 1.0));

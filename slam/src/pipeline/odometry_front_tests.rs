@@ -78,6 +78,60 @@ fn the_odometry_front_end_poses_every_frame_and_gives_each_keyframe_its_dense_ma
     assert!(kfs.rmse <= 0.005 * path, "keyframe ATE {} m", kfs.rmse);
 }
 
+/// The lens goes black for 2.3 s (nothing to track: the odometry has no relocalisation and
+/// would stay lost) and then shows the orbit again where it was left: after
+/// `new_fragment_after_lost_s` a new odometry starts in a new map fragment and the frames
+/// after the gap are tracked again.
+#[test]
+fn a_lost_odometry_starts_again_in_a_new_fragment() {
+    let (camera, frames, _) = sequence();
+    let black = ::image::RgbImage::new(camera.width, camera.height);
+    let shown = frames[..90]
+        .iter()
+        .map(|f| f.rgb.clone())
+        .chain(std::iter::repeat_n(black, 70))
+        .chain(frames[90..].iter().map(|f| f.rgb.clone()));
+    let mut pipeline = Pipeline::new(dso(), *camera, None).expect("pipeline");
+    let mut states = Vec::new();
+    for (k, rgb) in shown.enumerate() {
+        let input = FrameInput {
+            frame_id: None,
+            timestamp: k as f64 / 30.0,
+            rgb,
+            depth: None,
+        };
+        for event in pipeline.push(input).expect("push") {
+            if let Event::Pose(p) = event {
+                states.push(p.state);
+            }
+        }
+    }
+    pipeline.finish().expect("finish");
+    let stats = pipeline.stats().clone();
+    let after = &states[160..];
+    let tracked = after
+        .iter()
+        .filter(|s| **s == TrackingState::Tracking)
+        .count();
+    println!(
+        "black lens: {} lost, {} fragment(s), {} apart, {tracked} of {} frames after it tracked",
+        stats.frames_lost,
+        stats.fragments,
+        stats.fragments_apart,
+        after.len()
+    );
+    assert_eq!(stats.fragments, 1, "{stats:?}");
+    assert!(
+        stats.frames_lost > 0 && stats.frames_lost <= 70,
+        "{stats:?}"
+    );
+    assert!(
+        tracked >= after.len() * 3 / 4,
+        "{tracked} of {}",
+        after.len()
+    );
+}
+
 #[test]
 fn extending_a_map_with_the_odometry_front_end_is_refused() {
     let (camera, _, _) = sequence();
