@@ -46,10 +46,10 @@ pub struct FrameOutcome {
 }
 
 impl FrameOutcome {
-    fn untracked(world_from_camera: SE3, keyframe: bool) -> Self {
+    fn untracked(world_from_camera: SE3) -> Self {
         Self {
             world_from_camera,
-            keyframe,
+            keyframe: false,
             tracked: false,
             residual: f32::INFINITY,
             information: Matrix6::zeros(),
@@ -275,7 +275,7 @@ impl Odometry {
             ));
         }
         if !tracked {
-            return Ok(FrameOutcome::untracked(pose, false));
+            return Ok(FrameOutcome::untracked(pose));
         }
         let first = *self.first_residual.get_or_insert(residual);
         let keyframe = self.pending.is_none()
@@ -375,7 +375,7 @@ impl Odometry {
                 keyframe_from_frame: SE3::identity(),
             },
         ));
-        let untracked = FrameOutcome::untracked(SE3::identity(), false);
+        let untracked = FrameOutcome::untracked(SE3::identity());
         let Some(search) = self.initialiser.as_mut() else {
             self.initialiser = Some(FocalSearch::new(
                 &self.config,
