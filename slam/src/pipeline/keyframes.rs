@@ -115,7 +115,16 @@ impl Pipeline {
     /// seen (the last good frame's pose, in the current keyframe's scale). The back end holds
     /// it apart from the map until a constraint joins them.
     pub(super) fn start_fragment(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
-        let last_seen = self.current.map(|id| {
+        let last_seen = self.leave_for_fragment(&frame)?;
+        self.start_at(frame, last_seen)
+    }
+
+    /// Finishes the current keyframe for a new map fragment that `frame` begins, forgets the
+    /// lost run and the motion, and returns where the camera was last seen (the last good
+    /// frame's pose, in the current keyframe's scale; the identity without a keyframe): where
+    /// the fragment is placed.
+    pub(super) fn leave_for_fragment(&mut self, frame: &Frame) -> Result<Sim3> {
+        let last_seen = self.current.map_or_else(Sim3::identity, |id| {
             self.current_pose(id) * Sim3::from_se3(&self.last_frame_from_keyframe.inverse(), 1.0)
         });
         self.finish_current()?;
@@ -128,7 +137,7 @@ impl Pipeline {
             keyframe = self.keyframes.len(),
             "tracking stayed lost: new map fragment"
         );
-        self.start_at(frame, last_seen.unwrap_or_else(Sim3::identity))
+        Ok(last_seen)
     }
 
     /// A keyframe with no parent (a map's or a fragment's first) at `world_from_keyframe`.

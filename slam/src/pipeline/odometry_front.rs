@@ -35,9 +35,6 @@ use crate::{Error, Result};
 #[derive(Debug)]
 pub(super) struct OdometryFront {
     odometry: Odometry,
-    /// What a restarted odometry is made from.
-    config: crate::odometry::OdometryConfig,
-    threaded: bool,
     /// Where the next first keyframe goes in the world: the identity for the map's first,
     /// where the camera was last seen for a fragment's.
     origin: Sim3,
@@ -50,17 +47,18 @@ pub(super) struct OdometryFront {
 }
 
 impl OdometryFront {
-    /// The odometry on its own thread unless `deterministic`.
     pub(super) fn new(config: &super::Config) -> Result<Self> {
-        let threaded = !config.pipeline.deterministic;
         Ok(Self {
-            odometry: Odometry::start(config.odometry.clone(), 0, threaded)?,
-            config: config.odometry.clone(),
-            threaded,
+            odometry: Self::start(config)?,
             origin: Sim3::identity(),
             waiting: Vec::new(),
             keyframes: Vec::new(),
         })
+    }
+
+    /// A new odometry, on its own thread unless `deterministic`.
+    fn start(config: &super::Config) -> Result<Odometry> {
+        Odometry::start(config.odometry.clone(), 0, !config.pipeline.deterministic)
     }
 
     /// Waits for the window to finish its queued work (the end of a session).
@@ -163,19 +161,10 @@ impl Pipeline {
     /// fragment where the camera was last seen, held apart until the back end finds a
     /// constraint to the map (as the LSD front end's fragments, ORB-SLAM3's Atlas).
     fn restart_odometry(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
-        let last_seen = self.current.map_or_else(Sim3::identity, |id| {
-            self.current_pose(id) * Sim3::from_se3(&self.last_frame_from_keyframe.inverse(), 1.0)
-        });
-        self.finish_current()?;
-        self.lost_since = None;
-        self.stats.fragments += 1;
-        tracing::info!(
-            frame = frame.id,
-            keyframe = self.keyframes.len(),
-            "odometry lost: started again, new map fragment"
-        );
+        let last_seen = self.leave_for_fragment(&frame)?;
+        let odometry = OdometryFront::start(&self.config)?;
         let front = self.odometry_front()?;
-        front.odometry = Odometry::start(front.config.clone(), 0, front.threaded)?;
+        front.odometry = odometry;
         front.origin = last_seen;
         self.push_odometry(frame)
     }

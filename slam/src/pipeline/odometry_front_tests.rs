@@ -2,7 +2,7 @@
 //! [`super::tests::sequence`]: every frame posed, the odometry's keyframes are the pipeline's,
 //! each densified, and the trajectory within a bound the LSD front end does not reach there.
 
-use super::tests::sequence;
+use super::tests::{run, sequence};
 use super::*;
 use crate::dataset::synth::path_length;
 use crate::dataset::trajectory::stamped_se3;
@@ -17,14 +17,8 @@ fn dso() -> Config {
 
 #[test]
 fn the_odometry_front_end_poses_every_frame_and_gives_each_keyframe_its_dense_map() {
-    let (camera, frames, gt) = sequence();
-    let mut pipeline = Pipeline::new(dso(), *camera, None).expect("pipeline");
-    let mut events = Vec::new();
-    for frame in frames {
-        events.extend(pipeline.push(frame.clone()).expect("push"));
-    }
-    pipeline.finish().expect("finish");
-    events.extend(pipeline.take_events());
+    let (_, frames, gt) = sequence();
+    let (pipeline, events) = run(dso());
 
     let states: Vec<TrackingState> = events
         .iter()

@@ -44,7 +44,7 @@ pub(super) fn sequence() -> &'static (PinholeCamera, Vec<FrameInput>, Vec<Stampe
     })
 }
 
-fn run(config: Config) -> (Pipeline, Vec<Event>) {
+pub(super) fn run(config: Config) -> (Pipeline, Vec<Event>) {
     let (camera, frames, _) = sequence();
     let mut pipeline = Pipeline::new(config, *camera, None).expect("pipeline");
     let mut events = Vec::new();
