@@ -298,6 +298,11 @@ pub struct SessionInfo {
     /// Where a running mapping session's keyframes live (issue 37), updated at each keyframe.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub memory: Option<SessionMemory>,
+    /// `"metric"` when a metric depth prior (or a metric map) makes the session's unit the
+    /// metre, `"arbitrary"` otherwise (a monocular map's unit); absent until its pipeline
+    /// starts.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scale: Option<String>,
 }
 
 /// Where a mapping session's keyframes and fusion data live: in full, compact in memory, or

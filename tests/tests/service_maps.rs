@@ -169,6 +169,9 @@ fn a_saved_map_outlives_its_session_and_a_restart_and_new_sessions_localise_in_i
         &server,
     );
     let session = lines[0]["session"].as_str().expect("session").to_string();
+    // Without a metric depth prior the session's unit is arbitrary, and its status says so.
+    let summary = &lines.last().expect("summary")["summary"];
+    assert_eq!(summary["scale"], "arbitrary", "{summary}");
     let keep = |token: &str| {
         relfusion(&[
             "maps", "--server", &url, "--token", token, "save", &session, "--name", "room 5",

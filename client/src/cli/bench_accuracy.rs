@@ -476,7 +476,8 @@ fn print_row(f: &SequenceFigures) {
             .map_or_else(|| "-".into(), |(a, b)| format!("{a:.2}–{b:.2}")),
         fmt_spread(f.depth_scale_ratio, 2),
     );
-    if f.ate_se3_m.is_some() || f.sim3_scale.is_some() {
+    let det_metric = det.is_some_and(|d| d.ate_se3_m.is_some() || d.sim3_scale.is_some());
+    if f.ate_se3_m.is_some() || f.sim3_scale.is_some() || det_metric {
         println!(
             "  metric: ATE traj SE(3) median/worst {} m (det {}) | Sim(3) scale median/farthest {} (det {})",
             fmt_spread(f.ate_se3_m, 4),

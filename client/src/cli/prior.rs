@@ -18,6 +18,7 @@ use relfusion_slam::dense::{
     inverse_depth_target,
 };
 use relfusion_slam::eval::{DEFAULT_DEPTH_THRESHOLD, percent_correct_depth};
+use relfusion_slam::image::ImageF32;
 use serde_json::json;
 
 /// Ground truth closer than this (metres) is ignored, as in the shared data README §1.4.
@@ -38,6 +39,35 @@ pub struct Args {
     pub frames: Option<usize>,
 }
 
+/// The median over pixels of the sensor's depth over a metric model's (`inv` is its inverse
+/// depth), over the pixels where both have one; `None` without such pixels.
+fn metric_scale(inv: &ImageF32, gt: &ImageF32) -> Option<f64> {
+    let mut ratios: Vec<f64> = inv
+        .data
+        .iter()
+        .zip(&gt.data)
+        .filter(|(p, g)| **p > 0.0 && **g > MIN_GT_DEPTH && p.is_finite() && g.is_finite())
+        .map(|(p, g)| f64::from(*p) * f64::from(*g))
+        .collect();
+    if ratios.is_empty() {
+        return None;
+    }
+    ratios.sort_by(f64::total_cmp);
+    Some(ratios[ratios.len() / 2])
+}
+
+/// 10th, 50th and 90th percentiles of `values`, and the 90th over the 10th.
+fn quantiles(values: &mut [f64]) -> Option<serde_json::Value> {
+    if values.is_empty() {
+        return None;
+    }
+    values.sort_by(f64::total_cmp);
+    let at = |q: f64| values[((values.len() - 1) as f64 * q).round() as usize];
+    Some(
+        json!({ "p10": at(0.1), "p50": at(0.5), "p90": at(0.9), "p90_over_p10": at(0.9) / at(0.1) }),
+    )
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
     let config = args
         .model_config
@@ -54,7 +84,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let metric = prior.describe().metric;
     let (mut percents, mut millis, mut inverted, mut skipped) = (Vec::new(), Vec::new(), 0, 0);
-    let mut unaligned = Vec::new();
+    let (mut unaligned, mut scales) = (Vec::new(), Vec::new());
     for i in 0..n {
         let Some(gt) = seq.load_depth(i)? else {
             skipped += 1;
@@ -90,6 +120,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             let raw = percent_correct_depth(&depth, &gt, 1.0, DEFAULT_DEPTH_THRESHOLD)?;
             unaligned.push(raw.percent);
+            scales.extend(metric_scale(&inv, &gt));
         }
     }
     anyhow::ensure!(
@@ -120,6 +151,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "percent_correct_depth_median": median(&mut percents.clone()),
         // A metric model's metres taken as they are, with no scale or shift fitted.
         "percent_correct_depth_unaligned_mean": metric.then(|| mean(&unaligned)),
+        // A metric model's per-frame scale error (sensor metres over the model's): how far
+        // anchoring a map's scale to it can hold (issue 39).
+        "metric_scale": metric.then(|| quantiles(&mut scales)).flatten(),
         "ms_per_frame_mean": mean(&millis),
         "ms_per_frame_median": median(&mut millis),
     });

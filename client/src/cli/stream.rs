@@ -120,6 +120,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             out["state"] = json!(info.state);
             out["frames_processed"] = json!(info.frames_processed);
             out["keyframes"] = json!(info.keyframes);
+            out["scale"] = json!(info.scale);
             if let Some(map) = &info.map {
                 out["map"] = json!(map);
             }

@@ -40,6 +40,8 @@ pub struct Config {
     pub pool: PoolConfig,
     /// The default depth model of sessions.
     pub model: ModelSettings,
+    /// The pipeline settings the operator chooses for every session.
+    pub pipeline: PipelineSettings,
     /// Bearer tokens.
     pub auth: AuthConfig,
     /// The Zenoh endpoints.
@@ -74,6 +76,7 @@ impl Default for Config {
             retention: Retention::default(),
             pool: PoolConfig::default(),
             model: ModelSettings::default(),
+            pipeline: PipelineSettings::default(),
             auth: AuthConfig::default(),
             zenoh: ZenohConfig::default(),
             ros2: Ros2Config::default(),
@@ -91,6 +94,16 @@ pub struct PoolConfig {
     /// when there is no real GPU). Sessions are placed on the adapters whatever the count;
     /// each adapter needs at least one worker, so fewer workers than GPUs leaves GPUs unused.
     pub workers: usize,
+}
+
+/// Pipeline settings of the operator's scope (`relfusion_slam::pipeline::user_config`) that
+/// apply to every session: a client cannot set them, since they change what a session costs.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PipelineSettings {
+    /// What poses the frames: `"lsd"` (the default) or `"dso"`, the DSO-class odometry
+    /// (issue 35). Sessions that extend a saved map keep `"lsd"`, the one front end that can.
+    pub frontend: relfusion_slam::pipeline::Frontend,
 }
 
 /// The default depth model (the DeepRelativeFusion prior) of new sessions.

@@ -85,6 +85,9 @@ pub struct Session {
     pub(crate) counters: Counters,
     /// Where the running pipeline's keyframes live (set by the worker at each keyframe).
     pub(crate) memory: Mutex<Option<SessionMemory>>,
+    /// The unit of its map, `"metric"` or `"arbitrary"` (set by the worker when the pipeline
+    /// starts; kept in the metadata).
+    pub(crate) scale: Mutex<Option<String>>,
     /// Live sessions: frames waiting for the pipeline.
     pub(crate) queue: Option<FrameQueue<QueuedFrame>>,
     /// Serialises pushes so frames enter the queue in id order; holds the last frame's id
@@ -165,6 +168,7 @@ impl Session {
             total_frames: meta.total_frames,
             counters: Counters::restore(&meta.counters),
             memory: Mutex::new(None),
+            scale: Mutex::new(meta.scale),
             queue,
             push_order: tokio::sync::Mutex::new(None),
             max_timestamp_step: spec.max_timestamp_step,
@@ -240,6 +244,7 @@ impl Session {
             map: self.map.clone(),
             node: (!self.node.is_empty()).then(|| self.node.clone()),
             memory: *lock(&self.memory),
+            scale: lock(&self.scale).clone(),
         }
     }
 
@@ -356,6 +361,7 @@ impl Session {
             results_bytes: self.results_bytes.load(Ordering::Relaxed),
             map: self.map.clone(),
             node: Some(self.node.clone()),
+            scale: lock(&self.scale).clone(),
         }
     }
 

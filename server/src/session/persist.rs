@@ -99,6 +99,9 @@ pub struct SessionMeta {
     /// own sessions at start, and takes over those of a node that left (cluster failover).
     #[serde(default)]
     pub node: Option<String>,
+    /// The unit of its map (`SessionInfo::scale`), once its pipeline has started.
+    #[serde(default)]
+    pub scale: Option<String>,
 }
 
 impl SessionMeta {
@@ -147,6 +150,7 @@ impl SessionMeta {
             map: self.map.clone(),
             node: self.node.clone(),
             memory: None,
+            scale: self.scale.clone(),
         }
     }
 }

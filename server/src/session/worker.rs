@@ -90,6 +90,7 @@ pub(crate) fn run(session: &Arc<Session>, env: WorkerEnv) -> Outcome {
         Ok(engine) => engine,
         Err(e) => return fail(session, None, e),
     };
+    *super::handle::lock(&session.scale) = Some(engine.stats().scale.to_string());
     // Old keyframes spill to the session's store: its memory stays bounded however long it
     // runs (issue 37).
     let spill = super::spill::SessionSpill::open(session.store.clone(), session.id())

@@ -223,13 +223,17 @@ impl Pipeline {
     ) -> Result<Vec<Event>> {
         let keyframe = first.frame;
         let mut filter = DepthFilter::new(keyframe.clone(), self.config.mapping.clone())?;
-        filter.init_from_depth(
-            &seed_depth(&keyframe, &first.points)?,
-            self.config.pipeline.prior_init_var,
-        )?;
+        let seed = seed_depth(&keyframe, &first.points)?;
+        filter.init_from_depth(&seed, self.config.pipeline.prior_init_var)?;
         let prior = self.fill_from_prior(&mut filter)?;
         // The points' mean inverse depth is 1: the map's unit is the odometry's.
-        let origin = std::mem::replace(&mut self.odometry_front()?.origin, Sim3::identity());
+        let mut origin = std::mem::replace(&mut self.odometry_front()?.origin, Sim3::identity());
+        // With a metric prior the keyframe's scale in a world of metres is the median ratio
+        // of the initialiser's inverse depths to the prior's (as the LSD front end's first
+        // keyframe), so the first seconds are metric too.
+        if let Some(scale) = self.metric_scale_of(&seed, &keyframe, prior.as_deref())? {
+            origin.scale = scale;
+        }
         let mut events =
             self.begin_keyframe(keyframe.clone(), filter, origin, None, prior, None)?;
         let id = self.keyframes.len() - 1;
@@ -259,6 +263,32 @@ impl Pipeline {
         })?;
         events.push(self.record_frame(frame, id, keyframe_from_frame, TrackingState::Tracking));
         Ok(events)
+    }
+}
+
+impl Pipeline {
+    /// With a metric prior, the scale `s` of a keyframe whose inverse depths are `depth`
+    /// (`ρ_kf = s·ρ_metric`, [`crate::metric_scale`]); `prior` is the keyframe's prediction
+    /// when one was made already. `None` without a metric prior or without votes.
+    fn metric_scale_of(
+        &self,
+        depth: &ImageF32,
+        keyframe: &Frame,
+        prior: Option<&ImageF32>,
+    ) -> Result<Option<f64>> {
+        let (true, Some(model), Some(rgb)) = (self.metric, self.prior.as_ref(), &keyframe.rgb)
+        else {
+            return Ok(None);
+        };
+        let predicted;
+        let prior = match prior {
+            Some(prior) => prior,
+            None => {
+                predicted = crate::dense::layer::predict(model, rgb)?;
+                &predicted
+            }
+        };
+        Ok(crate::metric_scale::observe(depth, prior).map(|o| o.scale()))
     }
 }
 

@@ -22,6 +22,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock, RwLockReadGuard, RwLockWriteGuard, Weak};
 use std::time::{Duration, Instant};
 
+use relfusion_proto::http::{MapMode, MapStart};
 use relfusion_slam::geometry::PinholeCamera;
 use relfusion_slam::pipeline::Config as SlamConfig;
 
@@ -261,6 +262,20 @@ impl SessionManager {
         Ok(())
     }
 
+    /// `config` with the operator's pipeline settings (`[pipeline]`); a session that extends
+    /// a saved map keeps the LSD front end, the one that can extend one.
+    pub(crate) fn with_operator_settings(
+        &self,
+        mut config: SlamConfig,
+        map: Option<&MapStart>,
+    ) -> SlamConfig {
+        let extends = map.is_some_and(|m| m.mode == MapMode::Extend);
+        if !extends {
+            config.pipeline.frontend = self.config.pipeline.frontend;
+        }
+        config
+    }
+
     /// How many keyframes a session of `camera` and `config` may map in its memory share
     /// (400 when too few fit: the image is too large for this server).
     fn map_limit(&self, camera: &PinholeCamera, config: &SlamConfig) -> Result<usize, ApiError> {
@@ -337,6 +352,7 @@ impl SessionManager {
             }
         }
         let model = self.resolve_model(model.as_deref())?;
+        let config = self.with_operator_settings(config, map.as_ref());
         let max_keyframes = self.map_limit(&camera, &config)?;
         let meta = SessionMeta {
             version: META_VERSION,
@@ -361,6 +377,7 @@ impl SessionManager {
             results_bytes: 0,
             map,
             node: None,
+            scale: None,
         };
         let session = {
             // Quota, slot and registration under one lock: racing creates cannot both pass.

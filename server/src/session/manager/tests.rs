@@ -267,6 +267,7 @@ async fn recovery_drops_unacknowledged_uploads_and_fails_interrupted_live_sessio
         results_bytes: 0,
         map: None,
         node: None,
+        scale: None,
     };
     meta.save(&store).expect("save");
     store
@@ -486,4 +487,40 @@ async fn an_upload_stored_for_another_node_runs_once_there_or_back_here() {
     assert!(!b.holds(&info.id));
     a.shutdown().await;
     b.shutdown().await;
+}
+
+/// The operator's `[pipeline] frontend` reaches every new session's config (a client cannot
+/// set it), except a session that extends a saved map, which keeps the one front end that can.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_operators_front_end_applies_to_sessions_but_map_extensions() {
+    use relfusion_slam::pipeline::Frontend;
+    let mut config = temp_config("frontend", 2);
+    config.pipeline.frontend = Frontend::Dso;
+    let m = SessionManager::open(&config, Arc::new(Metrics::new())).expect("open");
+    let base = upload_config(&json!({})).expect("config");
+    assert_eq!(base.pipeline.frontend, Frontend::Lsd);
+    let frontend = |map: Option<MapMode>| {
+        let start = map.map(|mode| MapStart {
+            id: "m-000000000000".into(),
+            mode,
+        });
+        m.with_operator_settings(base.clone(), start.as_ref())
+            .pipeline
+            .frontend
+    };
+    assert_eq!(frontend(None), Frontend::Dso);
+    assert_eq!(frontend(Some(MapMode::Localize)), Frontend::Dso);
+    assert_eq!(frontend(Some(MapMode::Extend)), Frontend::Lsd);
+    let session = m
+        .create(
+            SessionRequest::from_http(request()).expect("valid"),
+            &owner("alice"),
+        )
+        .expect("session");
+    assert_eq!(session.meta().config.pipeline.frontend, Frontend::Dso);
+    let refused = SessionRequest::from_http(CreateSession {
+        config: json!({"pipeline": {"frontend": "dso"}}),
+        ..request()
+    });
+    assert!(refused.is_err(), "a client may not choose the front end");
 }

@@ -87,6 +87,7 @@ impl SessionManager {
             camera,
             config: slam_config,
         } = upload;
+        let slam_config = self.with_operator_settings(slam_config, None);
         let archive = archive.to_path_buf();
         let manager = self
             .me
@@ -153,6 +154,7 @@ impl SessionManager {
             results_bytes: 0,
             map: None,
             node: Some(node.unwrap_or(self.node()).to_string()),
+            scale: None,
         };
         // The acknowledgement point: once meta.json is durable, the upload exists.
         if let Err(e) = meta.save(self.store.as_ref()) {
