@@ -6,7 +6,9 @@
 //! so frames whose prediction is inverted are scored, not skipped), convert back to depth
 //! `d = 1/(a·p + b)` and take the paper's percentage of correct depth (relative error < 10 %,
 //! over the valid ground-truth pixels). The figure is the mean over frames. A metric model is
-//! also scored as it is, its metres against the sensor's with nothing fitted.
+//! also scored as it is, its metres against the sensor's with nothing fitted, and its per-frame
+//! scale error is reported (`metric_scale`: percentiles over frames of the median ratio of the
+//! sensor's depth to the model's), which bounds what anchoring a map's scale to it can reach.
 
 use std::path::PathBuf;
 use std::time::Instant;
