@@ -14,13 +14,14 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context as _;
+use relfusion_client::latency::percentile;
 use relfusion_slam::dataset::TumSequence;
 use relfusion_slam::dense::{
     DepthPrior, ModelConfig, OnnxDepthPrior, aligned_depth, fit_scale_shift_unconstrained,
     inverse_depth_target,
 };
 use relfusion_slam::eval::{DEFAULT_DEPTH_THRESHOLD, percent_correct_depth};
-use relfusion_slam::image::ImageF32;
+use relfusion_slam::metric_scale;
 use serde_json::json;
 
 /// Ground truth closer than this (metres) is ignored, as in the shared data README §1.4.
@@ -41,33 +42,15 @@ pub struct Args {
     pub frames: Option<usize>,
 }
 
-/// The median over pixels of the sensor's depth over a metric model's (`inv` is its inverse
-/// depth), over the pixels where both have one; `None` without such pixels.
-fn metric_scale(inv: &ImageF32, gt: &ImageF32) -> Option<f64> {
-    let mut ratios: Vec<f64> = inv
-        .data
-        .iter()
-        .zip(&gt.data)
-        .filter(|(p, g)| **p > 0.0 && **g > MIN_GT_DEPTH && p.is_finite() && g.is_finite())
-        .map(|(p, g)| f64::from(*p) * f64::from(*g))
-        .collect();
-    if ratios.is_empty() {
-        return None;
-    }
-    ratios.sort_by(f64::total_cmp);
-    Some(ratios[ratios.len() / 2])
-}
-
-/// 10th, 50th and 90th percentiles of `values`, and the 90th over the 10th.
+/// 10th, 50th and 90th percentiles of `values` (nearest rank), and the 90th over the 10th.
 fn quantiles(values: &mut [f64]) -> Option<serde_json::Value> {
-    if values.is_empty() {
-        return None;
-    }
     values.sort_by(f64::total_cmp);
-    let at = |q: f64| values[((values.len() - 1) as f64 * q).round() as usize];
-    Some(
-        json!({ "p10": at(0.1), "p50": at(0.5), "p90": at(0.9), "p90_over_p10": at(0.9) / at(0.1) }),
-    )
+    let (p10, p50, p90) = (
+        percentile(values, 0.1)?,
+        percentile(values, 0.5)?,
+        percentile(values, 0.9)?,
+    );
+    Some(json!({ "p10": p10, "p50": p50, "p90": p90, "p90_over_p10": p90 / p10 }))
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -122,7 +105,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             let raw = percent_correct_depth(&depth, &gt, 1.0, DEFAULT_DEPTH_THRESHOLD)?;
             unaligned.push(raw.percent);
-            scales.extend(metric_scale(&inv, &gt));
+            // The median of ρ_model / ρ_sensor = d_sensor / d_model over the pixels with both.
+            scales.extend(metric_scale::observe(&inv, &target).map(|o| o.scale()));
         }
     }
     anyhow::ensure!(

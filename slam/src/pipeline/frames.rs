@@ -83,21 +83,45 @@ impl Pipeline {
             // On the mapping thread too, the queued frames are mapped first: a keyframe made
             // while tracking went on against the old one mapped fewer frames and drifted more
             // (docs/tuning.md, "Mapping thread").
-            let t1 = std::time::Instant::now();
-            let propagated = self.mapper.with_filter(|filter| {
-                filter.propagate_to(frame.clone(), &result.frame_from_keyframe)
-            })?;
-            self.keyframe_creation_s += t1.elapsed().as_secs_f64();
+            let propagated = self.propagate_current(&frame, &result.frame_from_keyframe)?;
             return self.new_keyframe(candidate, propagated);
         }
+        self.observe_and_record(frame, kf_id, keyframe_from_frame, result.residual, state)
+    }
+
+    /// The current keyframe's depth propagated into `frame` (after the frames queued for
+    /// mapping), for the keyframe `frame` becomes; timed as keyframe creation.
+    pub(super) fn propagate_current(
+        &mut self,
+        frame: &Arc<Frame>,
+        frame_from_keyframe: &SE3,
+    ) -> Result<DepthFilter> {
+        let t0 = std::time::Instant::now();
+        let propagated = self
+            .mapper
+            .with_filter(|filter| filter.propagate_to(frame.clone(), frame_from_keyframe))?;
+        self.keyframe_creation_s += t0.elapsed().as_secs_f64();
+        Ok(propagated)
+    }
+
+    /// A tracked frame that stays a frame: the current keyframe's depth filter observes it
+    /// (with its tracking residual) and its pose is recorded and reported.
+    pub(super) fn observe_and_record(
+        &mut self,
+        frame: Arc<Frame>,
+        keyframe: KeyframeId,
+        keyframe_from_frame: SE3,
+        residual: f32,
+        state: TrackingState,
+    ) -> Result<Vec<Event>> {
         self.mapper.observe(Observation {
             frame: frame.clone(),
             keyframe_from_frame,
-            residual: result.residual,
+            residual,
         })?;
         Ok(vec![self.record_frame(
             &frame,
-            kf_id,
+            keyframe,
             keyframe_from_frame,
             state,
         )])

@@ -142,17 +142,13 @@ impl Pipeline {
         if outcome.keyframe {
             return self.odometry_keyframe(frame, kf_id, keyframe_from_frame, &outcome);
         }
-        self.mapper.observe(Observation {
-            frame: frame.clone(),
-            keyframe_from_frame,
-            residual: outcome.residual,
-        })?;
-        Ok(vec![self.record_frame(
-            &frame,
+        self.observe_and_record(
+            frame,
             kf_id,
             keyframe_from_frame,
+            outcome.residual,
             TrackingState::Tracking,
-        )])
+        )
     }
 
     /// The odometry has tracked nothing for `pipeline.new_fragment_after_lost_s`: it has no
@@ -186,11 +182,7 @@ impl Pipeline {
         outcome: &FrameOutcome,
     ) -> Result<Vec<Event>> {
         let frame_from_source = source_from_frame.inverse();
-        let t0 = std::time::Instant::now();
-        let propagated = self
-            .mapper
-            .with_filter(|filter| filter.propagate_to(frame.clone(), &frame_from_source))?;
-        self.keyframe_creation_s += t0.elapsed().as_secs_f64();
+        let propagated = self.propagate_current(&frame, &frame_from_source)?;
         let source_unit = self.odometry_front()?.keyframes[source_id].1;
         // Tracking's information is about the odometry's units; the edge is in the source's.
         let candidate = KeyframeCandidate {
