@@ -259,7 +259,7 @@ fn run_once(
         }))
     });
     let mut odometry =
-        Odometry::start_observed(config.clone(), run as u64, args.threaded, observer)?;
+        Odometry::start_observed(config.clone(), run as u64, args.threaded, observer, None)?;
     if args.oracle_first_map {
         odometry = odometry.with_first_map(sensor_first_map(loaded.seq.clone()));
     }

@@ -10,6 +10,9 @@ use crate::{Error, Result};
 /// initialiser's work per frame until the hand-over).
 const MAX_FOCAL_CANDIDATES: usize = 8;
 
+/// Default of [`OdometryConfig::metric_prior_weight`].
+const METRIC_PRIOR_WEIGHT: f64 = 0.0;
+
 /// Configuration of [`super::SlidingWindow`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -81,6 +84,17 @@ pub struct OdometryConfig {
     /// map from it ([`super::two_view`]); off: DSO's photometric initialiser alone, which
     /// hands over inverted maps in about half the starts (docs/tuning.md, 2026-12-07).
     pub init_two_view: bool,
+    /// With a metric depth model: information of a window point's relative inverse depth
+    /// `(ρ − ρ_model)/ρ_model` about the model's, in the photometric energy's units (a weak
+    /// per-point prior, as D3VO's and CNN-SVO's, that pulls the window's depths to the
+    /// model's metres where the photometric terms leave them free); 0: off. Ignored without
+    /// a metric model. Off by default: with FastDepth 30 takes redkitchen 0-299 from 0.027 to
+    /// 0.019 m, but TUM fr1/rpy (rotation, a poor fit of the model) gets worse from 30 and
+    /// loses its last 62 frames at 100 (docs/tuning.md, 2026-12-07, fiftieth stop).
+    pub metric_prior_weight: f64,
+    /// Relative inverse-depth error past which that prior is linear (Huber): a single-image
+    /// network is wrong by far on some pixels.
+    pub metric_prior_huber: f64,
 }
 
 impl Default for OdometryConfig {
@@ -107,6 +121,8 @@ impl Default for OdometryConfig {
             init_min_parallax: 0.0,
             focal_candidates: Vec::new(),
             init_two_view: true,
+            metric_prior_weight: METRIC_PRIOR_WEIGHT,
+            metric_prior_huber: 0.2,
         }
     }
 }
@@ -163,6 +179,12 @@ impl OdometryConfig {
             return bad(
                 "focal_candidates: at most 8, each in 0.5..=2 times the given focal length",
             );
+        }
+        if !(self.metric_prior_weight.is_finite() && self.metric_prior_weight >= 0.0) {
+            return bad("metric_prior_weight must be ≥ 0");
+        }
+        if !(self.metric_prior_huber.is_finite() && self.metric_prior_huber > 0.0) {
+            return bad("metric_prior_huber must be positive");
         }
         if self.active_points == 0 || self.active_points > 20_000 {
             return bad("active_points must be in 1..=20000");

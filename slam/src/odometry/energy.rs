@@ -238,8 +238,9 @@ impl NormalEquations {
             sys.coupling.push((t, target_col));
         }
         if let Some(prior) = point.prior {
-            sys.h_dd += prior.weight;
-            sys.b_d += prior.weight * (point.idepth - prior.idepth);
+            let w = prior.weight_at(point.idepth);
+            sys.h_dd += w;
+            sys.b_d += w * (point.idepth - prior.idepth);
         }
         sys.coupling.push((host, host_col));
         self.points.push(sys);

@@ -92,6 +92,9 @@ pub struct ImmaturePoint {
     pub pixel_interval: f64,
     pub status: TraceStatus,
     pub outliers: u32,
+    /// A metric depth model's inverse depth at its pixel, in the window's units, when there
+    /// is one: the prior the point takes into the window.
+    pub metric_idepth: Option<f64>,
 }
 
 impl ImmaturePoint {
@@ -118,6 +121,7 @@ impl ImmaturePoint {
             pixel_interval: f64::INFINITY,
             status: TraceStatus::Fresh,
             outliers: 0,
+            metric_idepth: None,
         })
     }
 

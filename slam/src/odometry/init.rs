@@ -316,15 +316,9 @@ impl Initialiser {
             let depths: Vec<f64> = self.points.iter().map(|p| p.1).collect();
             let prior = |i: usize| {
                 if snapped {
-                    DepthPrior {
-                        idepth: self.smoothed[i],
-                        weight: COUPLING_WEIGHT,
-                    }
+                    DepthPrior::quadratic(self.smoothed[i], COUPLING_WEIGHT)
                 } else {
-                    DepthPrior {
-                        idepth: 1.0,
-                        weight: ALPHA_WEIGHT,
-                    }
+                    DepthPrior::quadratic(1.0, ALPHA_WEIGHT)
                 }
             };
             let Some((poses, depths, _)) = self.solve_level(
@@ -416,10 +410,7 @@ impl Initialiser {
         let top = COARSEST.min(self.first.pyramid.levels.len() - 1);
         // The first frame held, every other pose free: the scale stays where the initialiser
         // put it, the depths' smoothed values as weak priors.
-        let prior = |i: usize| DepthPrior {
-            idepth: self.smoothed[i],
-            weight: COUPLING_WEIGHT,
-        };
+        let prior = |i: usize| DepthPrior::quadratic(self.smoothed[i], COUPLING_WEIGHT);
         for level in (0..=top).rev() {
             let views: Vec<(&Arc<Frame>, SE3)> = self
                 .scored

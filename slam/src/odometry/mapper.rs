@@ -11,6 +11,7 @@ use nalgebra::{Vector2, Vector6};
 
 use super::immature::{ImmaturePoint, TraceConfig, TraceStatus, TraceTarget};
 use super::init::{HANDOVER_PRIOR_WEIGHT, Initialised};
+use super::metric::{self, MetricPrior};
 use super::residual::FrameState;
 use super::select::select_candidates;
 use super::{DepthPrior, OdometryConfig, SlidingWindow};
@@ -18,6 +19,7 @@ use crate::Result;
 use crate::background::Service;
 use crate::frame::Frame;
 use crate::geometry::SE3;
+use crate::image::ImageF32;
 use crate::mapping::{DepthMap, InverseDepth};
 use crate::tracking::TrackingReference;
 
@@ -127,6 +129,8 @@ pub struct WindowMapper {
     /// State of the generator behind [`activation_order`]; 0: no shuffle.
     shuffle: u64,
     observer: Option<WindowObserver>,
+    /// A metric depth model's prior on the points the window activates, when there is one.
+    metric: Option<MetricPrior>,
 }
 
 impl Service for WindowMapper {
@@ -164,6 +168,7 @@ impl WindowMapper {
         config: OdometryConfig,
         seed: u64,
         observer: Option<WindowObserver>,
+        metric: Option<MetricPrior>,
     ) -> Result<Self> {
         Ok(Self {
             window: SlidingWindow::new(config.clone())?,
@@ -172,6 +177,7 @@ impl WindowMapper {
             candidates: Vec::new(),
             shuffle: shuffle_state(seed),
             observer,
+            metric,
         })
     }
 
@@ -185,13 +191,14 @@ impl WindowMapper {
         self.window.add_frame(id, done.first.clone(), state)?;
         let factor = f64::from(1u32 << self.config.level);
         for (uv, idepth) in &done.points {
-            let prior = DepthPrior {
-                idepth: *idepth,
-                weight: HANDOVER_PRIOR_WEIGHT,
-            };
+            let prior = DepthPrior::quadratic(*idepth, HANDOVER_PRIOR_WEIGHT);
             self.window.add_point(id, uv / factor, *idepth, Some(prior));
         }
-        self.add_candidates(&done.first);
+        let model = match &mut self.metric {
+            Some(metric) => metric.start(&done.first, &done.points)?,
+            None => None,
+        };
+        self.add_candidates(&done.first, model.as_ref());
         self.publish(Vec::new())
     }
 
@@ -223,11 +230,22 @@ impl WindowMapper {
             .retain(|c| c.status != TraceStatus::OutOfBounds && c.outliers < 2);
     }
 
-    fn add_candidates(&mut self, keyframe: &Frame) {
+    /// Selects `keyframe`'s candidates, each with the metric `model`'s inverse depth at its
+    /// pixel (window units) when there is one.
+    fn add_candidates(&mut self, keyframe: &Frame, model: Option<&ImageF32>) {
         for uv in select_candidates(keyframe.level(0), self.config.candidate_points) {
-            if let Some(c) = ImmaturePoint::new(keyframe.id, keyframe.level(0), uv) {
+            if let Some(mut c) = ImmaturePoint::new(keyframe.id, keyframe.level(0), uv) {
+                c.metric_idepth = model.and_then(|m| metric::sample(m, &uv));
                 self.candidates.push(c);
             }
+        }
+    }
+
+    /// The metric model's prior for the newest keyframe `frame`; `None` without a model.
+    fn metric_prior(&self, frame: &Frame) -> Result<Option<ImageF32>> {
+        match &self.metric {
+            Some(metric) => metric.keyframe(frame),
+            None => Ok(None),
         }
     }
 
@@ -267,7 +285,8 @@ impl WindowMapper {
             self.window.marginalize_frame(id)?;
             self.candidates.retain(|c| c.host != id);
         }
-        self.add_candidates(&frame);
+        let model = self.metric_prior(&frame)?;
+        self.add_candidates(&frame, model.as_ref());
         self.publish(left)
     }
 
@@ -313,8 +332,11 @@ impl WindowMapper {
                 let free = cell_of(&self.window, c.host, &uv, c.idepth()).filter(|&i| !occupied[i]);
                 if let Some(i) = free {
                     // A candidate the window rejects is dropped, as DSO does.
+                    let prior = c
+                        .metric_idepth
+                        .and_then(|m| metric::point_prior(&self.config, m));
                     if let Some(idepth) = self.window.refine_candidate(c.host, uv, c.idepth())
-                        && self.window.add_point(c.host, uv, idepth, None)
+                        && self.window.add_point(c.host, uv, idepth, prior)
                     {
                         occupied[i] = true;
                         added += 1;

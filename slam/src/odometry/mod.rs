@@ -16,6 +16,7 @@
 //! - [`select`]: candidate points spread over the image by a region-adaptive threshold;
 //! - [`init`]: the coarse initialiser; [`focal`]: initialisers competing over the focal
 //!   length; [`immature`]: candidates traced along epipolar lines;
+//! - [`metric`]: a metric depth model's weak prior on every point the window activates;
 //! - [`mapper`]: the window's side (tracing, activation, keyframes), in step or on a thread;
 //!   [`system`]: the tracking side, which drives it;
 //! - [`truth`]: a benchmark's probe of where the window's energy has its minimum against the
@@ -29,6 +30,7 @@ pub mod immature;
 pub mod init;
 pub mod klt;
 pub mod mapper;
+pub mod metric;
 pub mod prior;
 pub mod residual;
 pub mod select;
@@ -44,6 +46,7 @@ use nalgebra::{Vector2, Vector6};
 pub use config::OdometryConfig;
 pub use init::FirstMap;
 pub use mapper::{PublishedPoint, WindowObserver, WindowSnapshot};
+pub use metric::MetricModel;
 pub use prior::MarginalisationPrior;
 pub use residual::{FrameState, Linearisation, PATTERN};
 pub use solve::{Anchor, SolveReport};
@@ -88,19 +91,53 @@ pub struct WindowPoint {
     pub prior: Option<DepthPrior>,
 }
 
-/// `½ · weight · (idepth − idepth₀)²` added to the window's energy for one point: DSO's
-/// regulariser of the initialiser's depths and its prior on the depths the initialiser
-/// hands over (`setting_idepthFixPrior`); weights in the photometric energy's units.
+/// `½ · weight · (idepth − idepth₀)²` added to the window's energy for one point, Huber-robust
+/// past `huber` (in units of `√weight · |idepth − idepth₀|`): DSO's regulariser of the
+/// initialiser's depths and its prior on the depths the initialiser hands over
+/// (`setting_idepthFixPrior`, quadratic), and a metric depth model's weak prior on every
+/// point (robust: a single-image network is wrong by far on some pixels); weights in the
+/// photometric energy's units.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DepthPrior {
     pub idepth: f64,
     pub weight: f64,
+    pub huber: f64,
 }
 
 impl DepthPrior {
+    /// A quadratic prior (no robust kernel).
+    pub fn quadratic(idepth: f64, weight: f64) -> Self {
+        Self {
+            idepth,
+            weight,
+            huber: f64::INFINITY,
+        }
+    }
+
+    /// Its normalised residual at `idepth`.
+    fn residual(&self, idepth: f64) -> f64 {
+        self.weight.sqrt() * (idepth - self.idepth)
+    }
+
     /// Its energy at `idepth`.
     pub fn energy(&self, idepth: f64) -> f64 {
-        0.5 * self.weight * (idepth - self.idepth).powi(2)
+        let r = self.residual(idepth).abs();
+        if r <= self.huber {
+            0.5 * self.weight * (idepth - self.idepth).powi(2)
+        } else {
+            self.huber * (r - 0.5 * self.huber)
+        }
+    }
+
+    /// Its Gauss–Newton weight at `idepth` (iteratively reweighted past the Huber width):
+    /// `h_dd += w`, `b_d += w · (idepth − idepth₀)` is the energy's gradient there.
+    pub fn weight_at(&self, idepth: f64) -> f64 {
+        let r = self.residual(idepth).abs();
+        if r <= self.huber {
+            self.weight
+        } else {
+            self.weight * self.huber / r
+        }
     }
 }
 

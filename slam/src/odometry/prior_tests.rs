@@ -60,9 +60,14 @@ fn depth_prior_and_anchor_add_the_gradient_of_their_energy() {
         .iter()
         .enumerate()
         .map(|(i, p)| WindowPoint {
+            // Every other prior robust, half of those past their Huber width.
             prior: Some(DepthPrior {
-                idepth: p.idepth * (1.0 + 0.01 * (i % 7) as f64),
-                weight: 50.0 + i as f64,
+                huber: match i % 4 {
+                    1 => 1e-3,
+                    3 => 1e3,
+                    _ => f64::INFINITY,
+                },
+                ..DepthPrior::quadratic(p.idepth * (1.0 + 0.01 * (i % 7) as f64), 50.0 + i as f64)
             }),
             ..p.clone()
         })
@@ -72,15 +77,27 @@ fn depth_prior_and_anchor_add_the_gradient_of_their_energy() {
     };
     let (e0, b0, d0) = system(&window, &states, &plain, None);
     let (e1, b1, d1) = system(&window, &states, &with_prior, Some(&anchor));
-    // Depths: the prior adds w to h_dd and w·(ρ − ρ₀) to b_d, and ½w(ρ − ρ₀)² to the energy.
+    // Depths: the prior adds its weight w to h_dd and w·(ρ − ρ₀) to b_d, and its energy; the
+    // b_d term is the energy's derivative (numeric), inside the Huber width and past it.
     let mut expected_energy = 0.0;
+    let mut robust = 0;
     for ((p, a), b) in with_prior.iter().zip(&d0).zip(&d1) {
         let prior = p.prior.expect("prior");
-        assert!((b.0 - a.0 - prior.weight).abs() < 1e-6 * b.0.max(1.0));
-        let gradient = prior.weight * (p.idepth - prior.idepth);
+        let w = prior.weight_at(p.idepth);
+        robust += usize::from(w < prior.weight);
+        assert!((b.0 - a.0 - w).abs() < 1e-6 * b.0.max(1.0));
+        let gradient = w * (p.idepth - prior.idepth);
         assert!((b.1 - a.1 - gradient).abs() < 1e-6 * (b.1.abs() + gradient.abs()).max(1.0));
+        let eps = 1e-7 * p.idepth;
+        let numeric = (prior.energy(p.idepth + eps) - prior.energy(p.idepth - eps)) / (2.0 * eps);
+        assert!(
+            (numeric - gradient).abs() < 1e-4 * gradient.abs().max(1e-6),
+            "prior {prior:?} at {}: numeric {numeric}, analytic {gradient}",
+            p.idepth
+        );
         expected_energy += prior.energy(p.idepth);
     }
+    assert!(robust > 0, "no prior past its Huber width");
     // Frames: what the anchor adds to b is the numeric gradient of what it adds to E.
     let added = |s: &[FrameState]| -> f64 {
         system(&window, s, &with_prior, Some(&anchor)).0 - system(&window, s, &plain, None).0

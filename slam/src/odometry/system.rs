@@ -16,6 +16,7 @@ use super::OdometryConfig;
 use super::focal::{FocalSearch, with_focal};
 use super::init::FirstMap;
 use super::mapper::{MapJob, Published, WindowMapper, WindowObserver, WindowSnapshot};
+use super::metric::{MetricModel, MetricPrior};
 use crate::background::{Link, Priority, WorkerSpec};
 use crate::frame::Frame;
 use crate::geometry::SE3;
@@ -124,15 +125,18 @@ impl Odometry {
     /// owes to chance: the core is deterministic, but not stable (docs/tuning.md,
     /// 2026-11-28, third stop).
     pub fn start(config: OdometryConfig, seed: u64, threaded: bool) -> Result<Self> {
-        Self::start_observed(config, seed, threaded, None)
+        Self::start_observed(config, seed, threaded, None, None)
     }
 
-    /// [`Odometry::start`] with an observer of the window after each optimisation.
+    /// [`Odometry::start`] with an observer of the window after each optimisation and a
+    /// metric depth model whose prediction for each keyframe is a weak prior on its points'
+    /// depths ([`super::metric`]).
     pub fn start_observed(
         config: OdometryConfig,
         seed: u64,
         threaded: bool,
         observer: Option<WindowObserver>,
+        metric: Option<MetricModel>,
     ) -> Result<Self> {
         config.validate()?;
         let tracking = TrackingConfig {
@@ -150,7 +154,7 @@ impl Odometry {
         };
         Ok(Self {
             window: Link::new(threaded, spec, move || {
-                WindowMapper::new(mapper_config, seed, observer)
+                WindowMapper::new(mapper_config, seed, observer, metric.map(MetricPrior::new))
             })?,
             tracker: SE3Tracker::new(tracking)?,
             config,

@@ -261,15 +261,11 @@ impl Pipeline {
             .is_some()
             .then(|| UndistortMap::new(&camera));
         let tracker = SE3Tracker::new(config.tracking.clone())?;
-        let odometry = match config.pipeline.frontend {
-            Frontend::Lsd => None,
-            Frontend::Dso if backend.is_some() => {
-                return Err(crate::Error::Config(
-                    "extending a saved map needs pipeline.frontend = \"lsd\"".into(),
-                ));
-            }
-            Frontend::Dso => Some(Box::new(odometry_front::OdometryFront::new(&config)?)),
-        };
+        if config.pipeline.frontend == Frontend::Dso && backend.is_some() {
+            return Err(crate::Error::Config(
+                "extending a saved map needs pipeline.frontend = \"lsd\"".into(),
+            ));
+        }
         let backend = match backend {
             Some(backend) => BackendLink::with_backend(backend, threaded)?,
             None => BackendLink::new(config.backend.clone(), threaded)?,
@@ -297,6 +293,17 @@ impl Pipeline {
         let metric = config.backend.metric_scale.enabled
             && config.pipeline.init == DepthInit::Prior
             && prior.as_ref().is_some_and(crate::dense::layer::is_metric);
+        let odometry = match config.pipeline.frontend {
+            Frontend::Lsd => None,
+            Frontend::Dso => {
+                // The window runs the model on its keyframes only when it uses it.
+                let in_window = metric && config.odometry.metric_prior_weight > 0.0;
+                let model = prior.clone().filter(|_| in_window);
+                Some(Box::new(odometry_front::OdometryFront::new(
+                    &config, model,
+                )?))
+            }
+        };
         let dense_mode = match (&dense, &prior) {
             (None, _) => "off",
             (Some(_), Some(_)) => "prior",

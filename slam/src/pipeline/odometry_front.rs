@@ -24,15 +24,16 @@ use super::Pipeline;
 use super::events::{Event, PoseEvent, TrackingState};
 use super::keyframes::{FrameRecord, KeyframeCandidate};
 use super::mapper::Observation;
+use crate::dense::layer::SharedPrior;
 use crate::frame::Frame;
 use crate::geometry::{SE3, Sim3};
 use crate::image::ImageF32;
 use crate::mapping::DepthFilter;
-use crate::odometry::{FirstKeyframe, FrameOutcome, Odometry};
+use crate::odometry::metric::points_image;
+use crate::odometry::{FirstKeyframe, FrameOutcome, MetricModel, Odometry};
 use crate::{Error, Result};
 
 /// The odometry and what ties its frames and keyframes to the pipeline's.
-#[derive(Debug)]
 pub(super) struct OdometryFront {
     odometry: Odometry,
     /// Where the next first keyframe goes in the world: the identity for the map's first,
@@ -44,21 +45,43 @@ pub(super) struct OdometryFront {
     /// Per pipeline keyframe: the odometry's id of its frame, and the length of one unit of
     /// its depth map in the odometry's units (each keyframe's map is scale-normalised).
     keyframes: Vec<(u64, f64)>,
+    /// The metric depth prior, for every odometry this front end starts.
+    metric: Option<MetricModel>,
+}
+
+impl std::fmt::Debug for OdometryFront {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("OdometryFront")
+            .field("odometry", &self.odometry)
+            .field("keyframes", &self.keyframes.len())
+            .field("metric", &self.metric.is_some())
+            .finish_non_exhaustive()
+    }
 }
 
 impl OdometryFront {
-    pub(super) fn new(config: &super::Config) -> Result<Self> {
+    /// The front end; with a metric depth prior (`metric`), the window's points take the
+    /// prior's depths as weak priors ([`crate::odometry::metric`]).
+    pub(super) fn new(config: &super::Config, metric: Option<SharedPrior>) -> Result<Self> {
+        let metric = metric.map(|prior| -> MetricModel {
+            Arc::new(move |frame: &Frame| match &frame.rgb {
+                Some(rgb) => crate::dense::layer::predict(&prior, rgb).map(Some),
+                None => Ok(None),
+            })
+        });
         Ok(Self {
-            odometry: Self::start(config)?,
+            odometry: Self::start(config, metric.clone())?,
             origin: Sim3::identity(),
             waiting: Vec::new(),
             keyframes: Vec::new(),
+            metric,
         })
     }
 
     /// A new odometry, on its own thread unless `deterministic`.
-    fn start(config: &super::Config) -> Result<Odometry> {
-        Odometry::start(config.odometry.clone(), 0, !config.pipeline.deterministic)
+    fn start(config: &super::Config, metric: Option<MetricModel>) -> Result<Odometry> {
+        let threaded = !config.pipeline.deterministic;
+        Odometry::start_observed(config.odometry.clone(), 0, threaded, None, metric)
     }
 
     /// Waits for the window to finish its queued work (the end of a session).
@@ -158,7 +181,8 @@ impl Pipeline {
     /// constraint to the map (as the LSD front end's fragments, ORB-SLAM3's Atlas).
     fn restart_odometry(&mut self, frame: Arc<Frame>) -> Result<Vec<Event>> {
         let last_seen = self.leave_for_fragment(&frame)?;
-        let odometry = OdometryFront::start(&self.config)?;
+        let metric = self.odometry_front()?.metric.clone();
+        let odometry = OdometryFront::start(&self.config, metric)?;
         let front = self.odometry_front()?;
         front.odometry = odometry;
         front.origin = last_seen;
@@ -215,7 +239,7 @@ impl Pipeline {
     ) -> Result<Vec<Event>> {
         let keyframe = first.frame;
         let mut filter = DepthFilter::new(keyframe.clone(), self.config.mapping.clone())?;
-        let seed = seed_depth(&keyframe, &first.points)?;
+        let seed = points_image(&keyframe, &first.points)?;
         filter.init_from_depth(&seed, self.config.pipeline.prior_init_var)?;
         let prior = self.fill_from_prior(&mut filter)?;
         // The points' mean inverse depth is 1: the map's unit is the odometry's.
@@ -282,21 +306,6 @@ impl Pipeline {
         };
         Ok(crate::metric_scale::observe(depth, prior).map(|o| o.scale()))
     }
-}
-
-/// An inverse-depth image of `keyframe`'s size holding `points` (level-0 pixel, inverse
-/// depth) at their nearest pixels, 0 (no estimate) elsewhere.
-fn seed_depth(keyframe: &Frame, points: &[(nalgebra::Vector2<f64>, f64)]) -> Result<ImageF32> {
-    let level = keyframe.level(0);
-    let (w, h) = (level.width(), level.height());
-    let mut data = vec![0.0f32; w * h];
-    for (uv, idepth) in points {
-        let (x, y) = (uv.x.round(), uv.y.round());
-        if x >= 0.0 && y >= 0.0 && (x as usize) < w && (y as usize) < h && *idepth > 0.0 {
-            data[y as usize * w + x as usize] = *idepth as f32;
-        }
-    }
-    Ok(ImageF32::from_vec(w, h, data)?)
 }
 
 #[cfg(test)]
