@@ -126,9 +126,9 @@ mod tests {
     use crate::dataset::synth::{Scene, SynthConfig, render_frame_with};
 
     /// Per window point that carries the model's prior: its inverse depth over the prior's,
-    /// and the prior's weight times its inverse depth squared; seen over a rendered orbit
-    /// whose model is the true inverse depth in metres.
-    fn metric_points(weight: f64) -> Vec<(f64, f64)> {
+    /// the prior's weight times its inverse depth squared, and its inverse depth over the
+    /// true one in metres; seen over a rendered orbit whose model is the true inverse depth.
+    fn metric_points(weight: f64) -> Vec<(f64, f64, f64)> {
         let synth = SynthConfig {
             width: 640,
             height: 480,
@@ -153,14 +153,20 @@ mod tests {
             let inverse = ImageF32::from_vec(depth.width, depth.height, inverse);
             truth.insert(i as u64, inverse.expect("image"));
         }
+        let truth = Arc::new(truth);
+        let metres = truth.clone();
         let model: MetricModel = Arc::new(move |f: &Frame| Ok(truth.get(&f.id).cloned()));
         let seen = Arc::new(Mutex::new(Vec::new()));
         let sink = seen.clone();
         let observer = WindowObserver(Arc::new(move |window: &super::super::SlidingWindow| {
             let mut sink = sink.lock().expect("lock");
             for p in window.points() {
-                if let Some(prior) = p.prior.filter(|q| q.huber.is_finite()) {
-                    sink.push((p.idepth / prior.idepth, prior.weight * prior.idepth.powi(2)));
+                let true_idepth = sample(&metres[&p.host], &p.uv);
+                if let (Some(prior), Some(t)) =
+                    (p.prior.filter(|q| q.huber.is_finite()), true_idepth)
+                {
+                    let weight = prior.weight * prior.idepth.powi(2);
+                    sink.push((p.idepth / prior.idepth, weight, p.idepth / t));
                 }
             }
         }));
@@ -194,6 +200,11 @@ mod tests {
         );
         assert!((median - 1.0).abs() < 0.05, "median ratio {median}");
         assert!(points.iter().all(|p| (p.1 - 100.0).abs() < 1e-6 * 100.0));
+        // …and that unit is far from the metre, so the conversion was needed.
+        points.sort_by(|a, b| a.2.total_cmp(&b.2));
+        let unit = points[points.len() / 2].2;
+        eprintln!("the window's inverse depth over the metric one: {unit:.4}");
+        assert!((unit - 1.0).abs() > 0.2, "the window's unit is {unit} m⁻¹");
         // Weight 0: the model is not used in the window.
         assert!(metric_points(0.0).is_empty());
     }
