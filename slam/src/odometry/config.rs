@@ -10,9 +10,6 @@ use crate::{Error, Result};
 /// initialiser's work per frame until the hand-over).
 const MAX_FOCAL_CANDIDATES: usize = 8;
 
-/// Default of [`OdometryConfig::metric_prior_weight`].
-const METRIC_PRIOR_WEIGHT: f64 = 0.0;
-
 /// Configuration of [`super::SlidingWindow`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -90,10 +87,10 @@ pub struct OdometryConfig {
     /// model's metres where the photometric terms leave them free); 0: off. Ignored without
     /// a metric model. Off by default: with FastDepth 30 takes redkitchen 0-299 from 0.027 to
     /// 0.019 m, but TUM fr1/rpy (rotation, a poor fit of the model) gets worse from 30 and
-    /// loses its last 62 frames at 100 (docs/tuning.md, 2026-12-07, fiftieth stop).
+    /// loses 62 of its frames at 100 (docs/tuning.md, 2026-12-07, fiftieth stop).
     pub metric_prior_weight: f64,
     /// Relative inverse-depth error past which that prior is linear (Huber): a single-image
-    /// network is wrong by far on some pixels.
+    /// network is wrong by far on some pixels (20 %, not swept).
     pub metric_prior_huber: f64,
 }
 
@@ -121,7 +118,7 @@ impl Default for OdometryConfig {
             init_min_parallax: 0.0,
             focal_candidates: Vec::new(),
             init_two_view: true,
-            metric_prior_weight: METRIC_PRIOR_WEIGHT,
+            metric_prior_weight: 0.0,
             metric_prior_huber: 0.2,
         }
     }

@@ -3,16 +3,20 @@
 //! in the window's units (D3VO, Yang et al. CVPR 2020; CNN-SVO, Loo et al. ICRA 2019).
 //!
 //! Why: a pose-graph factor per keyframe (the back end's metric factor) corrects the scale
-//! after the fact, keyframe by keyframe; in the window the photometric terms leave the scale
-//! free, so it drifts between keyframes and the graph can only pull the whole keyframe. A
-//! prior on each point holds the window's own scale to the model's metres while it is
-//! estimated; weak and Huber-robust, so that the photometric terms keep the depth *shape*
-//! (the model's is poor: 43 % correct on redkitchen) and only the many points' common scale
-//! is anchored.
+//! after the fact, keyframe by keyframe; in the window the photometric terms leave the depths'
+//! scale free, so it drifts from keyframe to keyframe. A prior on each point pulls the depths,
+//! and through them the poses of the keyframes tracked against them, to the model's metres
+//! while they are estimated; weak and Huber-robust, so that the photometric terms keep the
+//! depth *shape* where they measure it (the model's is poor: 43 % correct on redkitchen).
+//! The window's gauge projection is unchanged: keeping the scale out of it (the priors observe
+//! it) made TUM fr1/rpy diverge.
 //!
 //! The window's unit stays the initialiser's (mean inverse depth 1); the model's metres enter
 //! through the first keyframe's scale `s` (`ρ_window = s · ρ_metric`), the median ratio on the
 //! initialiser's points, as the pipeline's first keyframe takes it.
+//!
+//! Off by default ([`OdometryConfig::metric_prior_weight`] 0): it takes redkitchen 0-299 from
+//! 0.027 to 0.019 m but makes fr1/rpy worse (docs/tuning.md, 2026-12-07, fiftieth stop).
 
 use std::sync::Arc;
 
