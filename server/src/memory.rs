@@ -16,7 +16,9 @@
 //! spills that and its dense maps to the session's store (`session::spill`), keeping its
 //! descriptor, pose and graph entries. The fusion keeps the inputs of re-integration up to
 //! `fusion.keyframe_memory_mb` and its voxel blocks up to `fusion.resident_blocks`, and spills
-//! older ones. The estimate below rounds each term up.
+//! older ones. With the DSO-class front end the odometry's own bound (its window thread's queue
+//! of frames, its keyframes' samples and points: 168 MB at 640×480) joins the base. The
+//! estimate below rounds each term up.
 
 use crate::config::Limits;
 
@@ -97,6 +99,10 @@ pub struct MapShape {
     pub fusion_inputs: Option<u64>,
     /// `fusion.resident_blocks`: the voxel blocks the fusion keeps in memory.
     pub fusion_blocks: u64,
+    /// With the DSO-class front end (`pipeline.frontend = "dso"`): the most its odometry
+    /// holds beyond the keyframes (`relfusion_slam::odometry::memory::memory_bound`: the
+    /// window thread's queue of frames, the window's samples and points), part of the base.
+    pub odometry: Option<u64>,
 }
 
 impl SessionCost {
@@ -113,7 +119,8 @@ impl SessionCost {
                     BASE_DENSE
                 } else {
                     0
-                },
+                }
+                + shape.odometry.unwrap_or(0),
             per_keyframe: KEYFRAME_FIXED + KEYFRAME_PER_PIXEL * shape.pixels,
             input: POINTCLOUD_PER_PIXEL * shape.pixels
                 + if fused {
@@ -362,6 +369,7 @@ mod tests {
             held: 24,
             fusion_inputs: Some(512 * MIB),
             fusion_blocks: 16384,
+            odometry: None,
         };
         let vga = SessionCost::estimate(shape(640 * 480, Some(320 * 240)));
         let qvga = SessionCost::estimate(shape(320 * 240, Some(320 * 240)));
@@ -387,6 +395,41 @@ mod tests {
         assert_eq!(capped.keyframes_for(qvga), Ok(20));
     }
 
+    /// The DSO-class front end's odometry is charged in the base: its share holds fewer
+    /// keyframes, and a camera whose odometry alone overflows a share is refused.
+    #[test]
+    fn the_odometry_window_is_charged_in_the_base() {
+        use relfusion_slam::odometry::{OdometryConfig, memory::memory_bound};
+        let window = memory_bound(&OdometryConfig::default(), 640, 480);
+        let shape = |odometry: Option<u64>| MapShape {
+            pixels: 640 * 480,
+            dense_pixels: Some(320 * 240),
+            resident: 8,
+            held: 24,
+            fusion_inputs: Some(512 * MIB),
+            fusion_blocks: 16384,
+            odometry,
+        };
+        let lsd = SessionCost::estimate(shape(None));
+        let dso = SessionCost::estimate(shape(Some(window)));
+        assert_eq!(dso.base, lsd.base + window);
+        assert_eq!(dso.per_keyframe, lsd.per_keyframe);
+        let plan = MemoryPlan::new(&limits(2 * 1024, 1, 0));
+        let (a, b) = (
+            plan.keyframes_for(lsd).expect("fits"),
+            plan.keyframes_for(dso).expect("fits"),
+        );
+        assert!(b < a, "{b} keyframes with the window, {a} without");
+        assert!(dso.at(b) <= plan.share);
+        let tight = MemoryPlan::new(&limits(
+            (PROCESS_BASE + lsd.at(MIN_KEYFRAMES)) / MIB + 1,
+            1,
+            0,
+        ));
+        assert!(tight.keyframes_for(lsd).is_ok());
+        assert!(tight.keyframes_for(dso).is_err());
+    }
+
     #[test]
     fn the_fusion_is_charged_as_its_blocks_grow_up_to_their_bound() {
         let shape = |blocks: u64| MapShape {
@@ -396,6 +439,7 @@ mod tests {
             held: 0,
             fusion_inputs: Some(512 * MIB),
             fusion_blocks: blocks,
+            odometry: None,
         };
         let default = SessionCost::estimate(shape(16384));
         let small = SessionCost::estimate(shape(1024));

@@ -30,6 +30,7 @@ pub mod immature;
 pub mod init;
 pub mod klt;
 pub mod mapper;
+pub mod memory;
 pub mod metric;
 pub mod prior;
 pub mod residual;

@@ -316,6 +316,9 @@ pub struct Interleaved {
 }
 
 impl Interleaved {
+    /// Bytes a pixel takes: its intensity and two gradients, `f32` each.
+    pub const BYTES_PER_PIXEL: usize = std::mem::size_of::<[f32; 3]>();
+
     pub fn new(level: &PyramidLevel) -> Self {
         let data = (level.image.data.iter())
             .zip(&level.gx.data)

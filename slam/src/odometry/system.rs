@@ -25,7 +25,7 @@ use crate::{Error, Result};
 
 /// Jobs the window's thread may have queued before tracking waits for room (DSO's queue is
 /// unbounded; a bounded one keeps a stalled thread from holding every frame in memory).
-const MAP_QUEUE: usize = 16;
+pub const WINDOW_QUEUE: usize = 16;
 /// Longest wait for the window's first keyframe after the initialiser finished.
 const FIRST_KEYFRAME_TIMEOUT: Duration = Duration::from_secs(60);
 
@@ -150,7 +150,7 @@ impl Odometry {
         let spec = WorkerSpec {
             name: "odometry-window",
             priority: Priority::Frame,
-            queue: MAP_QUEUE,
+            queue: WINDOW_QUEUE,
         };
         Ok(Self {
             window: Link::new(threaded, spec, move || {

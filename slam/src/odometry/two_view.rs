@@ -20,7 +20,7 @@ use crate::frame::Frame;
 use crate::geometry::{SE3, SO3};
 
 /// Grid cell (level-0 pixels) of the first frame's corners: about 1200 at 640×480.
-const CORNER_CELL: usize = 16;
+pub const CORNER_CELL: usize = 16;
 /// RANSAC hypotheses (ORB-SLAM: 200 of eight points each).
 const RANSAC_ITERATIONS: usize = 200;
 /// Sampson distance, in pixels, of an inlier (about two standard deviations of tracks that

@@ -24,7 +24,8 @@ use std::time::{Duration, Instant};
 
 use relfusion_proto::http::{MapMode, MapStart};
 use relfusion_slam::geometry::PinholeCamera;
-use relfusion_slam::pipeline::Config as SlamConfig;
+use relfusion_slam::odometry::memory::memory_bound;
+use relfusion_slam::pipeline::{Config as SlamConfig, Frontend};
 
 use super::admission::{
     Admission, NewSession, OwnerHoldings, SharedAdmission, UploadTicket, check_quota,
@@ -294,6 +295,13 @@ impl SessionManager {
                     .enabled
                     .then_some((config.fusion.keyframe_memory_mb * 1024.0 * 1024.0) as u64),
                 fusion_blocks: u64::from(config.fusion.resident_blocks),
+                odometry: (config.pipeline.frontend == Frontend::Dso).then(|| {
+                    memory_bound(
+                        &config.odometry,
+                        camera.width as usize,
+                        camera.height as usize,
+                    )
+                }),
             }))
             .map_err(ApiError::bad_request)
     }

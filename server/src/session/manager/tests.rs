@@ -518,6 +518,24 @@ async fn the_operators_front_end_applies_to_sessions_but_map_extensions() {
         )
         .expect("session");
     assert_eq!(session.meta().config.pipeline.frontend, Frontend::Dso);
+    // Its odometry is charged: the same request under the LSD front end's operator, with the
+    // same share, may map more keyframes.
+    let lsd = SessionManager::open(&temp_config("frontend-lsd", 2), Arc::new(Metrics::new()))
+        .expect("open");
+    let other = lsd
+        .create(
+            SessionRequest::from_http(request()).expect("valid"),
+            &owner("alice"),
+        )
+        .expect("session");
+    let limit = |s: &Session| s.info().max_keyframes.expect("a map limit");
+    assert!(
+        limit(&session) < limit(&other),
+        "{} {}",
+        limit(&session),
+        limit(&other)
+    );
+    lsd.shutdown().await;
     let refused = SessionRequest::from_http(CreateSession {
         config: json!({"pipeline": {"frontend": "dso"}}),
         ..request()
