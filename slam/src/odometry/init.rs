@@ -51,7 +51,7 @@ const COUPLING_WEIGHT: f64 = 1.0;
 /// Frames kept for [`Initialiser::score`] at most: when one more comes, every other is
 /// dropped (the newest kept), so that they span the whole baseline at any length and a
 /// camera that turns in place for minutes holds no more than these.
-const SCORE_FRAMES: usize = 12;
+pub const SCORE_FRAMES: usize = 12;
 /// Gauss–Newton iterations per level of [`Initialiser::score`].
 const SCORE_ITERATIONS: usize = 10;
 /// Frames after the corners' snap ([`TwoView::had_parallax`]) the initialiser waits for their

@@ -10,6 +10,7 @@
 use std::mem::size_of;
 
 use super::immature::ImmaturePoint;
+use super::init::SCORE_FRAMES;
 use super::residual::Interleaved;
 use super::system::WINDOW_QUEUE;
 use super::{OdometryConfig, WindowPoint, two_view};
@@ -49,11 +50,14 @@ pub fn memory_bound(config: &OdometryConfig, width: usize, height: usize) -> u64
     let samples = frames * lw * lh * Interleaved::BYTES_PER_PIXEL;
     let points = frames * config.candidate_points * size_of::<ImmaturePoint>()
         + config.active_points * (size_of::<WindowPoint>() + frames * SOLVE_BYTES_PER_RESIDUAL);
-    // The initialiser: its first and latest frames, and each corner's position in every frame
-    // it follows them through.
+    // The initialiser (one per candidate focal length, on the same frames): the first and
+    // latest frames, each corner's position in every frame it follows them through, and with
+    // several candidates the frames kept to compare them.
+    let initialisers = config.focal_candidates.len().max(1);
     let corners = (width / two_view::CORNER_CELL + 1) * (height / two_view::CORNER_CELL + 1);
-    let initialiser = 2 * frame_bytes(width, height)
-        + (corners * two_view::MAX_FRAMES * size_of::<[f32; 2]>()) as u64;
+    let kept_frames = 2 + if initialisers > 1 { SCORE_FRAMES } else { 0 };
+    let initialiser = kept_frames as u64 * frame_bytes(width, height)
+        + (initialisers * corners * two_view::MAX_FRAMES * size_of::<[f32; 2]>()) as u64;
     queue + (samples + points) as u64 + initialiser
 }
 
@@ -87,5 +91,10 @@ mod tests {
             ..config
         };
         assert!(memory_bound(&wider, w, h) > vga);
+        let compared = OdometryConfig {
+            focal_candidates: vec![0.9, 1.0, 1.1],
+            ..OdometryConfig::default()
+        };
+        assert!(memory_bound(&compared, w, h) > vga + 12 * frame.heap_bytes() as u64);
     }
 }
