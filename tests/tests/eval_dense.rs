@@ -250,6 +250,7 @@ fn eval_dense_depth_scores_each_stage_as_constructed() {
         ("semidense_raw", semi_mean, semi_pooled, e.semi, n),
         ("semidense_filtered", 100.0, 100.0, e.semi, n),
         ("dense", 100.0, 100.0, e.valid_all, n),
+        ("dense_keyframe_scale", 100.0, 100.0, e.valid_all, n),
     ] {
         let s = &stages[stage];
         assert_close(&format!("{stage} mean"), num(s, "percent_mean"), mean, 1e-9);
@@ -264,6 +265,15 @@ fn eval_dense_depth_scores_each_stage_as_constructed() {
     }
     // The raw semi-dense stage is neither all right nor all wrong: the mask matters.
     assert!(semi_mean > 30.0 && semi_mean < 70.0, "{semi_mean}");
+
+    // The densified maps agree with the trajectory's scale: every keyframe's ratio is 1.
+    let ratios = out["dense_scale_ratios"]
+        .as_array()
+        .expect("dense_scale_ratios");
+    assert_eq!(ratios.len(), n, "{out}");
+    for r in ratios {
+        assert_close("ratio", num(r, "ratio"), 1.0, 1e-5);
+    }
 
     // Depth-range slopes, one entry per scored keyframe: the semi-dense map is the truth up to
     // a factor 2 unrelated to depth (slope ≈ 1); the prior 3ρ + 0.7 is compressed (slope < 1);
@@ -371,6 +381,20 @@ fn eval_dense_depth_reports_absent_stages_as_null() {
         assert!(stages[stage].is_null(), "{stage} should be null: {out}");
     }
     assert_eq!(num(&stages["dense"], "percent_mean"), 0.0, "{out}");
+    // Each keyframe at its own scale is right: its depth is 1.25× the trajectory's unit.
+    assert_close(
+        "dense_keyframe_scale",
+        num(&stages["dense_keyframe_scale"], "percent_mean"),
+        100.0,
+        1e-9,
+    );
+    let ratios = out["dense_scale_ratios"]
+        .as_array()
+        .expect("dense_scale_ratios");
+    assert_eq!(ratios.len(), KEYFRAME_FRAMES.len(), "{out}");
+    for r in ratios {
+        assert_close("ratio", num(r, "ratio"), 0.8, 1e-5);
+    }
     assert_eq!(count(&out, "no_model_keyframes"), KEYFRAME_FRAMES.len());
     assert_close("trajectory_scale", num(&out, "trajectory_scale"), 1.0, 1e-9);
 

@@ -23,6 +23,11 @@
 //!   2. `prior_aligned` — `D'_CNN` as the pipeline aligned it to the semi-dense map (eq. 3).
 //!   3. `semidense_raw` / 4. `semidense_filtered` — over the pixels where the map has a value.
 //!   5. `dense` — `OUT/keyframes/<ts>.depth.npy` over every pixel.
+//!   6. `dense_keyframe_scale` — the same maps, each at its own best scale (the median of
+//!      ground truth over estimate) instead of the trajectory's: a probe, not a result. Its
+//!      gap to `dense` is what the disagreement between each keyframe's depth scale and the
+//!      trajectory's costs (scale drift, depth maps propagated in an older unit); the ratio
+//!      of each keyframe's best scale to the trajectory's is listed (1 = they agree).
 //!
 //! Stages 1, 2 and 5 count over every pixel with a valid ground truth (a pixel the stage leaves
 //! without depth is wrong, [`percent_correct_depth`]); the semi-dense stages count over their
@@ -281,6 +286,15 @@ pub struct StageScores {
     pub semidense_raw: Option<StageScore>,
     pub semidense_filtered: Option<StageScore>,
     pub dense: Option<StageScore>,
+    pub dense_keyframe_scale: Option<StageScore>,
+}
+
+/// One keyframe's depth scale against the trajectory's: its densified depth's best scale
+/// (median ground truth over estimate) divided by the trajectory's Sim(3) scale.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct KeyframeScaleRatio {
+    pub timestamp: f64,
+    pub ratio: f64,
 }
 
 /// The JSON `relfusion eval depth --dataset --run` prints.
@@ -307,6 +321,8 @@ pub struct DenseDepthReport {
     /// Per scored keyframe, the depth-range slopes of its raw semi-dense map and raw prior
     /// ([`super::depth_slope`]; 1 = depth ratios right).
     pub depth_range_slopes: Vec<KeyframeSlopes>,
+    /// Per scored keyframe, its depth scale against the trajectory's (stage 6).
+    pub dense_scale_ratios: Vec<KeyframeScaleRatio>,
 }
 
 /// Scores every stage of a run's stored keyframes; see the module docs for the protocol.
@@ -322,7 +338,8 @@ pub fn evaluate_dense_depth(
     }
     let run = DenseRun::open(dataset, run)?;
     let s = run.trajectory_scale();
-    let mut tally: [StageTally; 5] = Default::default();
+    let mut tally: [StageTally; 6] = Default::default();
+    let mut ratios = Vec::new();
     let (mut evaluated, mut without_gt, mut fit_failures) = (0, 0, 0);
     let mut slopes = Vec::new();
     for kf in &run.store.keyframes {
@@ -370,6 +387,16 @@ pub fn evaluate_dense_depth(
         }
         if let Some(dense) = store.read_map(kf, "depth")? {
             add(&mut tally[4], score_depth(&dense, &gt, s, threshold, None)?);
+            if let Some(best) = best_scale(&dense, &gt) {
+                add(
+                    &mut tally[5],
+                    score_depth(&dense, &gt, best, threshold, None)?,
+                );
+                ratios.push(KeyframeScaleRatio {
+                    timestamp: kf.timestamp,
+                    ratio: best / s,
+                });
+            }
         }
         slopes.push(kf_slopes);
     }
@@ -379,6 +406,7 @@ pub fn evaluate_dense_depth(
         semidense_raw,
         semidense_filtered,
         dense,
+        dense_keyframe_scale,
     ] = tally.map(|t| t.score());
     Ok(DenseDepthReport {
         threshold,
@@ -401,9 +429,26 @@ pub fn evaluate_dense_depth(
             semidense_raw,
             semidense_filtered,
             dense,
+            dense_keyframe_scale,
         },
         depth_range_slopes: slopes,
+        dense_scale_ratios: ratios,
     })
+}
+
+/// The scale that brings `depth` onto `gt` at the median pixel (both positive and finite);
+/// `None` when no pixel has both.
+fn best_scale(depth: &ImageF32, gt: &ImageF32) -> Option<f64> {
+    let mut ratios: Vec<f64> = (depth.data.iter().zip(&gt.data))
+        .filter(|(d, g)| d.is_finite() && g.is_finite() && **d > 0.0 && **g > 0.0)
+        .map(|(d, g)| f64::from(*g) / f64::from(*d))
+        .collect();
+    if ratios.is_empty() {
+        return None;
+    }
+    let mid = ratios.len() / 2;
+    let (_, median, _) = ratios.select_nth_unstable_by(mid, f64::total_cmp);
+    Some(*median)
 }
 
 fn add(tally: &mut StageTally, acc: Option<DepthAccuracy>) {
@@ -437,6 +482,18 @@ mod tests {
         assert_eq!(s.percent_mean, 75.0);
         assert!((s.percent_pooled - 95.0).abs() < 1e-12);
         assert_eq!((s.pixels, s.correct, s.keyframes), (20, 19, 2));
+    }
+
+    #[test]
+    fn eval_dense_best_scale_is_the_median_ratio_over_pixels_both_have() {
+        // The estimate is 1.25× the truth on every pixel but one outlier; holes either side.
+        let gt = ImageF32::from_vec(6, 1, vec![1.0, 2.0, 0.0, 3.0, 4.0, 5.0]).expect("gt");
+        let est =
+            ImageF32::from_vec(6, 1, vec![1.25, 2.5, 7.0, f32::NAN, 5.0, 60.0]).expect("estimate");
+        let best = best_scale(&est, &gt).expect("pixels");
+        assert!((best - 0.8).abs() < 1e-6, "{best}");
+        let empty = ImageF32::filled(6, 1, 0.0);
+        assert!(best_scale(&empty, &gt).is_none());
     }
 
     #[test]
