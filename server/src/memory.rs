@@ -396,7 +396,7 @@ mod tests {
     }
 
     /// The DSO-class front end's odometry is charged in the base: its share holds fewer
-    /// keyframes, and a camera whose odometry alone overflows a share is refused.
+    /// keyframes, and a share that just holds an LSD session's smallest map refuses it.
     #[test]
     fn the_odometry_window_is_charged_in_the_base() {
         use relfusion_slam::odometry::{OdometryConfig, memory::memory_bound};

@@ -33,7 +33,8 @@ pub enum EvalCommand {
     /// (`--gt-depth A --est B`) or every dense-layer stage of a run's stored keyframes
     /// (`--dataset DIR --run OUT`: prior fitted to ground truth, prior aligned by the pipeline,
     /// raw and filtered semi-dense on their pixels, densified), scaled by the Sim(3) alignment
-    /// of `OUT/keyframes.txt` to `DIR/groundtruth.txt`.
+    /// of `OUT/keyframes.txt` to `DIR/groundtruth.txt`; and as a probe the densified depth at
+    /// each keyframe's own scale, with each keyframe's ratio to the trajectory's.
     Depth(DepthArgs),
     /// The paper's Table II: re-densify a run's stored keyframes (`OUT/keyframes/`, written
     /// with their stage maps) with each combination of energy terms and score each result like
