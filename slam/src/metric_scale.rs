@@ -59,7 +59,7 @@ pub fn observe(keyframe: &ImageF32, prior: &ImageF32) -> Option<ScaleObservation
 }
 
 /// The median (the mean of the two middle values for an even count); reorders `values`.
-fn median(values: &mut [f64]) -> Option<f64> {
+pub(crate) fn median(values: &mut [f64]) -> Option<f64> {
     let n = values.len();
     if n == 0 {
         return None;

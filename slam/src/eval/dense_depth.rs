@@ -443,12 +443,7 @@ fn best_scale(depth: &ImageF32, gt: &ImageF32) -> Option<f64> {
         .filter(|(d, g)| d.is_finite() && g.is_finite() && **d > 0.0 && **g > 0.0)
         .map(|(d, g)| f64::from(*g) / f64::from(*d))
         .collect();
-    if ratios.is_empty() {
-        return None;
-    }
-    let mid = ratios.len() / 2;
-    let (_, median, _) = ratios.select_nth_unstable_by(mid, f64::total_cmp);
-    Some(*median)
+    crate::metric_scale::median(&mut ratios)
 }
 
 fn add(tally: &mut StageTally, acc: Option<DepthAccuracy>) {
